@@ -1,0 +1,358 @@
+"""ROS 2 message and service types: definitions, CDR codec and RIHS01 type hashes.
+
+Message definitions come from the ROS 2 Jazzy type store of ``rosbags``; service definitions
+(which that store lacks) and msctl's own types are shipped as ``.srv``/``.msg`` text under
+``interfaces/`` and registered at start. Project code may register more from text.
+
+Type hashes follow REP 2011 and are computed here, not by ``rosbags``: its routine maps
+``char`` to FIELD_TYPE_CHAR, whereas ROS maps a ``.msg`` ``char`` to IDL ``uint8``, which
+breaks every service hash (``service_msgs/msg/ServiceEventInfo`` has a ``char[16]``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.base import Nodetype
+
+_INTERFACES = Path(__file__).with_name("interfaces")
+
+# REP 2011 / type_description_interfaces FieldType ids.
+_NESTED = 1
+_BASE_IDS: dict[str, int] = {
+    "int8": 2,
+    "uint8": 3,
+    "int16": 4,
+    "uint16": 5,
+    "int32": 6,
+    "uint32": 7,
+    "int64": 8,
+    "uint64": 9,
+    "float32": 10,
+    "float64": 11,
+    "float128": 12,
+    # A .msg `char` is IDL `uint8` (rosidl_adapter), so it hashes as UINT8, not CHAR (13).
+    "char": 3,
+    "wchar": 14,
+    "bool": 15,
+    "byte": 16,
+    "octet": 16,
+    "string": 17,
+    "wstring": 18,
+}
+_BOUNDED_STRING = {"string": 21, "wstring": 22}
+_ARRAY, _BOUNDED_SEQUENCE, _UNBOUNDED_SEQUENCE = 48, 96, 144
+
+
+class UnknownTypeError(LookupError):
+    """A message or service type that no definition is registered for."""
+
+
+@dataclass(frozen=True)
+class ServiceParts:
+    """The three message types a service is made of (names in ``pkg/srv/Name_X`` form)."""
+
+    request: str
+    response: str
+    event: str
+
+
+def normalize_type_name(name: str) -> str:
+    """Return the canonical ``pkg/msg/Name`` form of a type name.
+
+    Accepts ``pkg/msg/Name``, ``pkg/srv/Name``, ``pkg/Name`` (taken as a message) and the DDS
+    form ``pkg::msg::dds_::Name_``.
+
+    Raises:
+        UnknownTypeError: If the name has none of those shapes.
+    """
+    text = name.strip().strip("/")
+    if "::" in text:
+        parts = [p for p in text.split("::") if p != "dds_"]
+        if len(parts) == 3 and parts[2].endswith("_"):
+            return f"{parts[0]}/{parts[1]}/{parts[2][:-1]}"
+        raise UnknownTypeError(f"malformed DDS type name {name!r}")
+    parts = text.split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    if len(parts) == 3 and parts[1] in ("msg", "srv", "action"):
+        return text
+    raise UnknownTypeError(
+        f"malformed type name {name!r}: expected 'package/msg/Name' or 'package/srv/Name'"
+    )
+
+
+def dds_type_name(name: str) -> str:
+    """The DDS name rmw_zenoh puts in keys: ``sensor_msgs::msg::dds_::JointState_``."""
+    pkg, kind, short = normalize_type_name(name).split("/")
+    return f"{pkg}::{kind}::dds_::{short}_"
+
+
+class TypeRegistry:
+    """All message and service types known to this process, with codec and hashes.
+
+    Thread-safe for reads; registrations take a lock. Use :func:`registry` for the shared one.
+    """
+
+    def __init__(self) -> None:
+        self._store = get_typestore(Stores.ROS2_JAZZY)
+        self._lock = threading.Lock()
+        self._services: dict[str, ServiceParts] = {}
+        self._hashes: dict[str, str] = {}
+        self._load_bundled()
+
+    # ----------------------------------------------------------------- registration
+    def _load_bundled(self) -> None:
+        msgs = sorted(_INTERFACES.glob("*/msg/*.msg"))
+        srvs = sorted(_INTERFACES.glob("*/srv/*.srv"))
+        for path in msgs:
+            self.register_msg(f"{path.parent.parent.name}/msg/{path.stem}", path.read_text())
+        for path in srvs:
+            self.register_srv(f"{path.parent.parent.name}/srv/{path.stem}", path.read_text())
+
+    def register_msg(self, name: str, text: str) -> None:
+        """Register a message type from ``.msg`` text (idempotent for the same name).
+
+        Raises:
+            ValueError: If the text does not parse as a ``.msg`` definition.
+        """
+        name = normalize_type_name(name)
+        with self._lock:
+            if name in self._store.fielddefs:
+                return
+            if not _has_fields(text):
+                # rosidl gives an empty structure one uint8 member; CDR and hash both see it.
+                text = "uint8 structure_needs_at_least_one_member\n"
+            try:
+                types = get_types_from_msg(text, name)
+            except Exception as exc:
+                raise ValueError(f"cannot parse the definition of {name}: {exc}") from exc
+            self._store.register(_fix_srv_names(types))
+            self._hashes.clear()
+
+    def register_srv(self, name: str, text: str) -> None:
+        """Register a service type from ``.srv`` text: request, response and event messages.
+
+        Raises:
+            ValueError: If the text is not ``request --- response``.
+        """
+        name = normalize_type_name(name)
+        pkg, kind, short = name.split("/")
+        if kind != "srv":
+            raise ValueError(f"{name} is not a service name (expected 'package/srv/Name')")
+        sections = _split_srv(text)
+        if len(sections) != 2:
+            raise ValueError(f"the definition of {name} must have one '---' separator")
+        request, response = (f"{pkg}/srv/{short}_Request", f"{pkg}/srv/{short}_Response")
+        event = f"{pkg}/srv/{short}_Event"
+        event_text = (
+            "service_msgs/msg/ServiceEventInfo info\n"
+            f"{pkg}/srv/{short}_Request[<=1] request\n"
+            f"{pkg}/srv/{short}_Response[<=1] response\n"
+        )
+        for part, body in ((request, sections[0]), (response, sections[1])):
+            self.register_msg(part, body)
+        self.register_msg(event, event_text)
+        with self._lock:
+            self._services[name] = ServiceParts(request, response, event)
+            self._hashes.pop(name, None)
+
+    # ----------------------------------------------------------------- queries
+    def known(self, name: str) -> bool:
+        """Whether a message or service type of that name is registered."""
+        try:
+            canonical = normalize_type_name(name)
+        except UnknownTypeError:
+            return False
+        return canonical in self._store.fielddefs or canonical in self._services
+
+    def message_names(self) -> list[str]:
+        """Every registered message type name."""
+        return sorted(self._store.fielddefs)
+
+    def service_names(self) -> list[str]:
+        """Every registered service type name."""
+        return sorted(self._services)
+
+    def service(self, name: str) -> ServiceParts:
+        """The request/response/event message names of a service type.
+
+        Raises:
+            UnknownTypeError: If the service is not registered.
+        """
+        canonical = normalize_type_name(name)
+        try:
+            return self._services[canonical]
+        except KeyError:
+            raise UnknownTypeError(
+                f"unknown service type {name!r}; known: {', '.join(self.service_names())}"
+            ) from None
+
+    def msg_class(self, name: str) -> type:
+        """The dataclass of a message type (construct messages with it).
+
+        Raises:
+            UnknownTypeError: If the type is not registered.
+        """
+        canonical = self._require_msg(name)
+        return self._store.types[canonical]
+
+    def fields(self, name: str) -> list[tuple[str, Any]]:
+        """The (field name, rosbags field description) pairs of a message type."""
+        return list(self._store.fielddefs[self._require_msg(name)][1])
+
+    def serialize(self, message: Any, name: str) -> bytes:
+        """CDR bytes (with the 4-byte encapsulation header) of a message."""
+        return bytes(self._store.serialize_cdr(message, self._require_msg(name)))
+
+    def deserializer(self, name: str) -> Callable[[bytes], Any]:
+        """A fast bound decoder for one type (used on hot receive paths)."""
+        canonical = self._require_msg(name)
+        store = self._store
+        return lambda data: store.deserialize_cdr(data, canonical)
+
+    def serializer(self, name: str) -> Callable[[Any], bytes]:
+        """A fast bound encoder for one type (used on hot publish paths)."""
+        canonical = self._require_msg(name)
+        store = self._store
+        return lambda message: store.serialize_cdr(message, canonical)
+
+    def deserialize(self, data: bytes, name: str) -> Any:
+        """Decode CDR bytes (with header) into a message object."""
+        return self._store.deserialize_cdr(data, self._require_msg(name))
+
+    def type_hash(self, name: str) -> str:
+        """The ``RIHS01_<sha256 hex>`` hash of a message or service type (REP 2011)."""
+        canonical = normalize_type_name(name)
+        cached = self._hashes.get(canonical)
+        if cached is not None:
+            return cached
+        if canonical in self._services:
+            description = self._service_description(canonical)
+        else:
+            self._require_msg(canonical)
+            description = self._message_description(canonical)
+        referenced: dict[str, dict[str, Any]] = {}
+        self._collect_references(description, referenced)
+        document = {
+            "type_description": description,
+            "referenced_type_descriptions": [referenced[k] for k in sorted(referenced)],
+        }
+        text = json.dumps(document, separators=(", ", ": "), ensure_ascii=True)
+        digest = "RIHS01_" + hashlib.sha256(text.encode()).hexdigest()
+        self._hashes[canonical] = digest
+        return digest
+
+    # ----------------------------------------------------------------- internals
+    def _require_msg(self, name: str) -> str:
+        canonical = normalize_type_name(name)
+        if canonical not in self._store.fielddefs:
+            if canonical in self._services:
+                raise UnknownTypeError(
+                    f"{canonical} is a service type; use it with a service, not a topic"
+                )
+            raise UnknownTypeError(
+                f"unknown message type {name!r} (not in the ROS 2 Jazzy set nor registered); "
+                "check the spelling, e.g. 'sensor_msgs/msg/JointState'"
+            )
+        return canonical
+
+    def _message_description(self, name: str) -> dict[str, Any]:
+        _, fields = self._store.fielddefs[name]
+        described = [
+            {"name": field, "type": _field_type(desc)} for field, desc in fields
+        ] or [{"name": "structure_needs_at_least_one_member", "type": _plain(3)}]
+        return {"type_name": name, "fields": described}
+
+    def _service_description(self, name: str) -> dict[str, Any]:
+        parts = self._services[name]
+        return {
+            "type_name": name,
+            "fields": [
+                {"name": "request_message", "type": _plain(_NESTED, nested=parts.request)},
+                {"name": "response_message", "type": _plain(_NESTED, nested=parts.response)},
+                {"name": "event_message", "type": _plain(_NESTED, nested=parts.event)},
+            ],
+        }
+
+    def _collect_references(
+        self, description: dict[str, Any], found: dict[str, dict[str, Any]]
+    ) -> None:
+        for field in description["fields"]:
+            nested = field["type"]["nested_type_name"]
+            if nested and nested not in found:
+                found[nested] = self._message_description(nested)
+                self._collect_references(found[nested], found)
+
+
+def _plain(type_id: int, capacity: int = 0, string_capacity: int = 0, nested: str = "") -> dict:
+    return {
+        "type_id": type_id,
+        "capacity": capacity,
+        "string_capacity": string_capacity,
+        "nested_type_name": nested,
+    }
+
+
+def _field_type(desc: Any) -> dict[str, Any]:
+    node, detail = desc
+    if node in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        inner, size = detail
+        base = _field_type(inner)
+        if node == Nodetype.ARRAY:
+            offset = _ARRAY
+        else:
+            offset = _BOUNDED_SEQUENCE if size else _UNBOUNDED_SEQUENCE
+        base["type_id"] += offset
+        base["capacity"] = size
+        return base
+    if node == Nodetype.NAME:
+        return _plain(_NESTED, nested=detail)
+    base_name, bound = detail
+    if bound and base_name in _BOUNDED_STRING:
+        return _plain(_BOUNDED_STRING[base_name], string_capacity=bound)
+    try:
+        return _plain(_BASE_IDS[base_name])
+    except KeyError:
+        raise UnknownTypeError(f"unsupported primitive type {base_name!r}") from None
+
+
+def _has_fields(text: str) -> bool:
+    return any(line.split("#", 1)[0].strip() for line in text.splitlines())
+
+
+def _fix_srv_names(types: dict[str, Any]) -> dict[str, Any]:
+    """rosbags files ``pkg/srv/X`` parts as ``pkg/srv/msg/X``; put them back where ROS has them."""
+
+    def fix(value: Any) -> Any:
+        if isinstance(value, str):
+            return value.replace("/srv/msg/", "/srv/")
+        if isinstance(value, tuple | list):
+            return type(value)(fix(v) for v in value)
+        return value
+
+    return {fix(name): fix(definition) for name, definition in types.items()}
+
+
+def _split_srv(text: str) -> list[str]:
+    sections: list[list[str]] = [[]]
+    for line in text.splitlines():
+        if line.strip() == "---":
+            sections.append([])
+        else:
+            sections[-1].append(line)
+    return ["\n".join(lines) + "\n" for lines in sections]
+
+
+@cache
+def registry() -> TypeRegistry:
+    """The process-wide type registry (built on first use)."""
+    return TypeRegistry()

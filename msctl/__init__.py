@@ -1,0 +1,3 @@
+"""msctl: the field-operations toolkit for modular, multi-computer robots."""
+
+__version__ = "0.1.0"

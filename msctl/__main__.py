@@ -1,0 +1,5 @@
+"""Allow ``python -m msctl``."""
+
+from msctl.cli import main
+
+main()

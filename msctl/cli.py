@@ -1,0 +1,96 @@
+"""The ``msctl`` command line: one typer app, one module per command group.
+
+Heavy imports (zenoh, mujoco, pinocchio) stay inside command bodies so ``msctl --help`` is
+instant. Every failure goes through :func:`main`, which prints one clear line.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+import typer
+
+from msctl.errors import MsctlError
+
+app = typer.Typer(
+    name="msctl",
+    help="Field operations for modular, multi-computer robots: assemble, launch, monitor, "
+    "teleoperate and record, over a ROS 2-compatible Zenoh data plane.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+# Command groups and single commands, registered by module name so that adding a command is
+# adding a module. Each module exposes ``app`` (a group) or ``command`` (a single command).
+_GROUPS: dict[str, str] = {
+    "topic": "msctl.commands.topic",
+    "node": "msctl.commands.node",
+    "service": "msctl.commands.service",
+    "assemble": "msctl.commands.assemble",
+}
+_COMMANDS: dict[str, str] = {
+    "router": "msctl.commands.router",
+}
+
+
+def _register() -> None:
+    for name, module_name in _GROUPS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue  # a command group not written yet
+            raise
+        app.add_typer(module.app, name=name)
+    for name, module_name in _COMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue
+            raise
+        app.command(name=name, **getattr(module, "COMMAND_SETTINGS", {}))(module.command)
+
+
+_register()
+
+
+def main() -> None:
+    """Entry point: run the app and turn project errors into one red line and an exit code."""
+    from msctl.console import err
+
+    try:
+        app(standalone_mode=False)
+    except MsctlError as exc:
+        if os.environ.get("MSCTL_DEBUG") == "1":
+            err.print_exception()
+        err.print(f"[bold red]error:[/] {exc}", highlight=False)
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        err.print("[yellow]interrupted[/]")
+        sys.exit(130)
+    except (typer.Exit, SystemExit) as exc:
+        code = getattr(exc, "exit_code", None)
+        if code is None:
+            code = getattr(exc, "code", 0)
+        sys.exit(code or 0)
+    except typer.Abort:
+        err.print("[yellow]aborted[/]")
+        sys.exit(1)
+    except Exception as exc:  # click usage errors and the like
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        if os.environ.get("MSCTL_DEBUG") == "1":
+            raise
+        err.print(
+            f"[bold red]internal error:[/] {type(exc).__name__}: {exc} "
+            "(run again with MSCTL_DEBUG=1 for the traceback, and report it)",
+            highlight=False,
+        )
+        sys.exit(70)
