@@ -1,0 +1,77 @@
+"""An Interface declares, as data, how a Core meets the data plane.
+
+Names are relative to the component's namespace (``joint_set`` in namespace ``/limb1`` is
+``/limb1/joint_set``); a name starting with ``/`` is absolute. Handlers are named by method
+so that the declaration stays data and the Core stays free of any transport.
+
+Handler signatures:
+    Subscribe: ``handler(message, now) -> None``
+    Serve: ``handler(request, now) -> response``
+    Every: ``handler(now) -> None``
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from components.comm.qos import QoS
+
+
+@dataclass(frozen=True)
+class Subscribe:
+    """The core reads ``topic`` of ``msg_type``; samples go to ``handler``."""
+
+    topic: str
+    msg_type: str
+    handler: str
+    qos: QoS = field(default_factory=QoS)
+
+
+@dataclass(frozen=True)
+class Publish:
+    """The core writes ``topic`` of ``msg_type``."""
+
+    topic: str
+    msg_type: str
+    qos: QoS = field(default_factory=QoS)
+
+
+@dataclass(frozen=True)
+class Serve:
+    """The core answers service ``service`` of ``srv_type`` with ``handler``."""
+
+    service: str
+    srv_type: str
+    handler: str
+
+
+@dataclass(frozen=True)
+class Every:
+    """The executor calls ``handler`` every ``period`` seconds."""
+
+    period: float
+    handler: str
+
+
+@dataclass(frozen=True)
+class InterfaceSpec:
+    """Everything a core reads, writes, serves and ticks on."""
+
+    subscribe: tuple[Subscribe, ...] = ()
+    publish: tuple[Publish, ...] = ()
+    serve: tuple[Serve, ...] = ()
+    every: tuple[Every, ...] = ()
+
+    def output(self, topic: str) -> Publish:
+        """The declared output for ``topic``.
+
+        Raises:
+            KeyError: If the core never declared that output.
+        """
+        for declared in self.publish:
+            if declared.topic == topic:
+                return declared
+        raise KeyError(
+            f"output {topic!r} is not declared by this interface; "
+            f"declared: {[p.topic for p in self.publish]}"
+        )

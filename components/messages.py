@@ -1,0 +1,206 @@
+"""Small, typed helpers for the standard ROS 2 messages msctl cores use.
+
+Cores build and read messages through these so that the conventions (SI units, empty arrays
+meaning "not given", stamps as ``builtin_interfaces/Time``) live in one place.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from components.comm.types import registry
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TRIGGER = "std_srvs/srv/Trigger"
+
+#: diagnostic_msgs/DiagnosticStatus levels.
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
+
+
+def msg(type_name: str, **fields: Any) -> Any:
+    """Construct any registered message with the given fields (others at their defaults)."""
+    cls = registry().msg_class(type_name)
+    return cls(**{**_defaults(type_name), **fields})
+
+
+def _defaults(type_name: str) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    for name, desc in registry().fields(type_name):
+        values[name] = _default_for(desc)
+    return values
+
+
+def _default_for(desc: Any) -> Any:
+    from rosbags.typesys.base import Nodetype
+
+    node, detail = desc
+    if node == Nodetype.BASE:
+        base = detail[0]
+        if base in ("string", "wstring"):
+            return ""
+        if base == "bool":
+            return False
+        if base in ("float32", "float64"):
+            return 0.0
+        return 0
+    if node == Nodetype.NAME:
+        return msg(detail)
+    inner, size = detail
+    if inner[0] == Nodetype.BASE and inner[1][0] not in ("string", "wstring", "bool"):
+        dtype = _NUMPY_TYPES.get(inner[1][0], np.float64)
+        return np.zeros(size if node == Nodetype.ARRAY else 0, dtype=dtype)
+    if node == Nodetype.ARRAY:
+        return [_default_for(inner) for _ in range(size)]
+    return []
+
+
+_NUMPY_TYPES = {
+    "float64": np.float64,
+    "float32": np.float32,
+    "int8": np.int8,
+    "uint8": np.uint8,
+    "char": np.uint8,
+    "byte": np.uint8,
+    "octet": np.uint8,
+    "int16": np.int16,
+    "uint16": np.uint16,
+    "int32": np.int32,
+    "uint32": np.uint32,
+    "int64": np.int64,
+    "uint64": np.uint64,
+}
+
+
+def to_time(seconds: float) -> Any:
+    """A ``builtin_interfaces/Time`` for a float number of seconds."""
+    sec = math.floor(seconds)
+    return msg("builtin_interfaces/msg/Time", sec=int(sec), nanosec=int((seconds - sec) * 1e9))
+
+
+def from_time(stamp: Any) -> float:
+    """Seconds as a float from a ``builtin_interfaces/Time``."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def header(stamp: float, frame_id: str = "") -> Any:
+    """A ``std_msgs/Header``."""
+    return msg("std_msgs/msg/Header", stamp=to_time(stamp), frame_id=frame_id)
+
+
+class JointSample(NamedTuple):
+    """One joint's entry in a JointState; ``None`` where the message did not carry that field."""
+
+    name: str
+    position: float | None = None
+    velocity: float | None = None
+    effort: float | None = None
+
+
+def joint_state(samples: Iterable[JointSample], stamp: float = 0.0, frame_id: str = "") -> Any:
+    """Build one JointState from samples that all carry the same fields.
+
+    A field (position, velocity, effort) is carried when the samples have it; an empty array
+    means "not given", as in ROS. NaN is never invented for a missing value, because receivers
+    (the joint manager) refuse NaN as a bad value.
+
+    Raises:
+        ValueError: If some samples carry a field and others do not (use
+            :func:`joint_state_batches` for mixed samples).
+    """
+    rows = list(samples)
+    columns = []
+    for index, field in ((1, "position"), (2, "velocity"), (3, "effort")):
+        values = [s[index] for s in rows]
+        given = [v is not None for v in values]
+        if any(given) and not all(given):
+            raise ValueError(
+                f"joint_state: {field} is given for some joints and not others; "
+                "send them as separate messages (joint_state_batches)"
+            )
+        columns.append(
+            np.array(values, dtype=np.float64) if rows and all(given) else np.zeros(0)
+        )
+    return msg(
+        JOINT_STATE,
+        header=header(stamp, frame_id),
+        name=[s.name for s in rows],
+        position=columns[0],
+        velocity=columns[1],
+        effort=columns[2],
+    )
+
+
+def joint_state_batches(
+    samples: Iterable[JointSample], stamp: float = 0.0, frame_id: str = ""
+) -> list[Any]:
+    """JointStates for mixed samples: one message per set of carried fields, in order."""
+    groups: dict[tuple[bool, bool, bool], list[JointSample]] = {}
+    for sample in samples:
+        key = (sample.position is not None, sample.velocity is not None, sample.effort is not None)
+        groups.setdefault(key, []).append(sample)
+    return [joint_state(rows, stamp, frame_id) for rows in groups.values()]
+
+
+def joint_samples(message: Any) -> list[JointSample]:
+    """Read a JointState into samples; empty or short arrays mean "not given".
+
+    ROS allows position/velocity/effort arrays to be empty; a non-empty array shorter than
+    ``name`` is malformed, and its missing entries are read as not given rather than guessed.
+    """
+    names: Sequence[str] = message.name
+    pos, vel, eff = message.position, message.velocity, message.effort
+    out = []
+    for i, name in enumerate(names):
+        out.append(
+            JointSample(
+                name,
+                float(pos[i]) if i < len(pos) else None,
+                float(vel[i]) if i < len(vel) else None,
+                float(eff[i]) if i < len(eff) else None,
+            )
+        )
+    return out
+
+
+def diagnostic_status(
+    name: str,
+    level: int,
+    message: str,
+    hardware_id: str = "",
+    values: Mapping[str, Any] | None = None,
+) -> Any:
+    """A ``diagnostic_msgs/DiagnosticStatus`` with key/value pairs as strings."""
+    pairs = [
+        msg("diagnostic_msgs/msg/KeyValue", key=str(k), value=str(v))
+        for k, v in (values or {}).items()
+    ]
+    return msg(
+        "diagnostic_msgs/msg/DiagnosticStatus",
+        level=int(level),
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=pairs,
+    )
+
+
+def diagnostic_array(statuses: Iterable[Any], stamp: float = 0.0) -> Any:
+    """A ``diagnostic_msgs/DiagnosticArray`` of statuses."""
+    return msg(DIAGNOSTIC_ARRAY, header=header(stamp), status=list(statuses))
+
+
+def diagnostic_values(status: Any) -> dict[str, str]:
+    """The key/value pairs of a DiagnosticStatus as a dict."""
+    return {kv.key: kv.value for kv in status.values}
+
+
+def trigger_response(success: bool, message: str = "") -> Any:
+    """A ``std_srvs/Trigger`` response."""
+    return msg("std_srvs/srv/Trigger_Response", success=success, message=message)
