@@ -63,7 +63,8 @@ def main() -> None:
     from msctl.console import err
 
     try:
-        app(standalone_mode=False)
+        # Standalone mode: typer prints its own usage errors and exits with code 2.
+        app()
     except MsctlError as exc:
         if os.environ.get("MSCTL_DEBUG") == "1":
             err.print_exception()
@@ -72,20 +73,7 @@ def main() -> None:
     except KeyboardInterrupt:
         err.print("[yellow]interrupted[/]")
         sys.exit(130)
-    except (typer.Exit, SystemExit) as exc:
-        code = getattr(exc, "exit_code", None)
-        if code is None:
-            code = getattr(exc, "code", 0)
-        sys.exit(code or 0)
-    except typer.Abort:
-        err.print("[yellow]aborted[/]")
-        sys.exit(1)
-    except Exception as exc:  # click usage errors and the like
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
+    except Exception as exc:
         if os.environ.get("MSCTL_DEBUG") == "1":
             raise
         err.print(
