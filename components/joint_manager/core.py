@@ -1,0 +1,855 @@
+"""The Joint Manager core: the one gate between the motor interface and everything above it.
+
+Raw joint space (``joint_states`` in, ``joint_commands`` out) faces the motor interface;
+calibrated joint space (``joint_set`` in, ``joint_read`` out) faces the API, kinematics and
+teleop. Between the two the core applies the unit's calibration, clamps every command to the
+URDF limits, refuses what it cannot make safe, and stops the joints by itself when commands
+stop arriving (the watchdog). Nothing out of limits is ever published on ``joint_commands``.
+
+Robot specifics never appear here. They come in through a few documented hook points that
+injections and overrides use (see :class:`JointManagerCore`):
+
+* :meth:`JointManagerCore.add_command_filter`: a per-joint chain that may rewrite or refuse
+  a calibrated command before it is clamped (clamping always runs last, so no filter can
+  push a command out of limits).
+* :meth:`JointManagerCore.pin`: hold a joint at a fixed position (reported as *locked*).
+* :meth:`JointManagerCore.set_calibration`: change a joint's calibration at runtime.
+* :attr:`JointManagerCore.extra_serve`: services an injection adds, bound by the executor
+  in addition to the static :data:`~components.joint_manager.interface.JOINT_MANAGER` spec.
+
+The core keeps all state on the instance: several managers in one process share nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from components.executor.core import Core
+from components.executor.interface import Serve
+from components.joints import JointCalibration, JointSpec
+from components.messages import (
+    ERROR,
+    OK,
+    STALE,
+    WARN,
+    JointSample,
+    diagnostic_array,
+    diagnostic_status,
+    joint_samples,
+    joint_state_batches,
+    msg,
+    trigger_response,
+)
+
+LIST_JOINTS_RESPONSE = "msctl_msgs/srv/ListJoints_Response"
+JOINT_INFO = "msctl_msgs/msg/JointInfo"
+
+#: Counters every manager exposes (filters may add their own names).
+COUNTERS = (
+    "refused_nan",
+    "refused_unknown",
+    "refused_other_module",
+    "refused_locked",
+    "refused_halted",
+    "refused_no_state",
+    "clamped",
+    "watchdog_trips",
+    "feedback_rejected",
+)
+
+
+@dataclass(frozen=True)
+class JointManagerConfig:
+    """Tuning of one joint manager. Lengths are rad for revolute joints and m for prismatic.
+
+    Attributes:
+        position_margin: Distance kept from each URDF position limit: commands are clamped to
+            ``[lower + margin, upper - margin]``.
+        watchdog_timeout: Seconds without a command for a moving joint before the watchdog
+            stops it (velocity 0, position held where it is).
+        read_position_threshold: Position change (calibrated) that publishes ``joint_read``
+            at once.
+        read_velocity_threshold: Velocity change that publishes ``joint_read`` at once; also
+            the speed above which a position-commanded joint counts as moving.
+        read_effort_threshold: Effort change that publishes ``joint_read`` at once.
+        keepalive_period: Seconds between full ``joint_read`` publications when nothing
+            changes, so a still robot does not flood the radio yet subscribers see it alive.
+        velocity_limit_lookahead: A velocity-only command that would cross a limit (minus the
+            margin) within this many seconds, from the measured position, becomes a hold.
+        settle_tolerance: A position-commanded joint farther than this from its target still
+            counts as moving for the watchdog.
+        diagnostics_period: Seconds between ``diagnostics`` publications.
+        stale_timeout: A joint whose latest ``joint_states`` is older than this is STALE: it
+            is left out of keep-alives, and velocity commands to a bounded joint are refused
+            (its position is no longer known well enough to keep it within limits).
+        warn_window: A clamp or refusal keeps the manager (and that joint) at WARN for this
+            many seconds.
+    """
+
+    position_margin: float = 0.02
+    watchdog_timeout: float = 0.5
+    read_position_threshold: float = 1e-3
+    read_velocity_threshold: float = 1e-2
+    read_effort_threshold: float = 1e-2
+    keepalive_period: float = 1.0
+    velocity_limit_lookahead: float = 0.1
+    settle_tolerance: float = 1e-2
+    diagnostics_period: float = 1.0
+    stale_timeout: float = 1.0
+    warn_window: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "watchdog_timeout",
+            "keepalive_period",
+            "diagnostics_period",
+            "stale_timeout",
+        ):
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"JointManagerConfig.{name} must be > 0, not {getattr(self, name)}"
+                )
+        for name in (
+            "position_margin",
+            "read_position_threshold",
+            "read_velocity_threshold",
+            "read_effort_threshold",
+            "velocity_limit_lookahead",
+            "settle_tolerance",
+            "warn_window",
+        ):
+            if not getattr(self, name) >= 0:
+                raise ValueError(
+                    f"JointManagerConfig.{name} must be >= 0, not {getattr(self, name)}"
+                )
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """What a command filter returns to refuse a command.
+
+    Attributes:
+        counter: Counter to increment (an existing one such as ``refused_locked``, or a new
+            name, which then appears in :attr:`JointManagerCore.counters` and diagnostics).
+        reason: Human text for diagnostics, naming the joint and what to do.
+    """
+
+    counter: str
+    reason: str
+
+
+#: A command filter: receives a calibrated command (fields ``None`` when not given) and
+#: ``now``; returns the command to go on with (possibly rewritten) or a :class:`Refusal`.
+CommandFilter = Callable[[JointSample, float], "JointSample | Refusal"]
+
+# Command modes, per joint: what the last accepted command asked of the motor.
+_IDLE, _POSITION, _VELOCITY, _EFFORT, _HOLD = "idle", "position", "velocity", "effort", "hold"
+
+
+class _Joint:
+    """Mutable per-joint state (slots: this is touched at every message)."""
+
+    __slots__ = (
+        "cal",
+        "effort",
+        "filters",
+        "hi",
+        "last_clamp",
+        "last_command",
+        "last_refusal",
+        "lo",
+        "local",
+        "mode",
+        "note",
+        "pin",
+        "pin_note",
+        "position",
+        "pub_effort",
+        "pub_position",
+        "pub_velocity",
+        "raw_position",
+        "seen",
+        "spec",
+        "target_raw",
+        "velocity",
+    )
+
+    def __init__(self, spec: JointSpec, local: str, cal: JointCalibration, margin: float) -> None:
+        self.spec = spec
+        self.local = local
+        self.cal = cal
+        if spec.bounded:
+            lo, hi = spec.lower + margin, spec.upper - margin
+            if lo > hi:
+                # A range narrower than two margins: the only safe command is its middle.
+                lo = hi = 0.5 * (spec.lower + spec.upper)
+        else:
+            lo, hi = -math.inf, math.inf
+        self.lo, self.hi = lo, hi
+        # Latest feedback, calibrated (None until the motor interface reported it).
+        self.position: float | None = None
+        self.velocity: float | None = None
+        self.effort: float | None = None
+        self.raw_position: float | None = None
+        self.seen: float | None = None
+        # What joint_read last carried, for change detection.
+        self.pub_position: float | None = None
+        self.pub_velocity: float | None = None
+        self.pub_effort: float | None = None
+        # Command side.
+        self.mode = _IDLE
+        self.last_command = -math.inf
+        self.target_raw: float | None = None
+        self.filters: list[CommandFilter] = []
+        self.pin: float | None = None
+        self.pin_note: str | None = None
+        self.last_clamp = -math.inf
+        self.last_refusal = -math.inf
+        self.note = ""
+
+    def clamp_position(self, position: float) -> float:
+        return min(max(position, self.lo), self.hi)
+
+
+class JointManagerCore(Core):
+    """Calibration, limits, watchdog and joint_read batching for one module's joints.
+
+    Handlers (see :data:`~components.joint_manager.interface.JOINT_MANAGER`):
+    :meth:`on_joint_states`, :meth:`on_joint_set`, :meth:`tick`, :meth:`on_halt`,
+    :meth:`on_recover`, :meth:`on_joints`.
+
+    Hook points for injections and overrides: :meth:`add_command_filter`, :meth:`pin`,
+    :meth:`set_calibration`, :attr:`extra_serve`; read access through :meth:`resolve`,
+    :meth:`calibration`, :meth:`latest`, :meth:`latest_raw_position`, :meth:`feedback_age`.
+
+    Args:
+        name: Component name (diagnostics are named after it).
+        module: Module (slot) name, e.g. ``limb1``; every joint name starts with
+            ``<module>_``.
+        joints: The joints this manager controls, limits in calibrated space.
+        calibration: The unit's calibration per joint, keyed by full (``limb1_joint3``) or
+            raw (``joint3``) name; a joint left out is uncalibrated (offset 0, direction 1).
+        config: Tuning; defaults when omitted.
+
+    Attributes:
+        module: The module name.
+        config: The tuning in use.
+        extra_serve: Services added by injections; the executor binds these in addition to
+            the static interface spec. Each handler names a method or attribute of this core.
+
+    Raises:
+        ValueError: If a joint name lacks the module prefix, is repeated, or a calibration
+            entry names a joint this manager does not control.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        module: str,
+        joints: Sequence[JointSpec],
+        calibration: Mapping[str, JointCalibration] | None = None,
+        config: JointManagerConfig | None = None,
+    ) -> None:
+        super().__init__(name)
+        self.module = module
+        self.config = config or JointManagerConfig()
+        self.extra_serve: list[Serve] = []
+        self._prefix = f"{module}_"
+        self._joints: dict[str, _Joint] = {}
+        self._local: dict[str, str] = {}
+        calibration = dict(calibration or {})
+        for spec in joints:
+            if not spec.name.startswith(self._prefix) or spec.name == self._prefix:
+                raise ValueError(
+                    f"joint {spec.name!r} of module {module!r} must be named "
+                    f"'{self._prefix}<joint>' (assembly-unique names)"
+                )
+            if spec.name in self._joints:
+                raise ValueError(f"joint {spec.name!r} is listed twice for module {module!r}")
+            local = spec.name[len(self._prefix) :]
+            cal = calibration.pop(spec.name, None) or calibration.pop(local, None)
+            self._joints[spec.name] = _Joint(
+                spec, local, cal or JointCalibration(), self.config.position_margin
+            )
+            self._local[local] = spec.name
+        if calibration:
+            raise ValueError(
+                f"calibration for module {module!r} names joints it does not control: "
+                f"{sorted(calibration)}; known: {sorted(self._local)}"
+            )
+        self._counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._halted = False
+        self._halted_at: float | None = None
+        self._tripped_at: float | None = None
+        self._tripped_joints: list[str] = []
+        self._last_feedback: float | None = None
+        self._last_keepalive: float | None = None
+        self._last_diagnostics: float | None = None
+        self._last_clamp = -math.inf
+        self._last_refusal = -math.inf
+        self._refusal_note = ""
+
+    # ------------------------------------------------------------------ read access
+    @property
+    def joint_names(self) -> list[str]:
+        """Full names of the joints this manager controls, in declaration order."""
+        return list(self._joints)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """A copy of the refusal/clamp/watchdog counters (cumulative since construction)."""
+        return dict(self._counters)
+
+    @property
+    def halted(self) -> bool:
+        """Whether ``halt`` was called and ``recover`` not yet."""
+        return self._halted
+
+    def resolve(self, joint: str) -> str:
+        """The full name of a joint given by full (``limb1_joint3``) or raw (``joint3``) name.
+
+        Raises:
+            KeyError: If this manager controls no such joint (the message lists the known ones).
+        """
+        if joint in self._joints:
+            return joint
+        if joint in self._local:
+            return self._local[joint]
+        raise KeyError(
+            f"module {self.module!r} has no joint {joint!r}; known: {sorted(self._joints)}"
+        )
+
+    def local_name(self, joint: str) -> str:
+        """The raw (module-scoped, URDF) name of a joint: ``limb1_joint3`` -> ``joint3``."""
+        return self._joints[self.resolve(joint)].local
+
+    def spec(self, joint: str) -> JointSpec:
+        """The static description of a joint (full or raw name)."""
+        return self._joints[self.resolve(joint)].spec
+
+    def calibration(self, joint: str) -> JointCalibration:
+        """The calibration currently applied to a joint (full or raw name)."""
+        return self._joints[self.resolve(joint)].cal
+
+    def latest(self, joint: str) -> JointSample | None:
+        """Latest calibrated feedback of a joint, or ``None`` before any ``joint_states``."""
+        j = self._joints[self.resolve(joint)]
+        if j.seen is None:
+            return None
+        return JointSample(j.spec.name, j.position, j.velocity, j.effort)
+
+    def latest_raw_position(self, joint: str) -> float | None:
+        """Latest raw (motor) position of a joint, or ``None`` if never reported."""
+        return self._joints[self.resolve(joint)].raw_position
+
+    def feedback_age(self, joint: str, now: float) -> float:
+        """Seconds since the joint's latest feedback (``inf`` if never)."""
+        seen = self._joints[self.resolve(joint)].seen
+        return math.inf if seen is None else now - seen
+
+    def is_pinned(self, joint: str) -> bool:
+        """Whether a joint is pinned (reported as locked)."""
+        return self._joints[self.resolve(joint)].pin_note is not None
+
+    # ------------------------------------------------------------------ hook points
+    def add_command_filter(self, joint: str, command_filter: CommandFilter) -> None:
+        """Append a filter to a joint's command chain (hook for overrides and injections).
+
+        Filters run in the order added, after the command is validated (known joint, finite
+        values, not halted) and before it is clamped, in calibrated space. A filter returns
+        the command to go on with (it may rewrite it) or a :class:`Refusal`. Clamping runs
+        after the chain, so no filter can send anything out of limits.
+        """
+        self._joints[self.resolve(joint)].filters.append(command_filter)
+
+    def pin(self, joint: str, position: float | None = None, note: str = "pinned") -> None:
+        """Hold a joint at a fixed calibrated position; ListJoints reports it as locked.
+
+        The core sends the hold at :meth:`start` (or at the joint's first feedback when
+        ``position`` is ``None``, meaning "where it is then"), after every refused command
+        naming the joint, and on halt, watchdog and stop. Pinning decides nothing about
+        commands: add a command filter to refuse or rewrite them.
+
+        Args:
+            joint: Full or raw joint name.
+            position: Calibrated position to hold (clamped to the limits when sent), or
+                ``None`` for the position measured when the pin first takes effect.
+            note: Why, for diagnostics (e.g. ``"locked by override locked_joint"``).
+
+        Raises:
+            KeyError: If the joint is unknown.
+            ValueError: If ``position`` is not finite.
+        """
+        j = self._joints[self.resolve(joint)]
+        if position is not None and not math.isfinite(position):
+            raise ValueError(f"pin position for {j.spec.name} must be finite, not {position}")
+        if position is None and j.position is not None:
+            position = j.position
+        j.pin = None if position is None else j.clamp_position(float(position))
+        j.pin_note = note
+
+    def set_calibration(self, joint: str, calibration: JointCalibration) -> None:
+        """Replace a joint's calibration at runtime (e.g. re-zeroing).
+
+        The latest feedback is re-expressed in the new calibrated space, and a pin keeps its
+        physical (raw) position, so nothing moves because of the change.
+        """
+        j = self._joints[self.resolve(joint)]
+        old = j.cal
+        j.cal = calibration
+        if j.pin is not None:
+            j.pin = calibration.to_calibrated(old.to_raw(j.pin))
+        if j.raw_position is not None:
+            j.position = calibration.to_calibrated(j.raw_position)
+        if j.velocity is not None:
+            j.velocity = calibration.rate_to_calibrated(old.rate_to_raw(j.velocity))
+        if j.effort is not None:
+            j.effort = calibration.rate_to_calibrated(old.rate_to_raw(j.effort))
+        # Force the next joint_read to carry the re-expressed values.
+        j.pub_position = j.pub_velocity = j.pub_effort = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self, now: float) -> None:
+        """Send the holds of pinned joints whose position is already known."""
+        out = [self._hold_sample(j) for j in self._joints.values() if j.pin is not None]
+        self._send(out, now)
+
+    def stop(self, now: float) -> None:
+        """Leave the joints safe: hold every joint that is being commanded."""
+        out = []
+        for j in self._joints.values():
+            if j.mode not in (_IDLE, _HOLD) or j.pin is not None:
+                out.append(self._hold_sample(j))
+                j.mode = _HOLD
+        self._send(out, now)
+
+    # ------------------------------------------------------------------ feedback
+    def on_joint_states(self, message: Any, now: float) -> None:
+        """Raw feedback from the motor interface: update state, publish ``joint_read``.
+
+        Joints that changed by more than the read thresholds go out at once in one batch;
+        every fresh joint goes out at the keep-alive period. Names this manager does not
+        control and non-finite values are ignored (counted as ``feedback_rejected``).
+        """
+        changed: list[_Joint] = []
+        pins_to_send: list[_Joint] = []
+        for name, raw_pos, raw_vel, raw_eff in joint_samples(message):
+            j = self._joints.get(name)
+            if j is None:
+                self._counters["feedback_rejected"] += 1
+                continue
+            updated = False
+            cal = j.cal
+            if raw_pos is not None:
+                if math.isfinite(raw_pos):
+                    j.raw_position = raw_pos
+                    j.position = cal.to_calibrated(raw_pos)
+                    updated = True
+                else:
+                    self._counters["feedback_rejected"] += 1
+            if raw_vel is not None:
+                if math.isfinite(raw_vel):
+                    j.velocity = cal.rate_to_calibrated(raw_vel)
+                    updated = True
+                else:
+                    self._counters["feedback_rejected"] += 1
+            if raw_eff is not None:
+                if math.isfinite(raw_eff):
+                    j.effort = cal.rate_to_calibrated(raw_eff)
+                    updated = True
+                else:
+                    self._counters["feedback_rejected"] += 1
+            if not updated:
+                continue
+            j.seen = now
+            self._last_feedback = now
+            if j.pin_note is not None and j.pin is None and j.position is not None:
+                # A pin "where it is" takes effect at the first measured position.
+                j.pin = j.clamp_position(j.position)
+                pins_to_send.append(j)
+            if self._changed(j):
+                changed.append(j)
+        if pins_to_send:
+            self._send([self._hold_sample(j) for j in pins_to_send], now)
+        if not self._keepalive_if_due(now) and changed:
+            self._publish_read(changed, now)
+
+    def _changed(self, j: _Joint) -> bool:
+        cfg = self.config
+        return (
+            _moved(j.position, j.pub_position, cfg.read_position_threshold)
+            or _moved(j.velocity, j.pub_velocity, cfg.read_velocity_threshold)
+            or _moved(j.effort, j.pub_effort, cfg.read_effort_threshold)
+        )
+
+    def _keepalive_if_due(self, now: float) -> bool:
+        if self._last_keepalive is not None and (
+            now - self._last_keepalive < self.config.keepalive_period
+        ):
+            return False
+        self._last_keepalive = now
+        stale = self.config.stale_timeout
+        fresh = [j for j in self._joints.values() if j.seen is not None and now - j.seen <= stale]
+        if fresh:
+            self._publish_read(fresh, now)
+        return True
+
+    def _publish_read(self, joints: Iterable[_Joint], now: float) -> None:
+        samples = []
+        for j in joints:
+            samples.append(JointSample(j.spec.name, j.position, j.velocity, j.effort))
+            j.pub_position, j.pub_velocity, j.pub_effort = j.position, j.velocity, j.effort
+        for message in joint_state_batches(samples, self.stamp(now)):
+            self.publish("joint_read", message)
+
+    # ------------------------------------------------------------------ commands
+    def on_joint_set(self, message: Any, now: float) -> None:
+        """Calibrated commands from above: validate, filter, clamp, convert, send raw.
+
+        Each joint of the message is judged on its own: a refused joint (unknown, another
+        module's, non-finite value, refused by a filter, halted, velocity with no fresh
+        position) is counted and left out; the others go out on ``joint_commands``. An
+        accepted command feeds that joint's watchdog.
+        """
+        samples = joint_samples(message)
+        if self._halted:
+            self._refuse_all(samples, now)
+            return
+        out: list[JointSample] = []
+        accepted = False
+        for sample in samples:
+            j = self._joints.get(sample.name)
+            if j is None:
+                self._refuse_name(sample.name, now)
+                continue
+            command = sample
+            if command.position is None and command.velocity is None and command.effort is None:
+                continue
+            if not _finite(command):
+                self._refuse(j, "refused_nan", f"{j.spec.name}: NaN or inf in command", now)
+                continue
+            refused = False
+            for command_filter in j.filters:
+                result = command_filter(command, now)
+                if isinstance(result, Refusal):
+                    self._refuse(j, result.counter, result.reason, now)
+                    refused = True
+                    break
+                command = result
+            if refused:
+                if j.pin is not None:
+                    out.append(self._hold_sample(j))
+                continue
+            sent = self._limit(j, command, now)
+            if sent is None:
+                continue
+            out.append(sent)
+            j.last_command = now
+            accepted = True
+        if accepted:
+            # A fresh accepted command is the operator back: the trip is over.
+            self._tripped_at = None
+            self._tripped_joints = []
+        self._send(out, now)
+
+    def _limit(self, j: _Joint, command: JointSample, now: float) -> JointSample | None:
+        """Clamp one calibrated command and express it in raw space (None: refused)."""
+        spec, cal = j.spec, j.cal
+        position, velocity, effort = command.position, command.velocity, command.effort
+        clamped = False
+        if position is not None:
+            limited = j.clamp_position(position)
+            clamped |= limited != position
+            position = limited
+        if velocity is not None:
+            limited = min(max(velocity, -spec.max_velocity), spec.max_velocity)
+            clamped |= limited != velocity
+            velocity = limited
+        if effort is not None:
+            limited = min(max(effort, -spec.max_effort), spec.max_effort)
+            clamped |= limited != effort
+            effort = limited
+        if position is None and velocity is not None and spec.bounded:
+            # Velocity mode on a bounded joint: only safe while we know where the joint is.
+            stale = j.seen is None or j.position is None or now - j.seen > self.config.stale_timeout
+            if stale:
+                self._refuse(
+                    j,
+                    "refused_no_state",
+                    f"{spec.name}: velocity command refused, no fresh joint_states "
+                    "(is the motor interface running?)",
+                    now,
+                )
+                return None
+            assert j.position is not None
+            ahead = j.position + velocity * self.config.velocity_limit_lookahead
+            if (velocity > 0 and ahead >= j.hi) or (velocity < 0 and ahead <= j.lo):
+                self._mark_clamp(j, f"{spec.name}: velocity toward a limit, holding", now)
+                j.mode = _HOLD
+                j.target_raw = None
+                return self._hold_sample(j)
+        if clamped:
+            self._mark_clamp(j, f"{spec.name}: command clamped to limits", now)
+        if position is not None:
+            j.mode = _POSITION
+            j.target_raw = cal.to_raw(position)
+        elif velocity is not None:
+            j.mode = _VELOCITY
+            j.target_raw = None
+        else:
+            j.mode = _EFFORT
+            j.target_raw = None
+        return JointSample(
+            spec.name,
+            None if position is None else j.target_raw,
+            None if velocity is None else cal.rate_to_raw(velocity),
+            None if effort is None else cal.rate_to_raw(effort),
+        )
+
+    def _hold_sample(self, j: _Joint) -> JointSample:
+        """Raw command holding a joint: at its pin, else where it is; velocity 0.
+
+        Without any known position the only safe thing to send is velocity 0.
+        """
+        if j.pin is not None:
+            hold = j.pin
+        elif j.position is not None:
+            hold = j.clamp_position(j.position)
+        else:
+            return JointSample(j.spec.name, None, 0.0, None)
+        return JointSample(j.spec.name, j.cal.to_raw(hold), 0.0, None)
+
+    def _send(self, out: list[JointSample], now: float) -> None:
+        if out:
+            for message in joint_state_batches(out, self.stamp(now)):
+                self.publish("joint_commands", message)
+
+    def _refuse_name(self, name: str, now: float) -> None:
+        head, sep, _ = name.partition("_")
+        if sep and head and not name.startswith(self._prefix):
+            counter = "refused_other_module"
+            reason = (
+                f"command for {name!r} refused: it belongs to module {head!r}, not {self.module!r}"
+            )
+        else:
+            counter = "refused_unknown"
+            reason = f"command for unknown joint {name!r} refused; known: {sorted(self._joints)}"
+        self._counters[counter] += 1
+        self._last_refusal = now
+        self._refusal_note = reason
+
+    def _refuse_all(self, samples: list[JointSample], now: float) -> None:
+        for sample in samples:
+            j = self._joints.get(sample.name)
+            if j is None:
+                self._refuse_name(sample.name, now)
+            else:
+                self._refuse(j, "refused_halted", f"{j.spec.name}: halted, call recover", now)
+
+    def _refuse(self, j: _Joint, counter: str, reason: str, now: float) -> None:
+        self._counters[counter] = self._counters.get(counter, 0) + 1
+        j.last_refusal = now
+        j.note = reason
+        self._last_refusal = now
+        self._refusal_note = reason
+
+    def _mark_clamp(self, j: _Joint, note: str, now: float) -> None:
+        self._counters["clamped"] += 1
+        j.last_clamp = now
+        j.note = note
+        self._last_clamp = now
+
+    # ------------------------------------------------------------------ periodic
+    def tick(self, now: float) -> None:
+        """Periodic work (the interface runs it at 50 Hz): watchdog, keep-alive, diagnostics."""
+        self._watchdog(now)
+        self._keepalive_if_due(now)
+        if (
+            self._last_diagnostics is None
+            or now - self._last_diagnostics >= self.config.diagnostics_period
+        ):
+            self._last_diagnostics = now
+            self.publish("diagnostics", self.diagnostics(now))
+
+    def _watchdog(self, now: float) -> None:
+        timeout = self.config.watchdog_timeout
+        out: list[JointSample] = []
+        tripped: list[str] = []
+        for j in self._joints.values():
+            if j.mode in (_IDLE, _HOLD) or now - j.last_command <= timeout:
+                continue
+            if j.mode == _POSITION and not self._moving(j):
+                # The move finished before commands stopped: nothing to stop.
+                j.mode = _IDLE
+                continue
+            out.append(self._hold_sample(j))
+            j.mode = _HOLD
+            j.target_raw = None
+            tripped.append(j.spec.name)
+        if tripped:
+            self._counters["watchdog_trips"] += 1
+            self._tripped_at = now
+            self._tripped_joints = tripped
+            self._send(out, now)
+
+    def _moving(self, j: _Joint) -> bool:
+        if j.velocity is not None and abs(j.velocity) > self.config.read_velocity_threshold:
+            return True
+        if j.target_raw is None or j.raw_position is None:
+            # Unknown progress: assume moving, stopping a still joint is harmless.
+            return j.raw_position is None
+        return abs(j.raw_position - j.target_raw) > self.config.settle_tolerance
+
+    # ------------------------------------------------------------------ services
+    def on_halt(self, request: Any, now: float) -> Any:
+        """``halt`` (std_srvs/Trigger): hold every joint now and refuse commands until recover."""
+        out = []
+        for j in self._joints.values():
+            out.append(self._hold_sample(j))
+            j.mode = _HOLD
+            j.target_raw = None
+        self._send(out, now)
+        was = self._halted
+        self._halted = True
+        self._halted_at = now
+        blind = [s.name for s in out if s.position is None]
+        text = f"{'still ' if was else ''}halted: {len(out)} joints held"
+        if blind:
+            text += f" ({', '.join(blind)}: no position known, velocity 0 only)"
+        return trigger_response(True, text + "; commands are refused until recover")
+
+    def on_recover(self, request: Any, now: float) -> Any:
+        """``recover`` (std_srvs/Trigger): rearm after a halt or a watchdog trip."""
+        was_halted, was_tripped = self._halted, self._tripped_at is not None
+        self._halted = False
+        self._halted_at = None
+        self._tripped_at = None
+        self._tripped_joints = []
+        if not (was_halted or was_tripped):
+            text = "not halted; nothing to recover"
+        else:
+            text = "recovered: commands accepted again (joints stay held until commanded)"
+        age = None if self._last_feedback is None else now - self._last_feedback
+        if age is None or age > self.config.stale_timeout:
+            text += "; warning: no fresh joint_states, velocity commands will be refused"
+        return trigger_response(True, text)
+
+    def on_joints(self, request: Any, now: float) -> Any:
+        """``joints`` (msctl_msgs/ListJoints): joints, limits, locked flag, latest state.
+
+        Unknown state is NaN and its age ``inf``.
+        """
+        infos = []
+        for j in self._joints.values():
+            spec = j.spec
+            infos.append(
+                msg(
+                    JOINT_INFO,
+                    name=spec.name,
+                    type=spec.type,
+                    lower=float(spec.lower),
+                    upper=float(spec.upper),
+                    max_velocity=float(spec.max_velocity),
+                    max_effort=float(spec.max_effort),
+                    locked=j.pin_note is not None,
+                    position=_or_nan(j.position),
+                    velocity=_or_nan(j.velocity),
+                    effort=_or_nan(j.effort),
+                    age=math.inf if j.seen is None else now - j.seen,
+                )
+            )
+        return msg(LIST_JOINTS_RESPONSE, module=self.module, joints=infos)
+
+    # ------------------------------------------------------------------ diagnostics
+    def diagnostics(self, now: float) -> Any:
+        """The DiagnosticArray ``tick`` publishes: one status for the manager, one per joint."""
+        statuses = [self._manager_status(now)]
+        statuses.extend(self._joint_status(j, now) for j in self._joints.values())
+        return diagnostic_array(statuses, self.stamp(now))
+
+    def _manager_status(self, now: float) -> Any:
+        cfg = self.config
+        level, notes = OK, []
+        if self._halted:
+            level = ERROR
+            notes.append("halted: commands refused until recover")
+        if self._tripped_at is not None:
+            level = ERROR
+            notes.append(
+                f"watchdog stopped {', '.join(self._tripped_joints)}: no command for "
+                f"{cfg.watchdog_timeout} s; send a command or recover"
+            )
+        age = None if self._last_feedback is None else now - self._last_feedback
+        if age is None or age > cfg.stale_timeout:
+            level = max(level, STALE)
+            notes.append(
+                "no joint_states yet" if age is None else f"no joint_states for {age:.1f} s"
+            )
+        if now - self._last_refusal <= cfg.warn_window:
+            level = max(level, WARN)
+            notes.append(self._refusal_note)
+        if now - self._last_clamp <= cfg.warn_window:
+            level = max(level, WARN)
+            notes.append("commands clamped to limits")
+        values: dict[str, Any] = {
+            "module": self.module,
+            "halted": self._halted,
+            "joints": len(self._joints),
+            "feedback_age": "never" if age is None else f"{age:.3f}",
+        }
+        values.update(self._counters)
+        return diagnostic_status(
+            self.name, level, "; ".join(notes) or "OK", hardware_id=self.module, values=values
+        )
+
+    def _joint_status(self, j: _Joint, now: float) -> Any:
+        cfg = self.config
+        level, notes = OK, []
+        if j.seen is None or now - j.seen > cfg.stale_timeout:
+            level = STALE
+            notes.append("no joint_states" if j.seen is None else f"stale {now - j.seen:.1f} s")
+        if j.pin_note is not None:
+            level = max(level, WARN)
+            where = "current position" if j.pin is None else f"{j.pin:.4f}"
+            notes.append(f"{j.pin_note}, held at {where}")
+        if max(j.last_refusal, j.last_clamp) >= now - cfg.warn_window:
+            level = max(level, WARN)
+            notes.append(j.note)
+        values = {
+            "position": _fmt(j.position),
+            "velocity": _fmt(j.velocity),
+            "effort": _fmt(j.effort),
+            "age": "never" if j.seen is None else f"{now - j.seen:.3f}",
+            "mode": j.mode,
+            "locked": j.pin_note is not None,
+        }
+        return diagnostic_status(
+            f"{self.name}/{j.spec.name}",
+            level,
+            "; ".join(notes) or "OK",
+            hardware_id=self.module,
+            values=values,
+        )
+
+
+def _moved(value: float | None, published: float | None, threshold: float) -> bool:
+    if value is None:
+        return False
+    return published is None or abs(value - published) > threshold
+
+
+def _finite(sample: JointSample) -> bool:
+    return all(
+        v is None or math.isfinite(v) for v in (sample.position, sample.velocity, sample.effort)
+    )
+
+
+def _or_nan(value: float | None) -> float:
+    return math.nan if value is None else float(value)
+
+
+def _fmt(value: float | None) -> str:
+    return "" if value is None else f"{value:.6g}"
