@@ -1,0 +1,888 @@
+"""Dynamixel Protocol 2.0 backend (G-line robots): one serial chain of X-series servos.
+
+Everything model-specific is data: :data:`X_SERIES_REGISTERS` (control table addresses and
+sizes) and :data:`MODELS` (resolution, units, torque constant, limits per model). Conversion
+between register values and SI units happens only in :class:`DynamixelModel`.
+
+Bus traffic per :meth:`DynamixelBackend.read` is one SYNC_READ of the contiguous block
+``present_current .. present_temperature`` (addresses 126..146, 21 bytes per servo). That block
+already holds temperature and input voltage, so there is no slower second cadence to schedule:
+the 11 extra bytes per servo cost about 0.1 ms at 1 Mbit/s. The hardware error register (70) is
+far from that block; it is read only when a status packet carries the alert bit (0x80), which
+every servo sets while its hardware error status is non-zero.
+
+The group reply is received packet by packet and sorted by servo id, rather than through
+``GroupSyncRead.rxPacket``: the SDK's group receive discards the status error byte (so the alert
+bit would be lost) and fails the whole group when one servo is silent, which would blind the
+chain. Servos missing from the group reply get ``retries`` individual READs; if those fail too
+the servo is reported not answering, left out of the group read, and pinged every
+``reprobe_interval_s`` until it answers, then brought up again (mode, goal, torque).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from dynamixel_sdk import (
+    COMM_SUCCESS,
+    GroupSyncWrite,
+    PacketHandler,
+    PortHandler,
+)
+from dynamixel_sdk.protocol2_packet_handler import (
+    PKT_ERROR,
+    PKT_ID,
+    PKT_LENGTH_H,
+    PKT_LENGTH_L,
+    PKT_PARAMETER0,
+)
+
+from components.motors.base import (
+    MotorBackend,
+    MotorCommand,
+    MotorDiagnostic,
+    MotorError,
+    MotorSpec,
+    MotorState,
+)
+
+log = logging.getLogger(__name__)
+
+OK, WARN, ERROR = 0, 1, 2
+
+#: X-series (Protocol 2.0) control table: name -> (address, size in bytes).
+X_SERIES_REGISTERS: dict[str, tuple[int, int]] = {
+    "model_number": (0, 2),
+    "firmware_version": (6, 1),
+    "id": (7, 1),
+    "baud_rate": (8, 1),
+    "return_delay_time": (9, 1),
+    "drive_mode": (10, 1),
+    "operating_mode": (11, 1),
+    "homing_offset": (20, 4),
+    "temperature_limit": (31, 1),
+    "max_voltage_limit": (32, 2),
+    "min_voltage_limit": (34, 2),
+    "pwm_limit": (36, 2),
+    "current_limit": (38, 2),
+    "velocity_limit": (44, 4),
+    "max_position_limit": (48, 4),
+    "min_position_limit": (52, 4),
+    "shutdown": (63, 1),
+    "torque_enable": (64, 1),
+    "led": (65, 1),
+    "status_return_level": (68, 1),
+    "hardware_error_status": (70, 1),
+    "goal_pwm": (100, 2),
+    "goal_current": (102, 2),
+    "goal_velocity": (104, 4),
+    "profile_acceleration": (108, 4),
+    "profile_velocity": (112, 4),
+    "goal_position": (116, 4),
+    "realtime_tick": (120, 2),
+    "moving": (122, 1),
+    "moving_status": (123, 1),
+    "present_pwm": (124, 2),
+    "present_current": (126, 2),
+    "present_velocity": (128, 4),
+    "present_position": (132, 4),
+    "velocity_trajectory": (136, 4),
+    "position_trajectory": (140, 4),
+    "present_input_voltage": (144, 2),
+    "present_temperature": (146, 1),
+}
+
+#: Registers whose raw value is two's-complement signed.
+SIGNED_REGISTERS = frozenset(
+    {
+        "homing_offset",
+        "goal_current",
+        "goal_velocity",
+        "goal_position",
+        "present_pwm",
+        "present_current",
+        "present_velocity",
+        "present_position",
+        "velocity_trajectory",
+        "position_trajectory",
+        "max_position_limit",
+        "min_position_limit",
+    }
+)
+
+#: Operating Mode (address 11) values by name.
+OPERATING_MODES: dict[str, int] = {
+    "current": 0,
+    "velocity": 1,
+    "position": 3,
+    "extended_position": 4,
+    "current_position": 5,
+    "pwm": 16,
+}
+POSITION_MODES = frozenset({3, 4, 5})
+VELOCITY_MODE = OPERATING_MODES["velocity"]
+
+#: Hardware Error Status (address 70) bit -> meaning.
+HARDWARE_ERROR_BITS: dict[int, str] = {
+    0: "input voltage error",
+    2: "overheating",
+    3: "motor encoder error",
+    4: "electrical shock",
+    5: "overload",
+}
+ALERT_BIT = 0x80
+
+#: The block read every cycle: present current up to and including present temperature.
+READ_BLOCK_START = X_SERIES_REGISTERS["present_current"][0]
+READ_BLOCK_LENGTH = (
+    X_SERIES_REGISTERS["present_temperature"][0] + 1 - READ_BLOCK_START
+)
+
+
+def to_signed(value: int, size: int) -> int:
+    """Two's-complement interpretation of an unsigned little-endian register value."""
+    bits = 8 * size
+    return value - (1 << bits) if value & (1 << (bits - 1)) else value
+
+
+def hardware_error_text(bits: int) -> str:
+    """Human meaning of a Hardware Error Status value, e.g. ``"overheating, overload"``."""
+    names = [text for bit, text in HARDWARE_ERROR_BITS.items() if bits & (1 << bit)]
+    unknown = bits & ~sum(1 << bit for bit in HARDWARE_ERROR_BITS)
+    if unknown:
+        names.append(f"unknown bits 0x{unknown:02x}")
+    return ", ".join(names)
+
+
+@dataclass(frozen=True)
+class DynamixelModel:
+    """Constants of one servo model, and the only place raw values become SI units.
+
+    Attributes:
+        name: Model key as written in module data (``MotorSpec.model``).
+        model_number: What PING and register 0 report.
+        ticks_per_rev: Encoder ticks per output revolution.
+        center_tick: Tick that is 0 rad in raw joint space (the middle of the single-turn
+            range, so a joint's limits sit symmetric around zero as in ROBOTIS' own tools).
+        velocity_unit_rpm: One Goal/Present Velocity unit, in rev/min.
+        effort_register: ``"current"`` (Present Current in ``current_unit_a``) or ``"load"``
+            (XL430: Present Load in 0.1 % of stall torque).
+        current_unit_a: One Present/Goal Current unit, in ampere.
+        torque_constant: N·m per ampere at the output (stall torque / stall current at 12 V).
+        stall_torque: N·m at 12 V from the datasheet (used by load-reporting models).
+        no_load_speed_rpm: Output speed at 12 V without load (emulator motion limit).
+        temperature_limit: Default Temperature Limit (register 31), °C.
+        registers: Control table of the family.
+    """
+
+    name: str
+    model_number: int
+    ticks_per_rev: int = 4096
+    center_tick: int = 2048
+    velocity_unit_rpm: float = 0.229
+    effort_register: str = "current"
+    current_unit_a: float = 2.69e-3
+    torque_constant: float = 1.0
+    stall_torque: float = 1.0
+    no_load_speed_rpm: float = 46.0
+    temperature_limit: int = 80
+    registers: dict[str, tuple[int, int]] = field(default_factory=lambda: X_SERIES_REGISTERS)
+
+    # -- the conversions ------------------------------------------------------------------
+
+    def ticks_to_rad(self, ticks: int) -> float:
+        """Present/Goal Position ticks to raw joint radians."""
+        return (ticks - self.center_tick) * 2.0 * math.pi / self.ticks_per_rev
+
+    def rad_to_ticks(self, rad: float) -> int:
+        """Raw joint radians to Goal Position ticks (rounded)."""
+        return round(self.center_tick + rad * self.ticks_per_rev / (2.0 * math.pi))
+
+    def velocity_to_rad_s(self, units: int) -> float:
+        """Present/Goal Velocity units to rad/s."""
+        return units * self.velocity_unit_rpm * 2.0 * math.pi / 60.0
+
+    def rad_s_to_velocity(self, rad_s: float) -> int:
+        """rad/s to Goal/Profile Velocity units (rounded)."""
+        return round(rad_s * 60.0 / (2.0 * math.pi * self.velocity_unit_rpm))
+
+    def effort_to_nm(self, raw: int, torque_constant: float | None = None) -> float:
+        """Present Current (or Present Load) units to N·m at the output shaft."""
+        if self.effort_register == "load":
+            return raw * 1e-3 * self.stall_torque
+        kt = self.torque_constant if torque_constant is None else torque_constant
+        return raw * self.current_unit_a * kt
+
+    def nm_to_current(self, nm: float, torque_constant: float | None = None) -> int:
+        """N·m to Goal Current units (rounded); load-reporting models have no current goal."""
+        kt = self.torque_constant if torque_constant is None else torque_constant
+        return round(nm / (self.current_unit_a * kt))
+
+
+#: Known models. Torque constants are stall torque / stall current at 12 V from the ROBOTIS
+#: e-manual datasheets: good to ~10 %, which is what a current-based effort estimate gives.
+MODELS: dict[str, DynamixelModel] = {
+    model.name: model
+    for model in (
+        DynamixelModel("XM430-W350", 1020, torque_constant=4.1 / 2.3, stall_torque=4.1,
+                       no_load_speed_rpm=46.0),
+        DynamixelModel("XM430-W210", 1030, torque_constant=3.0 / 2.3, stall_torque=3.0,
+                       no_load_speed_rpm=77.0),
+        DynamixelModel("XM540-W270", 1120, torque_constant=10.6 / 4.4, stall_torque=10.6,
+                       no_load_speed_rpm=30.0),
+        DynamixelModel("XM540-W150", 1130, torque_constant=7.3 / 4.4, stall_torque=7.3,
+                       no_load_speed_rpm=53.0),
+        DynamixelModel("XH430-W350", 1010, current_unit_a=1.34e-3, torque_constant=3.4 / 1.3,
+                       stall_torque=3.4, no_load_speed_rpm=46.0),
+        DynamixelModel("XL430-W250", 1060, effort_register="load", stall_torque=1.5,
+                       no_load_speed_rpm=57.0, temperature_limit=72),
+    )
+}
+
+MODELS_BY_NUMBER: dict[int, DynamixelModel] = {m.model_number: m for m in MODELS.values()}
+
+
+class _NoAnswer(Exception):
+    """A servo did not answer (or answered garbage) during a multi-step exchange."""
+
+
+@dataclass
+class _Servo:
+    """Backend-side knowledge of one servo: what we commanded and what it last said."""
+
+    spec: MotorSpec
+    model: DynamixelModel
+    position_mode: int
+    profile_velocity: float | None
+    temperature_limit: float
+    torque_constant: float
+    mode: int | None = None
+    answering: bool = False
+    ever_answered: bool = False
+    next_probe: float = 0.0
+    hardware_error: int = 0
+    next_status_read: float = 0.0
+    torque_on: bool = False
+    min_ticks: int = -(2**31)
+    max_ticks: int = 2**31 - 1
+    velocity_limit: int = 2**31 - 1
+    state: MotorState | None = None
+    voltage: float | None = None
+    model_number: int | None = None
+    note: str = ""
+
+    @property
+    def sid(self) -> int:
+        return self.spec.motor_id
+
+    @property
+    def joint(self) -> str:
+        return self.spec.joint
+
+
+class DynamixelBackend(MotorBackend):
+    """A serial chain of Dynamixel X-series servos spoken to in Protocol 2.0.
+
+    Args:
+        channel: Serial device of the chain (``/dev/ttyUSB0``, a U2D2, or a pty slave path).
+        motors: One :class:`MotorSpec` per servo. ``model`` is a key of :data:`MODELS`;
+            ``params`` may hold ``operating_mode`` (``"position"`` default,
+            ``"extended_position"`` or ``"current_position"``: the mode used for position
+            commands), ``profile_velocity`` (rad/s cap on position moves; absent = the servo's
+            Velocity Limit), ``temperature_limit`` (°C, overrides the model's) and
+            ``torque_constant`` (N·m/A, overrides the model's).
+        options: ``baudrate`` (default 1_000_000; servos ship at 57_600, so configure them
+            once with Dynamixel Wizard), ``latency_timer_ms`` (the USB adapter's latency timer,
+            default 16 as FTDI ships; 1 if ``/sys/bus/usb-serial/devices/*/latency_timer`` was
+            lowered: it sizes the reply timeout), ``retries`` (individual re-reads of a servo
+            missing from the group reply before it counts as not answering, default 1),
+            ``reprobe_interval_s`` (how often a silent servo is pinged, default 0.5),
+            ``status_interval_s`` (how often Hardware Error Status is re-read while a servo
+            keeps its alert bit set, default 0.5), ``boot_timeout_s`` (how long
+            :meth:`recover` waits for a rebooted servo, default 1.0), ``reopen_interval_s``
+            (how often a lost port is reopened, default 1.0).
+    """
+
+    def __init__(self, channel: str, motors: list[MotorSpec], options: dict[str, Any]):
+        super().__init__(channel, motors, options)
+        self.baudrate = int(self.options.get("baudrate", 1_000_000))
+        self.latency_timer_ms = float(self.options.get("latency_timer_ms", 16.0))
+        self.retries = int(self.options.get("retries", 1))
+        self.reprobe_interval = float(self.options.get("reprobe_interval_s", 0.5))
+        self.status_interval = float(self.options.get("status_interval_s", 0.5))
+        self.boot_timeout = float(self.options.get("boot_timeout_s", 1.0))
+        self.reopen_interval = float(self.options.get("reopen_interval_s", 1.0))
+        self._port: PortHandler | None = None
+        self._packet = PacketHandler(2.0)
+        self._servos: list[_Servo] = []
+        self._by_joint: dict[str, _Servo] = {}
+        self._opened = False
+        self._bus_error = ""
+        self._next_reopen = 0.0
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the port, ping every servo, set its operating mode, hold position, enable torque.
+
+        Raises:
+            MotorError: If a motor's model is unknown or the serial port cannot be opened.
+        """
+        if self._opened:
+            return
+        self._servos = [self._make_servo(spec) for spec in self.motors]
+        self._by_joint = {s.joint: s for s in self._servos}
+        try:
+            self._open_port()
+        except MotorError:
+            raise
+        except Exception as exc:
+            raise MotorError(self._port_error_text(exc)) from exc
+        self._opened = True
+        now = time.monotonic()
+        for servo in self._servos:
+            self._probe(servo, now)
+
+    def close(self) -> None:
+        """Torque off every answering servo and release the port. Idempotent, never raises."""
+        if not self._opened:
+            return
+        self._opened = False
+        try:
+            if self._port is not None and self._port.is_open:
+                self._sync_write("torque_enable", {s.sid: 0 for s in self._servos if s.answering})
+        except Exception as exc:
+            log.warning("%s: torque off on close failed: %s", self.channel, exc)
+        for servo in self._servos:
+            servo.torque_on = False
+        self._close_port()
+
+    # -- the cycle ------------------------------------------------------------------------
+
+    def read(self) -> dict[str, MotorState]:
+        """One sync read of current/velocity/position/voltage/temperature; never raises.
+
+        Also pings silent servos whose re-probe time has come and brings back those that
+        answer, and re-opens a lost port.
+        """
+        if not self._opened:
+            return {}
+        try:
+            self._read_cycle(time.monotonic())
+        except Exception as exc:
+            self._bus_lost(exc)
+        return {s.joint: s.state for s in self._servos if s.answering and s.state is not None}
+
+    def write(self, commands: list[MotorCommand]) -> None:
+        """Sync-write goal positions and goal velocities; never raises.
+
+        A joint commanded by velocity while in a position mode (or the reverse) is switched
+        first: torque off, Operating Mode, the new goal, torque on (the servo refuses mode
+        writes while torque is on). ``effort`` is ignored: X-series take a current goal only
+        in current-based position mode, which needs gains tuned per joint.
+        """
+        if not self._opened or self._port is None:
+            return
+        try:
+            self._write_commands(commands)
+        except Exception as exc:
+            self._bus_lost(exc)
+
+    def halt(self) -> None:
+        """Hold where each servo is now: goal position = present, goal velocity 0."""
+        if not self._opened or self._port is None:
+            return
+        try:
+            self._read_cycle(time.monotonic())
+            positions: dict[int, int] = {}
+            velocities: dict[int, int] = {}
+            for servo in self._servos:
+                if not servo.answering:
+                    continue
+                if servo.mode == VELOCITY_MODE:
+                    velocities[servo.sid] = 0
+                elif servo.state is not None and servo.state.position is not None:
+                    positions[servo.sid] = self._clamp_ticks(
+                        servo, servo.model.rad_to_ticks(servo.state.position)
+                    )
+            self._sync_write("goal_velocity", velocities)
+            self._sync_write("goal_position", positions)
+        except Exception as exc:
+            self._bus_lost(exc)
+
+    def recover(self) -> None:
+        """Reboot servos with hardware errors, then restore their mode, goal and torque.
+
+        Servos that are silent are pinged now rather than at their next re-probe time.
+        """
+        if not self._opened:
+            return
+        try:
+            now = time.monotonic()
+            if self._port is None:
+                self._try_reopen(now, force=True)
+                return
+            rebooted = []
+            for servo in self._servos:
+                if servo.answering and servo.hardware_error:
+                    result, _ = self._packet.reboot(self._port, servo.sid)
+                    self._release()
+                    log.info("%s: reboot servo id %d -> %s", servo.joint, servo.sid,
+                             self._packet.getTxRxResult(result))
+                    rebooted.append(servo)
+            deadline = time.monotonic() + self.boot_timeout
+            for servo in rebooted:
+                servo.hardware_error = 0
+                servo.answering = False
+                while not self._probe(servo, time.monotonic()) and time.monotonic() < deadline:
+                    time.sleep(0.02)
+            for servo in self._servos:
+                if not servo.answering and servo not in rebooted:
+                    self._probe(servo, time.monotonic())
+                elif servo.answering and not servo.torque_on:
+                    self._bring_up_or_drop(servo, time.monotonic())
+        except Exception as exc:
+            self._bus_lost(exc)
+
+    def diagnostics(self) -> list[MotorDiagnostic]:
+        """One entry for the bus (``joint == ""``) and one per joint, as of the last cycle."""
+        answering = sum(s.answering for s in self._servos)
+        bus_values = {"channel": self.channel, "baudrate": str(self.baudrate)}
+        if not self._opened:
+            bus = MotorDiagnostic("", ERROR, f"dynamixel bus {self.channel} closed", bus_values)
+        elif self._bus_error:
+            bus = MotorDiagnostic(
+                "", ERROR,
+                f"dynamixel bus {self.channel} lost ({self._bus_error}); reopening every "
+                f"{self.reopen_interval:g} s: check the USB cable and adapter power",
+                bus_values,
+            )
+        elif answering < len(self._servos):
+            bus = MotorDiagnostic(
+                "", WARN,
+                f"dynamixel bus {self.channel}: {answering}/{len(self._servos)} servos answering",
+                bus_values,
+            )
+        else:
+            bus = MotorDiagnostic(
+                "", OK, f"dynamixel bus {self.channel}: {answering} servos answering", bus_values
+            )
+        return [bus] + [self._servo_diagnostic(s) for s in self._servos]
+
+    # -- construction helpers -------------------------------------------------------------
+
+    def _make_servo(self, spec: MotorSpec) -> _Servo:
+        model = MODELS.get(spec.model)
+        if model is None:
+            raise MotorError(
+                f"{spec.joint}: unknown Dynamixel model {spec.model!r} on {self.channel}; "
+                f"known: {', '.join(sorted(MODELS))} (fix the module data's motor model, or add "
+                f"the model to components/motors/dynamixel_chain.py MODELS)"
+            )
+        mode_name = spec.params.get("operating_mode", "position")
+        mode = OPERATING_MODES.get(mode_name)
+        if mode not in POSITION_MODES:
+            raise MotorError(
+                f"{spec.joint}: operating_mode {mode_name!r} is not a position mode; use one of "
+                "position, extended_position, current_position"
+            )
+        profile = spec.params.get("profile_velocity")
+        return _Servo(
+            spec=spec,
+            model=model,
+            position_mode=mode,
+            profile_velocity=None if profile is None else float(profile),
+            temperature_limit=float(spec.params.get("temperature_limit", model.temperature_limit)),
+            torque_constant=float(spec.params.get("torque_constant", model.torque_constant)),
+        )
+
+    def _port_error_text(self, exc: object) -> str:
+        return (
+            f"cannot open Dynamixel port {self.channel} at {self.baudrate} baud ({exc}); check "
+            f"that the U2D2/USB adapter is plugged in and the path exists (ls -l {self.channel}), "
+            "and that your user may open it (sudo usermod -aG dialout $USER, then log in again)"
+        )
+
+    def _open_port(self) -> None:
+        port = _LatencyAwarePort(self.channel, self.latency_timer_ms)
+        if not port.setBaudRate(self.baudrate):
+            raise MotorError(
+                f"cannot open Dynamixel port {self.channel}: baud rate {self.baudrate} is not one "
+                "the SDK supports; use 57600, 115200, 1000000, 2000000, 3000000 or 4000000"
+            )
+        self._port = port
+        self._bus_error = ""
+
+    def _close_port(self) -> None:
+        port, self._port = self._port, None
+        if port is not None and port.ser is not None:
+            try:
+                port.closePort()
+            except Exception as exc:
+                log.debug("%s: close failed: %s", self.channel, exc)
+
+    def _bus_lost(self, exc: BaseException) -> None:
+        """Any exception from the SDK or pyserial: report, drop the port, reopen later."""
+        log.warning("%s: bus error: %s", self.channel, exc)
+        self._bus_error = str(exc) or type(exc).__name__
+        for servo in self._servos:
+            servo.answering = False
+            servo.torque_on = False
+        self._close_port()
+        self._next_reopen = time.monotonic() + self.reopen_interval
+
+    def _try_reopen(self, now: float, force: bool = False) -> None:
+        if not force and now < self._next_reopen:
+            return
+        self._next_reopen = now + self.reopen_interval
+        try:
+            self._open_port()
+        except Exception as exc:
+            self._bus_error = str(exc)
+            return
+        for servo in self._servos:
+            self._probe(servo, now)
+
+    # -- low-level exchanges --------------------------------------------------------------
+
+    def _release(self) -> None:
+        # The SDK marks the port busy per transaction and clears it on the happy paths only;
+        # an exception mid-transaction would otherwise leave every later call COMM_PORT_BUSY.
+        if self._port is not None:
+            self._port.is_using = False
+
+    def _read_register(self, servo: _Servo, name: str) -> tuple[int, int]:
+        """(value, status error byte) of one register; raises _NoAnswer when silent."""
+        address, size = servo.model.registers[name]
+        data, result, error = self._packet.readTxRx(self._port, servo.sid, address, size)
+        self._release()
+        if result != COMM_SUCCESS or len(data) != size:
+            raise _NoAnswer(self._packet.getTxRxResult(result))
+        value = int.from_bytes(bytes(data), "little")
+        if name in SIGNED_REGISTERS:
+            value = to_signed(value, size)
+        return value, error
+
+    def _write_register(self, servo: _Servo, name: str, value: int) -> int:
+        """Write one register and return the status error byte; raises _NoAnswer when silent."""
+        address, size = servo.model.registers[name]
+        data = list((value & ((1 << (8 * size)) - 1)).to_bytes(size, "little"))
+        result, error = self._packet.writeTxRx(self._port, servo.sid, address, size, data)
+        self._release()
+        if result != COMM_SUCCESS:
+            raise _NoAnswer(self._packet.getTxRxResult(result))
+        if error & 0x7F:
+            servo.note = f"write {name}={value}: {self._packet.getRxPacketError(error & 0x7F)}"
+            log.warning("%s: servo id %d %s", servo.joint, servo.sid, servo.note)
+        return error
+
+    def _sync_write(self, name: str, values: dict[int, int]) -> None:
+        if not values or self._port is None:
+            return
+        address, size = X_SERIES_REGISTERS[name]
+        group = GroupSyncWrite(self._port, self._packet, address, size)
+        mask = (1 << (8 * size)) - 1
+        for sid, value in values.items():
+            group.addParam(sid, list((value & mask).to_bytes(size, "little")))
+        result = group.txPacket()
+        self._release()
+        if result != COMM_SUCCESS:
+            raise OSError(f"sync write {name} failed: {self._packet.getTxRxResult(result)}")
+
+    def _sync_read_block(self, servos: list[_Servo]) -> dict[int, tuple[bytes, int]]:
+        """SYNC_READ the state block; servo id -> (data, status error byte) for each reply."""
+        if not servos:
+            return {}
+        ids = [s.sid for s in servos]
+        result = self._packet.syncReadTx(
+            self._port, READ_BLOCK_START, READ_BLOCK_LENGTH, ids, len(ids), False
+        )
+        if result != COMM_SUCCESS:
+            self._release()
+            raise OSError(f"sync read failed: {self._packet.getTxRxResult(result)}")
+        replies: dict[int, tuple[bytes, int]] = {}
+        wanted = set(ids)
+        # Replies come back in id order; a silent servo leaves a gap, and the next reply still
+        # arrives within the group timeout, so keep receiving until all came or time ran out.
+        while len(replies) < len(ids):
+            packet, result = self._packet.rxPacket(self._port, False)
+            if result != COMM_SUCCESS:
+                break
+            sid = packet[PKT_ID]
+            length = (packet[PKT_LENGTH_L] | packet[PKT_LENGTH_H] << 8) - 4
+            if sid in wanted and length == READ_BLOCK_LENGTH:
+                start = PKT_PARAMETER0 + 1
+                replies[sid] = (bytes(packet[start:start + length]), packet[PKT_ERROR])
+        self._release()
+        return replies
+
+    def _read_block_single(self, servo: _Servo) -> tuple[bytes, int] | None:
+        data, result, error = self._packet.readTxRx(
+            self._port, servo.sid, READ_BLOCK_START, READ_BLOCK_LENGTH
+        )
+        self._release()
+        if result != COMM_SUCCESS or len(data) != READ_BLOCK_LENGTH:
+            return None
+        return bytes(data), error
+
+    # -- bring-up and liveness ------------------------------------------------------------
+
+    def _probe(self, servo: _Servo, now: float) -> bool:
+        """Ping a servo; if it answers, bring it up. Returns whether it is answering now."""
+        servo.next_probe = now + self.reprobe_interval
+        if self._port is None:
+            return False
+        model_number, result, error = self._packet.ping(self._port, servo.sid)
+        self._release()
+        if result != COMM_SUCCESS:
+            servo.answering = False
+            return False
+        servo.model_number = model_number
+        return self._bring_up_or_drop(servo, now, error)
+
+    def _bring_up_or_drop(self, servo: _Servo, now: float, status_error: int = 0) -> bool:
+        try:
+            self._bring_up(servo, status_error)
+        except _NoAnswer as exc:
+            log.info("%s: servo id %d dropped during bring-up: %s", servo.joint, servo.sid, exc)
+            servo.answering = False
+            servo.torque_on = False
+            servo.next_probe = now + self.reprobe_interval
+            return False
+        return True
+
+    def _bring_up(self, servo: _Servo, status_error: int) -> None:
+        """Mode, limits, goal = present, profile, torque on. Raises _NoAnswer if it goes silent."""
+        servo.note = ""
+        if status_error & ALERT_BIT:
+            servo.hardware_error, _ = self._read_register(servo, "hardware_error_status")
+        else:
+            servo.hardware_error = 0
+        target_mode = servo.mode if servo.mode is not None else servo.position_mode
+        self._set_mode(servo, target_mode, goal=None)
+        servo.min_ticks, _ = self._read_register(servo, "min_position_limit")
+        servo.max_ticks, _ = self._read_register(servo, "max_position_limit")
+        servo.velocity_limit, _ = self._read_register(servo, "velocity_limit")
+        if servo.profile_velocity is not None:
+            profile = abs(servo.model.rad_s_to_velocity(servo.profile_velocity))
+            self._write_register(servo, "profile_velocity", profile)
+        self._enable_torque(servo)
+        servo.answering = True
+        servo.ever_answered = True
+        if servo.hardware_error:
+            servo.next_status_read = time.monotonic() + self.status_interval
+
+    def _set_mode(self, servo: _Servo, mode: int, goal: int | None) -> None:
+        """Put the servo in ``mode`` with a goal that holds still (or ``goal``), torque off.
+
+        The servo only accepts Operating Mode with torque off, and on torque on it drives to
+        whatever goal is in its RAM, so the goal is written before torque comes back.
+        """
+        self._write_register(servo, "torque_enable", 0)
+        servo.torque_on = False
+        current, _ = self._read_register(servo, "operating_mode")
+        if current != mode:
+            self._write_register(servo, "operating_mode", mode)
+        servo.mode = mode
+        if mode == VELOCITY_MODE:
+            self._write_register(servo, "goal_velocity", 0 if goal is None else goal)
+        else:
+            if goal is None:
+                goal, _ = self._read_register(servo, "present_position")
+            self._write_register(servo, "goal_position", goal)
+
+    def _enable_torque(self, servo: _Servo) -> None:
+        # Read back: a servo in hardware-error shutdown acknowledges the write but stays off.
+        self._write_register(servo, "torque_enable", 1)
+        torque, _ = self._read_register(servo, "torque_enable")
+        servo.torque_on = bool(torque)
+
+    def _switch_mode(self, servo: _Servo, mode: int, goal: int) -> None:
+        try:
+            self._set_mode(servo, mode, goal)
+            self._enable_torque(servo)
+        except _NoAnswer:
+            servo.answering = False
+            servo.torque_on = False
+            servo.next_probe = time.monotonic() + self.reprobe_interval
+
+    # -- read cycle -----------------------------------------------------------------------
+
+    def _read_cycle(self, now: float) -> None:
+        if self._port is None:
+            self._try_reopen(now)
+            return
+        live = [s for s in self._servos if s.answering]
+        replies = self._sync_read_block(live)
+        for servo in live:
+            if servo.sid in replies:
+                continue
+            for _ in range(max(self.retries, 0)):
+                reply = self._read_block_single(servo)
+                if reply is not None:
+                    replies[servo.sid] = reply
+                    break
+            else:
+                log.warning("%s: servo id %d not answering", servo.joint, servo.sid)
+                servo.answering = False
+                servo.torque_on = False
+                servo.next_probe = now + self.reprobe_interval
+        stamp = time.time()
+        for servo in live:
+            if servo.sid in replies:
+                data, error = replies[servo.sid]
+                self._decode(servo, data, stamp)
+                self._track_alert(servo, error, now)
+        for servo in self._servos:
+            if not servo.answering and now >= servo.next_probe and self._probe(servo, now):
+                reply = self._read_block_single(servo)
+                if reply is not None:
+                    self._decode(servo, reply[0], time.time())
+
+    def _decode(self, servo: _Servo, data: bytes, stamp: float) -> None:
+        """The one place a state block becomes SI units."""
+        model = servo.model
+
+        def field_value(name: str) -> int:
+            address, size = model.registers[name]
+            offset = address - READ_BLOCK_START
+            value = int.from_bytes(data[offset:offset + size], "little")
+            return to_signed(value, size) if name in SIGNED_REGISTERS else value
+
+        servo.voltage = field_value("present_input_voltage") * 0.1
+        servo.state = MotorState(
+            joint=servo.joint,
+            position=model.ticks_to_rad(field_value("present_position")),
+            velocity=model.velocity_to_rad_s(field_value("present_velocity")),
+            effort=model.effort_to_nm(field_value("present_current"), servo.torque_constant),
+            temperature=float(field_value("present_temperature")),
+            stamp=stamp,
+        )
+
+    def _track_alert(self, servo: _Servo, error: int, now: float) -> None:
+        if not error & ALERT_BIT:
+            servo.hardware_error = 0
+            return
+        if servo.hardware_error and now < servo.next_status_read:
+            return
+        servo.next_status_read = now + self.status_interval
+        try:
+            servo.hardware_error, _ = self._read_register(servo, "hardware_error_status")
+            torque, _ = self._read_register(servo, "torque_enable")
+            servo.torque_on = bool(torque)
+        except _NoAnswer:
+            pass  # the next group read decides whether the servo is gone
+        if servo.hardware_error:
+            log.warning("%s: servo id %d hardware error: %s", servo.joint, servo.sid,
+                        hardware_error_text(servo.hardware_error))
+
+    # -- write ----------------------------------------------------------------------------
+
+    def _clamp_ticks(self, servo: _Servo, ticks: int) -> int:
+        if servo.mode == OPERATING_MODES["position"]:
+            return max(servo.min_ticks, min(servo.max_ticks, ticks))
+        return ticks
+
+    def _write_commands(self, commands: list[MotorCommand]) -> None:
+        positions: dict[int, int] = {}
+        velocities: dict[int, int] = {}
+        for command in commands:
+            servo = self._by_joint.get(command.joint)
+            if servo is None or not servo.answering:
+                continue
+            if command.position is not None and math.isfinite(command.position):
+                if servo.mode not in POSITION_MODES:
+                    servo.mode = servo.position_mode  # so clamping uses the new mode's range
+                    goal = self._clamp_ticks(servo, servo.model.rad_to_ticks(command.position))
+                    self._switch_mode(servo, servo.position_mode, goal)
+                    continue
+                positions[servo.sid] = self._clamp_ticks(
+                    servo, servo.model.rad_to_ticks(command.position)
+                )
+            elif command.velocity is not None and math.isfinite(command.velocity):
+                units = servo.model.rad_s_to_velocity(command.velocity)
+                units = max(-servo.velocity_limit, min(servo.velocity_limit, units))
+                if servo.mode != VELOCITY_MODE:
+                    self._switch_mode(servo, VELOCITY_MODE, units)
+                    continue
+                velocities[servo.sid] = units
+        self._sync_write("goal_position", positions)
+        self._sync_write("goal_velocity", velocities)
+
+    # -- diagnostics ----------------------------------------------------------------------
+
+    def _servo_diagnostic(self, servo: _Servo) -> MotorDiagnostic:
+        values = {"id": str(servo.sid), "model": servo.model.name}
+        if servo.mode is not None:
+            mode_name = {v: k for k, v in OPERATING_MODES.items()}.get(servo.mode, str(servo.mode))
+            values["operating_mode"] = mode_name
+        values["torque"] = "on" if servo.torque_on else "off"
+        state = servo.state
+        if state is not None and state.temperature is not None:
+            values["temperature_c"] = f"{state.temperature:.0f}"
+        if servo.voltage is not None:
+            values["input_voltage_v"] = f"{servo.voltage:.1f}"
+        values["hardware_error_status"] = f"0x{servo.hardware_error:02x}"
+        prefix = f"{servo.joint}: servo id {servo.sid}"
+        if not self._opened:
+            return MotorDiagnostic(servo.joint, ERROR, f"{prefix} bus closed", values)
+        if not servo.answering:
+            hint = "" if servo.ever_answered else " (check id, baud rate and cable)"
+            return MotorDiagnostic(servo.joint, ERROR, f"{prefix} not answering{hint}", values)
+        if servo.hardware_error:
+            return MotorDiagnostic(
+                servo.joint, ERROR,
+                f"{prefix} hardware error: {hardware_error_text(servo.hardware_error)}; "
+                "call recover to reboot it",
+                values,
+            )
+        if state is not None and state.temperature is not None:
+            if state.temperature >= servo.temperature_limit:
+                return MotorDiagnostic(
+                    servo.joint, ERROR,
+                    f"{prefix} over temperature: {state.temperature:.0f} °C "
+                    f"(limit {servo.temperature_limit:.0f} °C)",
+                    values,
+                )
+            if state.temperature >= servo.temperature_limit - 5:
+                return MotorDiagnostic(
+                    servo.joint, WARN,
+                    f"{prefix} hot: {state.temperature:.0f} °C "
+                    f"(limit {servo.temperature_limit:.0f} °C)",
+                    values,
+                )
+        if servo.model_number is not None and servo.model_number != servo.model.model_number:
+            seen = MODELS_BY_NUMBER.get(servo.model_number)
+            seen_name = seen.name if seen else f"model number {servo.model_number}"
+            return MotorDiagnostic(
+                servo.joint, WARN,
+                f"{prefix} is a {seen_name}, module data says {servo.model.name}: fix the data",
+                values,
+            )
+        if not servo.torque_on:
+            return MotorDiagnostic(servo.joint, WARN, f"{prefix} torque off {servo.note}".rstrip(),
+                                   values)
+        return MotorDiagnostic(servo.joint, OK, "OK", values)
+
+
+class _LatencyAwarePort(PortHandler):
+    """PortHandler whose reply timeout uses the adapter's real latency timer.
+
+    The SDK hard-codes 16 ms (FTDI's default) into every timeout; an adapter set to 1 ms can
+    use a much shorter one, which is what keeps a silent servo from stalling the cycle.
+    """
+
+    def __init__(self, port_name: str, latency_timer_ms: float):
+        super().__init__(port_name)
+        self.latency_timer_ms = latency_timer_ms
+
+    def setPacketTimeout(self, packet_length: int) -> None:
+        """Start a reply timeout sized for ``packet_length`` bytes plus two latency periods."""
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = (
+            self.tx_time_per_byte * packet_length + 2.0 * self.latency_timer_ms + 2.0
+        )
