@@ -213,6 +213,47 @@ def test_velocity_toward_a_near_limit_becomes_hold() -> None:
     assert hold.velocity == 0.0
 
 
+def test_velocity_mode_joint_is_held_at_the_limit_between_commands() -> None:
+    core = make(velocity_limit_lookahead=0.1, position_margin=0.02, watchdog_timeout=0.5)
+    feed_calibrated(core, 0.0, joint1=0.5)
+    core.on_joint_set(state(JointSample(J1, velocity=1.0)), now=0.0)
+    core.outbox.take()
+    # No new command (well within the watchdog timeout) while the joint runs up to the limit.
+    feed_calibrated(core, 0.2, joint1=0.7)
+    assert sent(core, "joint_commands") == []
+    feed_calibrated(core, 0.3, joint1=0.9)  # 0.9 + 0.1 crosses 0.98
+    (hold,) = sent(core, "joint_commands")
+    assert core.calibration("joint1").to_calibrated(hold.position) == approx(0.9)
+    assert hold.velocity == 0.0
+    assert core.counters["clamped"] == 1
+    # Held: no hold storm, and the watchdog has nothing left to stop.
+    feed_calibrated(core, 0.35, joint1=0.91)
+    core.tick(1.0)
+    assert sent(core, "joint_commands") == []
+    assert core.counters["watchdog_trips"] == 0
+
+
+def test_effort_mode_joint_moving_into_a_limit_is_held() -> None:
+    core = make(velocity_limit_lookahead=0.1)
+    feed_calibrated(core, 0.0, joint1=-0.5)
+    core.on_joint_set(state(JointSample(J1, effort=-2.0)), now=0.0)
+    assert sent(core, "joint_commands") == [JointSample(J1, None, None, approx(2.0))]
+    raw = core.calibration("joint1").to_raw(-0.95)
+    # Measured calibrated velocity -0.5 (raw +0.5, the joint is reversed) toward -0.98.
+    core.on_joint_states(state(JointSample(J1, raw, 0.5, 2.0)), now=0.2)
+    (hold,) = sent(core, "joint_commands")
+    assert (hold.position, hold.velocity, hold.effort) == (approx(raw), 0.0, None)
+
+
+def test_stop_holds_every_commanded_joint() -> None:
+    core = make()
+    feed_calibrated(core, 0.0, joint1=0.2, joint2=0.1)
+    core.on_joint_set(state(JointSample(J1, velocity=0.3)), now=0.0)
+    core.outbox.take()
+    core.stop(0.1)
+    assert sent(core, "joint_commands") == [JointSample(J1, approx(0.3), 0.0, None)]
+
+
 def test_velocity_only_command_without_fresh_state_is_refused() -> None:
     core = make(stale_timeout=1.0)
     core.on_joint_set(state(JointSample(J1, velocity=0.2)), now=0.0)

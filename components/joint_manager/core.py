@@ -78,7 +78,9 @@ class JointManagerConfig:
         keepalive_period: Seconds between full ``joint_read`` publications when nothing
             changes, so a still robot does not flood the radio yet subscribers see it alive.
         velocity_limit_lookahead: A velocity-only command that would cross a limit (minus the
-            margin) within this many seconds, from the measured position, becomes a hold.
+            margin) within this many seconds, from the measured position, becomes a hold;
+            the same check runs on every feedback while a joint moves in velocity (or
+            effort) mode, so it stops at the limit even between two commands.
         settle_tolerance: A position-commanded joint farther than this from its target still
             counts as moving for the watchdog.
         diagnostics_period: Seconds between ``diagnostics`` publications.
@@ -154,6 +156,7 @@ class _Joint:
 
     __slots__ = (
         "cal",
+        "cmd_velocity",
         "effort",
         "filters",
         "hi",
@@ -203,6 +206,7 @@ class _Joint:
         self.mode = _IDLE
         self.last_command = -math.inf
         self.target_raw: float | None = None
+        self.cmd_velocity = 0.0
         self.filters: list[CommandFilter] = []
         self.pin: float | None = None
         self.pin_note: str | None = None
@@ -434,8 +438,8 @@ class JointManagerCore(Core):
         every fresh joint goes out at the keep-alive period. Names this manager does not
         control and non-finite values are ignored (counted as ``feedback_rejected``).
         """
-        changed: list[_Joint] = []
-        pins_to_send: list[_Joint] = []
+        changed: dict[str, _Joint] = {}
+        holds: list[JointSample] = []
         for name, raw_pos, raw_vel, raw_eff in joint_samples(message):
             j = self._joints.get(name)
             if j is None:
@@ -469,13 +473,32 @@ class JointManagerCore(Core):
             if j.pin_note is not None and j.pin is None and j.position is not None:
                 # A pin "where it is" takes effect at the first measured position.
                 j.pin = j.clamp_position(j.position)
-                pins_to_send.append(j)
+                holds.append(self._hold_sample(j))
+            elif j.mode in (_VELOCITY, _EFFORT) and self._heading_past_limit(j):
+                # Between two commands a joint keeps its velocity: check it on every
+                # feedback, not only when a command arrives, or it could run through a limit
+                # for a whole watchdog timeout.
+                self._mark_clamp(j, f"{j.spec.name}: reached a limit, holding", now)
+                holds.append(self._hold_sample(j))
+                j.mode = _HOLD
             if self._changed(j):
-                changed.append(j)
-        if pins_to_send:
-            self._send([self._hold_sample(j) for j in pins_to_send], now)
+                changed[name] = j
+        self._send(holds, now)
         if not self._keepalive_if_due(now) and changed:
-            self._publish_read(changed, now)
+            self._publish_read(changed.values(), now)
+
+    def _heading_past_limit(self, j: _Joint, velocity: float | None = None) -> bool:
+        """Whether a bounded joint would cross ``lo``/``hi`` within the lookahead.
+
+        ``velocity`` defaults to the commanded one in velocity mode and the measured one in
+        effort mode (an effort command has no velocity of its own).
+        """
+        if not j.spec.bounded or j.position is None:
+            return False
+        if velocity is None:
+            velocity = j.cmd_velocity if j.mode == _VELOCITY else (j.velocity or 0.0)
+        ahead = j.position + velocity * self.config.velocity_limit_lookahead
+        return (velocity > 0 and ahead >= j.hi) or (velocity < 0 and ahead <= j.lo)
 
     def _changed(self, j: _Joint) -> bool:
         cfg = self.config
@@ -584,9 +607,7 @@ class JointManagerCore(Core):
                     now,
                 )
                 return None
-            assert j.position is not None
-            ahead = j.position + velocity * self.config.velocity_limit_lookahead
-            if (velocity > 0 and ahead >= j.hi) or (velocity < 0 and ahead <= j.lo):
+            if self._heading_past_limit(j, velocity):
                 self._mark_clamp(j, f"{spec.name}: velocity toward a limit, holding", now)
                 j.mode = _HOLD
                 j.target_raw = None
@@ -599,6 +620,7 @@ class JointManagerCore(Core):
         elif velocity is not None:
             j.mode = _VELOCITY
             j.target_raw = None
+            j.cmd_velocity = velocity
         else:
             j.mode = _EFFORT
             j.target_raw = None
@@ -614,13 +636,11 @@ class JointManagerCore(Core):
 
         Without any known position the only safe thing to send is velocity 0.
         """
-        if j.pin is not None:
-            hold = j.pin
-        elif j.position is not None:
-            hold = j.clamp_position(j.position)
-        else:
+        hold = j.pin if j.pin is not None else j.position
+        if hold is None:
             return JointSample(j.spec.name, None, 0.0, None)
-        return JointSample(j.spec.name, j.cal.to_raw(hold), 0.0, None)
+        # Clamped here too: a pin may have left the limits through a calibration change.
+        return JointSample(j.spec.name, j.cal.to_raw(j.clamp_position(hold)), 0.0, None)
 
     def _send(self, out: list[JointSample], now: float) -> None:
         if out:
