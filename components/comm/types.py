@@ -223,7 +223,7 @@ class TypeRegistry:
         """A fast bound encoder for one type (used on hot publish paths)."""
         canonical = self._require_msg(name)
         store = self._store
-        return lambda message: store.serialize_cdr(message, canonical)
+        return lambda message: bytes(store.serialize_cdr(message, canonical))
 
     def deserialize(self, data: bytes, name: str) -> Any:
         """Decode CDR bytes (with header) into a message object."""

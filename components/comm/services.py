@@ -1,0 +1,240 @@
+"""ROS 2 services on Zenoh, as rmw_zenoh carries them.
+
+A server is a queryable declared ``complete=True`` on
+``<domain>/<service>/<pkg>::srv::dds_::<Name>_/<service hash>``. A client sends a query with
+the CDR request as payload and an attachment (client sequence number, time, client GID),
+targeting ALL_COMPLETE; the server replies with the CDR response and an attachment carrying
+the request's sequence number and the client's GID, so the client can match the reply.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from components.comm.attachment import Attachment, AttachmentError, gid_of
+from components.comm.liveliness import EntityKind
+from components.comm.names import key_name, qualify
+from components.comm.qos import QoS
+from components.comm.stats import drops, log
+from components.comm.types import dds_type_name, normalize_type_name, registry
+
+if TYPE_CHECKING:
+    from components.comm.node import Node
+
+#: rmw_zenoh announces services with the "services default" QoS (reliable, keep last 10).
+SERVICE_QOS = QoS(depth=10)
+
+
+class ServiceError(RuntimeError):
+    """A service call that got no usable answer; the message names the service and why."""
+
+
+class ServiceTimeout(ServiceError, TimeoutError):
+    """No server answered within the timeout."""
+
+
+def service_key(domain: int, service: str, srv_type: str) -> str:
+    """The Zenoh key expression of a service."""
+    return f"{domain}/{key_name(service)}/{dds_type_name(srv_type)}/{registry().type_hash(srv_type)}"
+
+
+class PendingRequest:
+    """A request the server has received and not yet answered.
+
+    Lets an executor answer from its own thread after the Zenoh callback returned: call
+    :meth:`reply` exactly once.
+    """
+
+    def __init__(self, server: ServiceServer, query: Any, request: Any, attachment: Attachment):
+        self._server = server
+        self._query = query
+        self.request = request
+        self.attachment = attachment
+        self._done = False
+
+    def reply(self, response: Any) -> None:
+        """Send the response (serialized per the service's response type)."""
+        if self._done:
+            raise RuntimeError("this request was already answered")
+        self._done = True
+        server = self._server
+        try:
+            payload = server._serialize(response)
+        except Exception as exc:
+            self.fail(f"the server built a response that does not serialize: {exc}")
+            return
+        attachment = Attachment(
+            self.attachment.sequence_number, time.time_ns(), self.attachment.gid
+        ).encode()
+        try:
+            self._query.reply(server.key, payload, attachment=attachment)
+        finally:
+            self._release()
+
+    def fail(self, message: str) -> None:
+        """Answer with an error reply instead of a response."""
+        self._done = True
+        try:
+            self._query.reply_err(message.encode())
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        # Dropping the query finalizes it, which tells the client no more replies come.
+        try:
+            self._query.drop()
+        except Exception:
+            pass
+        self._query = None
+
+
+class ServiceServer:
+    """Answers one service. Create through :meth:`Node.service`.
+
+    ``handler(request) -> response`` runs on the Zenoh thread unless ``deferred=True``, in
+    which case ``handler(pending)`` receives a :class:`PendingRequest` to answer later.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        service: str,
+        srv_type: str,
+        handler: Callable[[Any], Any],
+        deferred: bool = False,
+    ) -> None:
+        self.service = qualify(service, node.namespace, node.name)
+        self.srv_type = normalize_type_name(srv_type)
+        reg = registry()
+        parts = reg.service(self.srv_type)
+        self._deserialize = reg.deserializer(parts.request)
+        self._serialize = reg.serializer(parts.response)
+        self._handler = handler
+        self._deferred = deferred
+        self.key = service_key(node.domain, self.service, self.srv_type)
+        self.entity = node.entity(
+            EntityKind.SERVICE, self.service, self.srv_type, reg.type_hash(self.srv_type), SERVICE_QOS
+        )
+        self.token_key = self.entity.token()
+        self.gid = gid_of(self.token_key)
+        self._zqueryable = node.session.declare_queryable(self.key, self._on_query, complete=True)
+        self._token = node.session.liveliness().declare_token(self.token_key)
+        self._closed = False
+
+    def _on_query(self, query: Any) -> None:
+        if query.attachment is None:
+            drops.drop(self.service, "bad_attachment", "request without attachment")
+            query.reply_err(b"service request without attachment")
+            return
+        try:
+            attachment = Attachment.decode(query.attachment.to_bytes())
+        except AttachmentError as exc:
+            drops.drop(self.service, "bad_attachment", str(exc))
+            query.reply_err(f"bad attachment: {exc}".encode())
+            return
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            request = self._deserialize(payload)
+        except Exception as exc:
+            drops.drop(self.service, "malformed", f"{type(exc).__name__}: {exc}")
+            query.reply_err(f"malformed request for {self.srv_type}".encode())
+            return
+        pending = PendingRequest(self, query, request, attachment)
+        if self._deferred:
+            self._handler(pending)
+            return
+        try:
+            response = self._handler(request)
+        except Exception as exc:
+            log.exception("service %s handler failed", self.service)
+            drops.drop(self.service, "handler_error")
+            pending.fail(f"{self.service} failed: {type(exc).__name__}: {exc}")
+            return
+        pending.reply(response)
+
+    def close(self) -> None:
+        """Undeclare the queryable and its token (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for thing in (self._token, self._zqueryable):
+            try:
+                thing.undeclare()
+            except Exception:
+                pass
+
+
+class ServiceClient:
+    """Calls one service. Create through :meth:`Node.client`."""
+
+    def __init__(self, node: Node, service: str, srv_type: str) -> None:
+        self.service = qualify(service, node.namespace, node.name)
+        self.srv_type = normalize_type_name(srv_type)
+        reg = registry()
+        self.parts = reg.service(self.srv_type)
+        self._serialize = reg.serializer(self.parts.request)
+        self._deserialize = reg.deserializer(self.parts.response)
+        self.key = service_key(node.domain, self.service, self.srv_type)
+        self.entity = node.entity(
+            EntityKind.CLIENT, self.service, self.srv_type, reg.type_hash(self.srv_type), SERVICE_QOS
+        )
+        self.token_key = self.entity.token()
+        self.gid = gid_of(self.token_key)
+        self._session = node.session
+        self._seq = itertools.count(1)
+        self._token = node.session.liveliness().declare_token(self.token_key)
+        self._closed = False
+
+    def request_type(self) -> type:
+        """The request message class (build requests with it)."""
+        return registry().msg_class(self.parts.request)
+
+    def call(self, request: Any, timeout: float = 2.0) -> Any:
+        """Send ``request`` and wait for the response.
+
+        Raises:
+            ServiceTimeout: If no server answered within ``timeout`` seconds.
+            ServiceError: If the server answered with an error or an undecodable response.
+        """
+        import zenoh
+
+        seq = next(self._seq)
+        attachment = Attachment(seq, time.time_ns(), self.gid).encode()
+        replies = self._session.get(
+            self.key,
+            payload=self._serialize(request),
+            attachment=attachment,
+            target=zenoh.QueryTarget.ALL_COMPLETE,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout,
+        )
+        for reply in replies:
+            if reply.err is not None:
+                text = reply.err.payload.to_bytes().decode(errors="replace")
+                raise ServiceError(f"service {self.service} answered with an error: {text}")
+            sample = reply.ok
+            try:
+                return self._deserialize(sample.payload.to_bytes())
+            except Exception as exc:
+                drops.drop(self.service, "malformed", f"{type(exc).__name__}: {exc}")
+                raise ServiceError(
+                    f"service {self.service} sent a response that is not a {self.parts.response}"
+                ) from exc
+        raise ServiceTimeout(
+            f"no server answered {self.service} ({self.srv_type}) within {timeout:g} s; "
+            "check it is running (`msctl service list`)"
+        )
+
+    def close(self) -> None:
+        """Undeclare the client's token (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._token.undeclare()
+        except Exception:
+            pass
+

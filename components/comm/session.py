@@ -1,0 +1,203 @@
+"""Opening Zenoh sessions, from one place.
+
+Every msctl process opens its session here so that mode, endpoints, scouting and lease are
+the same everywhere and can be changed without touching code. Defaults mirror rmw_zenoh's:
+a *peer* that connects to the router on ``tcp/localhost:7447`` and listens on loopback for
+direct links to the other processes of the same computer; multicast scouting off.
+
+Settings, lowest to highest precedence: built-in defaults, the json5 file named by
+``MSCTL_ZENOH_CONFIG`` (any Zenoh config; our settings are applied on top), environment
+variables, explicit arguments.
+
+Environment variables:
+    MSCTL_ZENOH_CONFIG     path of a json5 Zenoh configuration to start from
+    MSCTL_ZENOH_MODE       ``peer`` (default), ``client`` or ``router``
+    MSCTL_ZENOH_CONNECT    comma-separated endpoints to connect to (default tcp/localhost:7447)
+    MSCTL_ZENOH_LISTEN     comma-separated endpoints to listen on (peer default tcp/127.0.0.1:0)
+    MSCTL_ZENOH_MULTICAST  ``1`` to enable multicast scouting (default off)
+    MSCTL_ZENOH_LEASE_MS   link lease in ms (default 1000: a frozen peer is noticed in ~1 s)
+    ROS_DOMAIN_ID          ROS domain, the first chunk of every key (default 0)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+#: Where rmw_zenoh's router (``rmw_zenohd``) listens, and so where ours does by default.
+DEFAULT_ROUTER_PORT = 7447
+DEFAULT_CONNECT = (f"tcp/localhost:{DEFAULT_ROUTER_PORT}",)
+DEFAULT_ROUTER_LISTEN = (f"tcp/[::]:{DEFAULT_ROUTER_PORT}",)
+# Zenoh's default lease is 10 s: a frozen peer would keep its tokens (and its place in the
+# graph) for ten seconds. 1 s with 4 keep-alives per lease notices it in about a second
+# while tolerating a couple of lost Wi-Fi frames.
+DEFAULT_LEASE_MS = 1000
+KEEP_ALIVES_PER_LEASE = 4
+
+
+class SessionConfigError(ValueError):
+    """A session setting (environment variable or file) that cannot be used."""
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """How to open a Zenoh session.
+
+    Attributes:
+        mode: ``peer``, ``client`` or ``router``.
+        connect: Endpoints to connect to.
+        listen: Endpoints to listen on (empty: Zenoh's default for the mode).
+        multicast: Multicast scouting on or off.
+        lease_ms: Link lease in milliseconds.
+        domain: ROS domain id.
+        config_file: A json5 Zenoh config to start from.
+        extra: More Zenoh settings as ``{"path/in/config": value}``, applied last.
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = DEFAULT_CONNECT
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
+    multicast: bool = False
+    lease_ms: int = DEFAULT_LEASE_MS
+    domain: int = 0
+    config_file: Path | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_env(cls, environ: dict[str, str] | None = None, **overrides: Any) -> SessionSettings:
+        """Defaults, then environment variables, then ``overrides``.
+
+        Raises:
+            SessionConfigError: If a variable holds a value that cannot be used.
+        """
+        env = os.environ if environ is None else environ
+        settings = cls()
+        changes: dict[str, Any] = {}
+        if value := env.get("MSCTL_ZENOH_CONFIG"):
+            path = Path(value)
+            if not path.is_file():
+                raise SessionConfigError(
+                    f"MSCTL_ZENOH_CONFIG names {path}, which is not a file; fix the path or unset it"
+                )
+            changes["config_file"] = path
+        if value := env.get("MSCTL_ZENOH_MODE"):
+            changes["mode"] = value
+        if value := env.get("MSCTL_ZENOH_CONNECT"):
+            changes["connect"] = _endpoints(value, "MSCTL_ZENOH_CONNECT")
+        if value := env.get("MSCTL_ZENOH_LISTEN"):
+            changes["listen"] = _endpoints(value, "MSCTL_ZENOH_LISTEN")
+        if value := env.get("MSCTL_ZENOH_MULTICAST"):
+            changes["multicast"] = value.strip().lower() in ("1", "true", "yes", "on")
+        if value := env.get("MSCTL_ZENOH_LEASE_MS"):
+            changes["lease_ms"] = _integer(value, "MSCTL_ZENOH_LEASE_MS", minimum=100)
+        if value := env.get("ROS_DOMAIN_ID"):
+            changes["domain"] = _integer(value, "ROS_DOMAIN_ID", minimum=0)
+        changes.update({k: v for k, v in overrides.items() if v is not None})
+        settings = replace(settings, **changes)
+        settings.validate()
+        return settings
+
+    def validate(self) -> None:
+        """Check the settings.
+
+        Raises:
+            SessionConfigError: With the setting at fault and what to use instead.
+        """
+        if self.mode not in ("peer", "client", "router"):
+            raise SessionConfigError(
+                f"Zenoh mode {self.mode!r} is not one of peer, client, router (MSCTL_ZENOH_MODE)"
+            )
+        if self.mode == "client" and not self.connect:
+            raise SessionConfigError("a client session needs at least one endpoint to connect to")
+        for endpoint in (*self.connect, *self.listen):
+            if "/" not in endpoint:
+                raise SessionConfigError(
+                    f"endpoint {endpoint!r} lacks a protocol; write it like tcp/127.0.0.1:7447"
+                )
+
+    def with_endpoint(self, endpoint: str) -> SessionSettings:
+        """The same settings connecting to exactly ``endpoint`` (tests, ``--router``)."""
+        return replace(self, connect=(endpoint,))
+
+    def to_config(self) -> Any:
+        """A ``zenoh.Config`` for these settings."""
+        import zenoh
+
+        if self.config_file is not None:
+            try:
+                config = zenoh.Config.from_file(str(self.config_file))
+            except Exception as exc:
+                raise SessionConfigError(
+                    f"cannot read Zenoh config {self.config_file}: {exc}"
+                ) from exc
+        else:
+            config = zenoh.Config()
+        values: dict[str, Any] = {
+            "mode": self.mode,
+            "connect/endpoints": list(self.connect),
+            "scouting/multicast/enabled": self.multicast,
+            "transport/link/tx/lease": self.lease_ms,
+            "transport/link/tx/keep_alive": KEEP_ALIVES_PER_LEASE,
+            # Latched topics use Zenoh's advanced publisher, which orders its cache by
+            # timestamp; rmw_zenoh turns timestamping on for the same reason.
+            "timestamping/enabled": True,
+        }
+        if self.listen:
+            values["listen/endpoints"] = list(self.listen)
+        if self.mode != "client":
+            # A peer that cannot reach the router still runs (and works with the peers it
+            # can reach); it keeps retrying in the background, as rmw_zenoh's peers do.
+            values["connect/exit_on_failure"] = False
+        values.update(self.extra)
+        for path, value in values.items():
+            try:
+                config.insert_json5(path, json.dumps(value))
+            except Exception as exc:
+                raise SessionConfigError(f"Zenoh rejected {path}={value!r}: {exc}") from exc
+        return config
+
+
+def _endpoints(text: str, variable: str) -> tuple[str, ...]:
+    endpoints = tuple(e.strip() for e in text.split(",") if e.strip())
+    if not endpoints:
+        raise SessionConfigError(f"{variable} is set but names no endpoint")
+    return endpoints
+
+
+def _integer(text: str, variable: str, minimum: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise SessionConfigError(f"{variable}={text!r} is not a whole number") from None
+    if value < minimum:
+        raise SessionConfigError(f"{variable}={value} is below {minimum}")
+    return value
+
+
+def open_session(settings: SessionSettings | None = None) -> Any:
+    """Open a Zenoh session. Close it explicitly (``with`` or ``close()``): a session with a
+    Python callback subscriber that is left open hangs interpreter exit.
+
+    Raises:
+        SessionConfigError: If the settings are unusable or Zenoh refuses to open.
+    """
+    import zenoh
+
+    settings = settings or SessionSettings.from_env()
+    config = settings.to_config()
+    try:
+        return zenoh.open(config)
+    except Exception as exc:
+        raise SessionConfigError(
+            f"cannot open a Zenoh {settings.mode} session (connect {list(settings.connect)}, "
+            f"listen {list(settings.listen)}): {exc}"
+        ) from exc
+
+
+def router_settings(listen: tuple[str, ...] = DEFAULT_ROUTER_LISTEN, **overrides: Any) -> SessionSettings:
+    """Settings for a router like rmw_zenoh's ``rmw_zenohd``: listens, connects to nobody."""
+    base = SessionSettings.from_env(mode="router")
+    return replace(base, mode="router", listen=tuple(listen), connect=(), **overrides)

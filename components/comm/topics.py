@@ -1,0 +1,209 @@
+"""Publishers and subscriptions of ROS 2 topics, carried on Zenoh as rmw_zenoh carries them.
+
+Data key: ``<domain>/<topic without outer slashes>/<pkg>::msg::dds_::<Name>_/<RIHS01 hash>``;
+payload: CDR with its 4-byte encapsulation header; attachment: see ``attachment.py``.
+Latched (transient-local) topics use Zenoh's advanced publisher (with a cache of ``depth``
+samples and publisher detection) and advanced subscriber (querying late publishers' history),
+as rmw_zenoh does, so a late subscriber gets the last sample.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from components.comm.attachment import Attachment, AttachmentError, gid_of
+from components.comm.liveliness import EntityKind
+from components.comm.names import key_name, qualify
+from components.comm.qos import QoS
+from components.comm.stats import drops, log
+from components.comm.types import dds_type_name, normalize_type_name, registry
+
+if TYPE_CHECKING:
+    from components.comm.node import Node
+
+
+def data_key(domain: int, topic: str, type_name: str) -> str:
+    """The Zenoh key expression that carries a topic's samples."""
+    reg = registry()
+    return f"{domain}/{key_name(topic)}/{dds_type_name(type_name)}/{reg.type_hash(type_name)}"
+
+
+class Publisher:
+    """Publishes one topic. Create through :meth:`Node.publisher`.
+
+    Attributes:
+        topic: Fully qualified topic name.
+        type_name: Canonical message type.
+        key: The Zenoh data key.
+        gid: This publisher's 16-byte GID (from its liveliness token).
+    """
+
+    def __init__(self, node: Node, topic: str, msg_type: str, qos: QoS | None = None) -> None:
+        import zenoh
+        import zenoh.ext
+
+        self.qos = qos or QoS()
+        self.topic = qualify(topic, node.namespace, node.name)
+        self.type_name = normalize_type_name(msg_type)
+        reg = registry()
+        self._serialize = reg.serializer(self.type_name)
+        self.key = data_key(node.domain, self.topic, self.type_name)
+        self.entity = node.entity(
+            EntityKind.PUBLISHER, self.topic, self.type_name, reg.type_hash(self.type_name), self.qos
+        )
+        self.token_key = self.entity.token()
+        self.gid = gid_of(self.token_key)
+        self._seq = itertools.count(1)
+        reliability = (
+            zenoh.Reliability.RELIABLE
+            if self.qos.reliability == "reliable"
+            else zenoh.Reliability.BEST_EFFORT
+        )
+        # Reliable topics must not lose samples on our side: block on congestion rather than
+        # drop. Best-effort topics (sensor streams) drop, so a slow link never stalls a loop.
+        congestion = (
+            zenoh.CongestionControl.BLOCK
+            if self.qos.reliability == "reliable"
+            else zenoh.CongestionControl.DROP
+        )
+        session = node.session
+        if self.qos.latched:
+            self._zpub = zenoh.ext.declare_advanced_publisher(
+                session,
+                self.key,
+                reliability=reliability,
+                congestion_control=congestion,
+                cache=zenoh.ext.CacheConfig(max_samples=self.qos.depth),
+                publisher_detection=True,
+            )
+        else:
+            self._zpub = session.declare_publisher(
+                self.key, reliability=reliability, congestion_control=congestion
+            )
+        self._token = session.liveliness().declare_token(self.token_key)
+        self._closed = False
+
+    def publish(self, message: Any) -> None:
+        """Serialize and send one message."""
+        self.publish_raw(self._serialize(message))
+
+    def publish_raw(self, payload: bytes) -> None:
+        """Send already-serialized CDR bytes (with header) with a fresh attachment."""
+        attachment = Attachment(next(self._seq), time.time_ns(), self.gid).encode()
+        self._zpub.put(payload, attachment=attachment)
+
+    def close(self) -> None:
+        """Undeclare the publisher and its token (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for thing in (self._token, self._zpub):
+            try:
+                thing.undeclare()
+            except Exception:  # the session may already be closed
+                pass
+
+
+class Subscription:
+    """Receives one topic. Create through :meth:`Node.subscription`.
+
+    The callback runs on a Zenoh thread with the decoded message. Samples whose payload or
+    attachment do not decode, or whose type differs from the subscription's, are dropped
+    and counted in :data:`components.comm.stats.drops` under the topic name; an exception in
+    the callback is logged and counted, and never reaches Zenoh.
+
+    Attributes:
+        received: Samples delivered to the callback.
+        last_attachment: The attachment of the latest good sample, if it had one.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        topic: str,
+        msg_type: str,
+        callback: Callable[[Any], None],
+        qos: QoS | None = None,
+        raw: bool = False,
+    ) -> None:
+        import zenoh.ext
+
+        self.qos = qos or QoS()
+        self.topic = qualify(topic, node.namespace, node.name)
+        self.type_name = normalize_type_name(msg_type)
+        reg = registry()
+        self._deserialize = reg.deserializer(self.type_name)
+        self._raw = raw
+        self._callback = callback
+        self.key = data_key(node.domain, self.topic, self.type_name)
+        self.entity = node.entity(
+            EntityKind.SUBSCRIPTION,
+            self.topic,
+            self.type_name,
+            reg.type_hash(self.type_name),
+            self.qos,
+        )
+        self.token_key = self.entity.token()
+        self.received = 0
+        self.last_attachment: Attachment | None = None
+        # Listen to every type on the topic so a publisher of the wrong type (or of another
+        # version of the type) is seen and counted, not silently ignored.
+        listen_key = f"{node.domain}/{key_name(self.topic)}/*/*"
+        session = node.session
+        if self.qos.latched:
+            self._zsub = zenoh.ext.declare_advanced_subscriber(
+                session,
+                listen_key,
+                self._on_sample,
+                history=zenoh.ext.HistoryConfig(
+                    detect_late_publishers=True, max_samples=self.qos.depth
+                ),
+                subscriber_detection=True,
+            )
+        else:
+            self._zsub = session.declare_subscriber(listen_key, self._on_sample)
+        self._token = session.liveliness().declare_token(self.token_key)
+        self._closed = False
+
+    def _on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        if key != self.key:
+            drops.drop(self.topic, "wrong_type", f"(sample key {key}, expected {self.key})")
+            return
+        attachment = sample.attachment
+        if attachment is not None:
+            try:
+                self.last_attachment = Attachment.decode(attachment.to_bytes())
+            except AttachmentError as exc:
+                drops.drop(self.topic, "bad_attachment", str(exc))
+                return
+        payload = sample.payload.to_bytes()
+        if self._raw:
+            message: Any = payload
+        else:
+            try:
+                message = self._deserialize(payload)
+            except Exception as exc:
+                drops.drop(self.topic, "malformed", f"{type(exc).__name__}: {exc}")
+                return
+        self.received += 1
+        try:
+            self._callback(message)
+        except Exception:
+            drops.drop(self.topic, "callback_error")
+            log.exception("subscription callback on %s failed", self.topic)
+
+    def close(self) -> None:
+        """Undeclare the subscriber and its token (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for thing in (self._token, self._zsub):
+            try:
+                thing.undeclare()
+            except Exception:
+                pass
+

@@ -1,0 +1,82 @@
+"""Shared fixtures: real Zenoh routers and sessions on 127.0.0.1, random ports, no multicast."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from components.comm.session import SessionSettings, open_session
+
+
+def free_port() -> int:
+    """A TCP port that was free a moment ago on 127.0.0.1."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def wait_until(predicate: Callable[[], Any], timeout: float = 5.0, interval: float = 0.02) -> Any:
+    """Poll ``predicate`` until it returns something truthy; fail the test on timeout."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"condition not met within {timeout} s")
+        time.sleep(interval)
+
+
+@pytest.fixture
+def router_endpoint() -> Iterator[str]:
+    """A real Zenoh router listening on a random loopback port; yields its endpoint."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    settings = SessionSettings(mode="router", connect=(), listen=(endpoint,))
+    router = open_session(settings)
+    try:
+        yield endpoint
+    finally:
+        router.close()
+
+
+@pytest.fixture
+def session_settings(router_endpoint: str) -> SessionSettings:
+    """Peer settings that reach the test router and nothing else."""
+    return SessionSettings(
+        mode="peer", connect=(router_endpoint,), listen=("tcp/127.0.0.1:0",), multicast=False
+    )
+
+
+@pytest.fixture
+def zenoh_env(router_endpoint: str, monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
+    """Environment for msctl subprocesses so they join the test router only."""
+    env = {
+        "MSCTL_ZENOH_CONNECT": router_endpoint,
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+    }
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    return env
+
+
+@pytest.fixture
+def open_sessions(session_settings: SessionSettings) -> Iterator[Callable[[], Any]]:
+    """A factory of peer sessions on the test router; every one is closed at teardown."""
+    sessions: list[Any] = []
+
+    def make() -> Any:
+        session = open_session(session_settings)
+        sessions.append(session)
+        return session
+
+    try:
+        yield make
+    finally:
+        for session in reversed(sessions):
+            session.close()
