@@ -66,7 +66,11 @@ class Entity:
     @property
     def node_fqn(self) -> str:
         """``/namespace/node`` as ``ros2 node list`` prints it."""
-        return (self.namespace.rstrip("/") + "/" + self.node_name) if self.namespace else self.node_name
+        return (
+            (self.namespace.rstrip("/") + "/" + self.node_name)
+            if self.namespace
+            else self.node_name
+        )
 
     def token(self) -> str:
         """The liveliness key expression of this entity."""

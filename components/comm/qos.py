@@ -1,7 +1,8 @@
 """Quality of service, as ROS 2 states it and as rmw_zenoh writes it into liveliness tokens.
 
 Token form (rmw_zenoh, Jazzy):
-``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<lease s>,<ns>``
+``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:``
+``<liveliness>,<lease s>,<ns>``
 where every field equal to rmw_zenoh's baseline (reliable, volatile, keep-last 42, infinite
 durations, automatic liveliness) is left empty. Enum values are the rmw ones: reliability
 1 reliable / 2 best effort; durability 1 transient local / 2 volatile; history 1 keep last /

@@ -38,7 +38,9 @@ class ServiceTimeout(ServiceError, TimeoutError):
 
 def service_key(domain: int, service: str, srv_type: str) -> str:
     """The Zenoh key expression of a service."""
-    return f"{domain}/{key_name(service)}/{dds_type_name(srv_type)}/{registry().type_hash(srv_type)}"
+    return (
+        f"{domain}/{key_name(service)}/{dds_type_name(srv_type)}/{registry().type_hash(srv_type)}"
+    )
 
 
 class PendingRequest:
@@ -116,7 +118,11 @@ class ServiceServer:
         self._deferred = deferred
         self.key = service_key(node.domain, self.service, self.srv_type)
         self.entity = node.entity(
-            EntityKind.SERVICE, self.service, self.srv_type, reg.type_hash(self.srv_type), SERVICE_QOS
+            EntityKind.SERVICE,
+            self.service,
+            self.srv_type,
+            reg.type_hash(self.srv_type),
+            SERVICE_QOS,
         )
         self.token_key = self.entity.token()
         self.gid = gid_of(self.token_key)
@@ -179,7 +185,11 @@ class ServiceClient:
         self._deserialize = reg.deserializer(self.parts.response)
         self.key = service_key(node.domain, self.service, self.srv_type)
         self.entity = node.entity(
-            EntityKind.CLIENT, self.service, self.srv_type, reg.type_hash(self.srv_type), SERVICE_QOS
+            EntityKind.CLIENT,
+            self.service,
+            self.srv_type,
+            reg.type_hash(self.srv_type),
+            SERVICE_QOS,
         )
         self.token_key = self.entity.token()
         self.gid = gid_of(self.token_key)
@@ -237,4 +247,3 @@ class ServiceClient:
             self._token.undeclare()
         except Exception:
             pass
-

@@ -80,7 +80,8 @@ class SessionSettings:
             path = Path(value)
             if not path.is_file():
                 raise SessionConfigError(
-                    f"MSCTL_ZENOH_CONFIG names {path}, which is not a file; fix the path or unset it"
+                    f"MSCTL_ZENOH_CONFIG names {path}, which is not a file; "
+                    "fix the path or unset it"
                 )
             changes["config_file"] = path
         if value := env.get("MSCTL_ZENOH_MODE"):
@@ -197,7 +198,9 @@ def open_session(settings: SessionSettings | None = None) -> Any:
         ) from exc
 
 
-def router_settings(listen: tuple[str, ...] = DEFAULT_ROUTER_LISTEN, **overrides: Any) -> SessionSettings:
+def router_settings(
+    listen: tuple[str, ...] = DEFAULT_ROUTER_LISTEN, **overrides: Any
+) -> SessionSettings:
     """Settings for a router like rmw_zenoh's ``rmw_zenohd``: listens, connects to nobody."""
     base = SessionSettings.from_env(mode="router")
     return replace(base, mode="router", listen=tuple(listen), connect=(), **overrides)

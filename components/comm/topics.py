@@ -52,7 +52,11 @@ class Publisher:
         self._serialize = reg.serializer(self.type_name)
         self.key = data_key(node.domain, self.topic, self.type_name)
         self.entity = node.entity(
-            EntityKind.PUBLISHER, self.topic, self.type_name, reg.type_hash(self.type_name), self.qos
+            EntityKind.PUBLISHER,
+            self.topic,
+            self.type_name,
+            reg.type_hash(self.type_name),
+            self.qos,
         )
         self.token_key = self.entity.token()
         self.gid = gid_of(self.token_key)
@@ -206,4 +210,3 @@ class Subscription:
                 thing.undeclare()
             except Exception:
                 pass
-

@@ -267,9 +267,9 @@ class TypeRegistry:
 
     def _message_description(self, name: str) -> dict[str, Any]:
         _, fields = self._store.fielddefs[name]
-        described = [
-            {"name": field, "type": _field_type(desc)} for field, desc in fields
-        ] or [{"name": "structure_needs_at_least_one_member", "type": _plain(3)}]
+        described = [{"name": field, "type": _field_type(desc)} for field, desc in fields] or [
+            {"name": "structure_needs_at_least_one_member", "type": _plain(3)}
+        ]
         return {"type_name": name, "fields": described}
 
     def _service_description(self, name: str) -> dict[str, Any]:

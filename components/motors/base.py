@@ -122,7 +122,7 @@ class MotorBackend(ABC):
 
     @abstractmethod
     def write(self, commands: list[MotorCommand]) -> None:
-        """Send commands. Unknown joints are ignored (the caller already validated). Never raises."""
+        """Send commands; unknown joints are ignored (the caller validated). Never raises."""
 
     @abstractmethod
     def diagnostics(self) -> list[MotorDiagnostic]:

@@ -1,0 +1,215 @@
+"""The ROS graph as seen from the liveliness tokens: nodes, topics, services.
+
+Built from every ``@ros2_lv`` token on the network, so it sees rmw_zenoh ROS 2 nodes as well
+as msctl components. Either a live view (:class:`Graph`, kept up to date by a liveliness
+subscriber) or a one-shot :func:`snapshot`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+from components.comm.stats import drops
+
+
+@dataclass
+class TopicInfo:
+    """A topic on the graph."""
+
+    name: str
+    types: set[str] = field(default_factory=set)
+    publishers: int = 0
+    subscribers: int = 0
+    publisher_nodes: set[str] = field(default_factory=set)
+    subscriber_nodes: set[str] = field(default_factory=set)
+
+
+@dataclass
+class ServiceInfo:
+    """A service on the graph."""
+
+    name: str
+    types: set[str] = field(default_factory=set)
+    servers: int = 0
+    clients: int = 0
+    server_nodes: set[str] = field(default_factory=set)
+
+
+@dataclass(frozen=True)
+class NodeInfo:
+    """A node on the graph."""
+
+    fqn: str
+    namespace: str
+    name: str
+    zid: str
+
+
+class GraphView:
+    """Queries over a set of entities (shared by the live and one-shot views)."""
+
+    def entities(self) -> list[Entity]:
+        """Every entity currently known."""
+        raise NotImplementedError
+
+    def nodes(self) -> list[NodeInfo]:
+        """Every node, sorted by fully qualified name."""
+        found = {
+            (e.zid, e.node_id): NodeInfo(e.node_fqn, e.namespace, e.node_name, e.zid)
+            for e in self.entities()
+            if e.kind is EntityKind.NODE
+        }
+        return sorted(found.values(), key=lambda n: (n.fqn, n.zid))
+
+    def topics(self) -> dict[str, TopicInfo]:
+        """Every topic with its types and publisher/subscriber counts."""
+        topics: dict[str, TopicInfo] = {}
+        for e in self.entities():
+            if e.kind not in (EntityKind.PUBLISHER, EntityKind.SUBSCRIPTION) or e.topic is None:
+                continue
+            info = topics.setdefault(e.topic, TopicInfo(e.topic))
+            if e.type_name:
+                info.types.add(e.type_name)
+            if e.kind is EntityKind.PUBLISHER:
+                info.publishers += 1
+                info.publisher_nodes.add(e.node_fqn)
+            else:
+                info.subscribers += 1
+                info.subscriber_nodes.add(e.node_fqn)
+        return dict(sorted(topics.items()))
+
+    def services(self) -> dict[str, ServiceInfo]:
+        """Every service with its types and server/client counts."""
+        services: dict[str, ServiceInfo] = {}
+        for e in self.entities():
+            if e.kind not in (EntityKind.SERVICE, EntityKind.CLIENT) or e.topic is None:
+                continue
+            info = services.setdefault(e.topic, ServiceInfo(e.topic))
+            if e.type_name:
+                info.types.add(e.type_name)
+            if e.kind is EntityKind.SERVICE:
+                info.servers += 1
+                info.server_nodes.add(e.node_fqn)
+            else:
+                info.clients += 1
+        return dict(sorted(services.items()))
+
+    def node_names(self) -> set[str]:
+        """Fully qualified names of every node."""
+        return {n.fqn for n in self.nodes()}
+
+
+class Snapshot(GraphView):
+    """The graph at one moment."""
+
+    def __init__(self, entities: Iterable[Entity]) -> None:
+        self._entities = list(entities)
+
+    def entities(self) -> list[Entity]:
+        """Every entity in the snapshot."""
+        return list(self._entities)
+
+
+def _parse(key: str) -> Entity | None:
+    try:
+        return Entity.parse(key)
+    except TokenError as exc:
+        drops.drop("@ros2_lv", "bad_token", str(exc))
+        return None
+
+
+def snapshot(session: Any, domain: int = 0, timeout: float = 1.0) -> Snapshot:
+    """Ask the network for every live token of ``domain`` and return the graph."""
+    entities = []
+    for reply in session.liveliness().get(f"{PREFIX}/{domain}/**", timeout=timeout):
+        if reply.ok is None:
+            continue
+        entity = _parse(str(reply.ok.key_expr))
+        if entity is not None:
+            entities.append(entity)
+    return Snapshot(entities)
+
+
+class Graph(GraphView):
+    """A live graph, updated as tokens appear and vanish. Close it when done.
+
+    Args:
+        session: An open Zenoh session.
+        domain: ROS domain id.
+        on_change: Called (on a Zenoh thread) with ``(entity, alive)`` for every change.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        domain: int = 0,
+        on_change: Callable[[Entity, bool], None] | None = None,
+    ) -> None:
+        self._lock = threading.Lock()
+        self._entities: dict[str, Entity] = {}
+        self._on_change = on_change
+        self._changed = threading.Condition(self._lock)
+        self._subscriber = session.liveliness().declare_subscriber(
+            f"{PREFIX}/{domain}/**", self._on_token, history=True
+        )
+
+    def _on_token(self, sample: Any) -> None:
+        import zenoh
+
+        key = str(sample.key_expr)
+        alive = sample.kind == zenoh.SampleKind.PUT
+        entity = _parse(key)
+        if entity is None:
+            return
+        with self._lock:
+            if alive:
+                self._entities[key] = entity
+            else:
+                self._entities.pop(key, None)
+            self._changed.notify_all()
+        if self._on_change is not None:
+            try:
+                self._on_change(entity, alive)
+            except Exception:
+                drops.drop("@ros2_lv", "callback_error")
+
+    def entities(self) -> list[Entity]:
+        """Every entity alive now."""
+        with self._lock:
+            return list(self._entities.values())
+
+    def wait_for(self, predicate: Callable[[GraphView], bool], timeout: float) -> bool:
+        """Block until ``predicate(self)`` holds or ``timeout`` passes; returns whether it held."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while True:
+                self._lock.release()
+                try:
+                    if predicate(self):
+                        return True
+                finally:
+                    self._lock.acquire()
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._changed.wait(min(remaining, 0.1))
+
+    def close(self) -> None:
+        """Stop following the graph (idempotent)."""
+        sub, self._subscriber = self._subscriber, None
+        if sub is not None:
+            try:
+                sub.undeclare()
+            except Exception:
+                pass
+
+    def __enter__(self) -> Graph:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

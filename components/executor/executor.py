@@ -1,0 +1,305 @@
+"""The Executor: runs one or many cores in one process.
+
+One thread (the caller of :meth:`Executor.run`) calls every handler of every core, so a core
+never sees two callbacks at once and cores need no locks. Zenoh threads only decode samples
+and queue them; each subscription keeps at most ``depth`` pending samples (keep-last), so a
+slow core sees the newest data rather than an ever-growing backlog.
+
+An exception in a core's handler is logged with the component's name and counted; the other
+cores keep running. SIGINT/SIGTERM stop the loop; every core's ``stop`` runs, then every
+node and the session are closed, so the process exits promptly.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from components.comm.node import Node
+from components.comm.services import PendingRequest
+from components.comm.session import SessionSettings, open_session
+from components.executor.core import Core
+from components.executor.interface import InterfaceSpec, Serve, Subscribe
+
+log = logging.getLogger("msctl.executor")
+
+_STOP = object()
+
+
+@dataclass
+class Component:
+    """A core bound to the data plane: its node, publishers and counters."""
+
+    name: str
+    core: Core
+    spec: InterfaceSpec
+    node: Node
+    publishers: dict[str, Any] = field(default_factory=dict)
+    errors: int = 0
+    handled: int = 0
+
+    def publish(self, topic: str, message: Any) -> None:
+        """The core's outbox: publish on a declared output."""
+        try:
+            publisher = self.publishers[topic]
+        except KeyError:
+            raise KeyError(
+                f"{self.name} published on {topic!r}, which its interface does not declare "
+                f"(declared: {sorted(self.publishers)})"
+            ) from None
+        publisher.publish(message)
+
+
+class _Inbox:
+    """Pending samples of one subscription (bounded for keep-last)."""
+
+    __slots__ = ("component", "handler", "items", "lock", "scheduled")
+
+    def __init__(self, component: Component, handler: Callable, depth: int | None) -> None:
+        self.component = component
+        self.handler = handler
+        self.items: deque[Any] = deque(maxlen=depth)
+        self.lock = threading.Lock()
+        self.scheduled = False
+
+
+class Executor:
+    """Runs cores. Use as a context manager or call :meth:`close`.
+
+    Args:
+        settings: Session settings (default: from the environment).
+        session: An already open session to use instead (the caller closes it).
+        clock: Monotonic clock giving ``now`` to handlers (tests may pass a fake).
+    """
+
+    def __init__(
+        self,
+        settings: SessionSettings | None = None,
+        session: Any = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._settings = settings or SessionSettings.from_env()
+        self._owns_session = session is None
+        self.session = session if session is not None else open_session(self._settings)
+        self.clock = clock
+        self.components: list[Component] = []
+        self._work: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._timers: list[tuple[float, int, Component, Callable, float]] = []
+        self._timer_seq = itertools.count()
+        self._stopping = threading.Event()
+        self._closed = False
+        self._wall_offset = time.time() - time.monotonic()
+
+    # ------------------------------------------------------------------ building
+    def add(
+        self,
+        core: Core,
+        spec: InterfaceSpec,
+        namespace: str = "/",
+        node_name: str | None = None,
+    ) -> Component:
+        """Bind ``core`` to the data plane under ``namespace`` as node ``node_name``."""
+        node = Node(
+            self.session,
+            node_name or core.name.replace("/", "_").replace("-", "_"),
+            namespace,
+            domain=self._settings.domain,
+        )
+        component = Component(core.name, core, spec, node)
+        try:
+            for output in spec.publish:
+                component.publishers[output.topic] = node.publisher(
+                    output.topic, output.msg_type, output.qos
+                )
+            for extra in getattr(core, "extra_publish", ()):
+                component.publishers[extra.topic] = node.publisher(
+                    extra.topic, extra.msg_type, extra.qos
+                )
+            core.bind(component, self._wall_offset)
+            for sub in (*spec.subscribe, *getattr(core, "extra_subscribe", ())):
+                self._bind_subscription(component, sub)
+            for serve in (*spec.serve, *getattr(core, "extra_serve", ())):
+                self._bind_service(component, serve)
+            now = self.clock()
+            for every in spec.every:
+                handler = self._handler(core, every.handler)
+                heapq.heappush(
+                    self._timers,
+                    (now + every.period, next(self._timer_seq), component, handler, every.period),
+                )
+        except Exception:
+            node.close()
+            raise
+        self.components.append(component)
+        return component
+
+    def _handler(self, core: Core, name: str) -> Callable:
+        handler = getattr(core, name, None)
+        if not callable(handler):
+            raise AttributeError(
+                f"{core.name}: the interface names handler {name!r}, which the core lacks"
+            )
+        return handler
+
+    def _bind_subscription(self, component: Component, sub: Subscribe) -> None:
+        handler = self._handler(component.core, sub.handler)
+        depth = sub.qos.depth if sub.qos.history == "keep_last" else None
+        inbox = _Inbox(component, handler, depth)
+
+        def on_message(message: Any) -> None:
+            with inbox.lock:
+                inbox.items.append(message)
+                if inbox.scheduled:
+                    return
+                inbox.scheduled = True
+            self._work.put(inbox)
+
+        component.node.subscription(sub.topic, sub.msg_type, on_message, sub.qos)
+
+    def _bind_service(self, component: Component, serve: Serve) -> None:
+        handler = self._handler(component.core, serve.handler)
+
+        def on_request(pending: PendingRequest) -> None:
+            self._work.put((component, handler, pending))
+
+        component.node.service(serve.service, serve.srv_type, on_request, deferred=True)
+
+    # ------------------------------------------------------------------ running
+    def run(self, duration: float | None = None) -> None:
+        """Run until :meth:`stop`, a signal, or ``duration`` seconds; then shut down cleanly."""
+        restore = self._install_signals()
+        try:
+            start = self.clock()
+            for component in self.components:
+                self._call(component, component.core.start, start)
+            deadline = None if duration is None else time.monotonic() + duration
+            while not self._stopping.is_set():
+                timeout = self._next_timeout(deadline)
+                try:
+                    item = (
+                        self._work.get(timeout=timeout) if timeout > 0 else self._work.get_nowait()
+                    )
+                except queue.Empty:
+                    item = None
+                if item is _STOP:
+                    break
+                if item is not None:
+                    self._dispatch(item)
+                self._run_due_timers()
+                if deadline is not None and time.monotonic() >= deadline:
+                    break
+        finally:
+            self._shutdown_cores()
+            restore()
+            self.close()
+
+    def spin_once(self, timeout: float = 0.0) -> None:
+        """Handle what is pending (for tests and embedding in another loop)."""
+        try:
+            item = self._work.get(timeout=timeout) if timeout > 0 else self._work.get_nowait()
+        except queue.Empty:
+            item = None
+        if item is not None and item is not _STOP:
+            self._dispatch(item)
+        self._run_due_timers()
+
+    def stop(self) -> None:
+        """Ask the loop to finish (safe from any thread or a signal handler)."""
+        self._stopping.set()
+        self._work.put(_STOP)
+
+    def _next_timeout(self, deadline: float | None) -> float:
+        now = self.clock()
+        wait = 0.5
+        if self._timers:
+            wait = min(wait, self._timers[0][0] - now)
+        if deadline is not None:
+            wait = min(wait, deadline - time.monotonic())
+        return max(wait, 0.0)
+
+    def _dispatch(self, item: Any) -> None:
+        if isinstance(item, _Inbox):
+            while True:
+                with item.lock:
+                    if not item.items:
+                        item.scheduled = False
+                        return
+                    message = item.items.popleft()
+                self._call(item.component, item.handler, message, self.clock())
+            return
+        component, handler, pending = item
+        response = self._call(component, handler, pending.request, self.clock())
+        if response is None:
+            pending.fail(f"{component.name} could not answer (see its log)")
+        else:
+            try:
+                pending.reply(response)
+            except Exception:
+                component.errors += 1
+                log.exception("%s: replying to a service request failed", component.name)
+
+    def _run_due_timers(self) -> None:
+        now = self.clock()
+        while self._timers and self._timers[0][0] <= now:
+            due, seq, component, handler, period = heapq.heappop(self._timers)
+            self._call(component, handler, now)
+            following = due + period
+            if following <= now:  # fell behind (a slow handler): skip, never burst
+                following = now + period
+            heapq.heappush(self._timers, (following, seq, component, handler, period))
+
+    def _call(self, component: Component, handler: Callable, *args: Any) -> Any:
+        component.handled += 1
+        try:
+            return handler(*args)
+        except Exception:
+            component.errors += 1
+            log.exception(
+                "component %s: %s failed", component.name, getattr(handler, "__name__", handler)
+            )
+            return None
+
+    def _shutdown_cores(self) -> None:
+        now = self.clock()
+        for component in self.components:
+            self._call(component, component.core.stop, now)
+
+    def _install_signals(self) -> Callable[[], None]:
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        previous = {}
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.getsignal(signum)
+            signal.signal(signum, lambda *_: self.stop())
+
+        def restore() -> None:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+
+        return restore
+
+    # ------------------------------------------------------------------ closing
+    def close(self) -> None:
+        """Close every node and, if the executor opened it, the session (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for component in reversed(self.components):
+            component.node.close()
+        if self._owns_session:
+            self.session.close()
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
