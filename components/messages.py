@@ -6,8 +6,9 @@ meaning "not given", stamps as ``builtin_interfaces/Time``) live in one place.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -26,39 +27,46 @@ LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
 
 def msg(type_name: str, **fields: Any) -> Any:
     """Construct any registered message with the given fields (others at their defaults)."""
-    cls = registry().msg_class(type_name)
-    return cls(**{**_defaults(type_name), **fields})
+    cls, makers = _factory(type_name)
+    for name, make in makers:
+        if name not in fields:
+            fields[name] = make()
+    return cls(**fields)
 
 
-def _defaults(type_name: str) -> dict[str, Any]:
-    values: dict[str, Any] = {}
-    for name, desc in registry().fields(type_name):
-        values[name] = _default_for(desc)
-    return values
+@functools.cache
+def _factory(type_name: str) -> tuple[type, tuple[tuple[str, Callable[[], Any]], ...]]:
+    # Built once per type: msg() is on every hot path (joint commands at 100+ Hz).
+    reg = registry()
+    makers = tuple((name, _default_maker(desc)) for name, desc in reg.fields(type_name))
+    return reg.msg_class(type_name), makers
 
 
-def _default_for(desc: Any) -> Any:
+def _default_maker(desc: Any) -> Callable[[], Any]:
     from rosbags.typesys.base import Nodetype
 
     node, detail = desc
     if node == Nodetype.BASE:
         base = detail[0]
+        value: Any = 0
         if base in ("string", "wstring"):
-            return ""
-        if base == "bool":
-            return False
-        if base in ("float32", "float64"):
-            return 0.0
-        return 0
+            value = ""
+        elif base == "bool":
+            value = False
+        elif base in ("float32", "float64"):
+            value = 0.0
+        return lambda: value
     if node == Nodetype.NAME:
-        return msg(detail)
+        return lambda: msg(detail)
     inner, size = detail
     if inner[0] == Nodetype.BASE and inner[1][0] not in ("string", "wstring", "bool"):
         dtype = _NUMPY_TYPES.get(inner[1][0], np.float64)
-        return np.zeros(size if node == Nodetype.ARRAY else 0, dtype=dtype)
+        length = size if node == Nodetype.ARRAY else 0
+        return lambda: np.zeros(length, dtype=dtype)
     if node == Nodetype.ARRAY:
-        return [_default_for(inner) for _ in range(size)]
-    return []
+        element = _default_maker(inner)
+        return lambda: [element() for _ in range(size)]
+    return list
 
 
 _NUMPY_TYPES = {
@@ -124,9 +132,7 @@ def joint_state(samples: Iterable[JointSample], stamp: float = 0.0, frame_id: st
                 f"joint_state: {field} is given for some joints and not others; "
                 "send them as separate messages (joint_state_batches)"
             )
-        columns.append(
-            np.array(values, dtype=np.float64) if rows and all(given) else np.zeros(0)
-        )
+        columns.append(np.array(values, dtype=np.float64) if rows and all(given) else np.zeros(0))
     return msg(
         JOINT_STATE,
         header=header(stamp, frame_id),
