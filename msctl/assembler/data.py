@@ -1,0 +1,809 @@
+"""Static data: module types, assembly templates and physical units, loaded and checked.
+
+Every problem is raised as an :class:`~msctl.errors.InputError` or
+:class:`~msctl.errors.NotFoundError` naming the file, the field and the fix. Parsed files are
+cached by modification time, so resolving again in the same process only stats them.
+
+Where the data lives: the ``assemblies`` and ``calibration`` packages shipped with msctl, or the
+directories named by ``MSCTL_ASSEMBLIES_DIR`` and ``MSCTL_CALIBRATION_DIR`` (a field team may
+keep its calibration in its own repository).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from components.assembly import COMPONENT_KINDS
+from msctl.assembler import transforms as tf
+from msctl.assembler.urdf import MOVABLE, ModuleUrdf, parse_module_urdf
+from msctl.errors import InputError, NotFoundError
+
+T = TypeVar("T")
+
+#: Slot, station and module type names become ROS name components and file names.
+NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+#: Unit serials are file names: no path separators, no leading dot.
+SERIAL_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+BUS_KINDS = ("canopen", "dynamixel")
+CONTROL_MODES = ("position", "velocity")
+
+
+def _package_dir(package: str) -> Path:
+    import importlib.util
+
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        raise NotFoundError(f"the {package!r} data package is not installed", hint="pip install .")
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
+def assemblies_dir() -> Path:
+    """Templates live here, module types in ``modules/`` below (``MSCTL_ASSEMBLIES_DIR``)."""
+    env = os.environ.get("MSCTL_ASSEMBLIES_DIR")
+    return Path(env) if env else _package_dir("assemblies")
+
+
+def modules_dir() -> Path:
+    """Module type files (``<type>.toml``) and their URDFs (``urdf/``)."""
+    return assemblies_dir() / "modules"
+
+
+def calibration_dir() -> Path:
+    """One ``<serial>.toml`` per physical unit (``MSCTL_CALIBRATION_DIR``)."""
+    env = os.environ.get("MSCTL_CALIBRATION_DIR")
+    return Path(env) if env else _package_dir("calibration")
+
+
+# ---------------------------------------------------------------------------------- caching
+
+_cache: dict[tuple[str, Path], tuple[tuple[int, int], Any]] = {}
+
+
+def _cached(kind: str, path: Path, parse: Callable[[Path], T]) -> T:
+    """``parse(path)``, reused while the file's mtime and size are unchanged."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise
+    stamp = (st.st_mtime_ns, st.st_size)
+    hit = _cache.get((kind, path))
+    if hit is not None and hit[0] == stamp:
+        return hit[1]
+    value = parse(path)
+    _cache[(kind, path)] = (stamp, value)
+    return value
+
+
+def clear_cache() -> None:
+    """Forget every parsed file (tests that edit files within one mtime tick use this)."""
+    _cache.clear()
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    """Parse a TOML file.
+
+    Raises:
+        InputError: If it is malformed, naming the line.
+    """
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        text = str(exc)
+        match = re.search(r"line (\d+)", text)
+        where = f"{path}:{match.group(1)}" if match else str(path)
+        raise InputError(f"{where}: malformed TOML: {text}", hint="fix the syntax there") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not UTF-8 text", hint="save it as UTF-8") from None
+
+
+# ---------------------------------------------------------------------------- field checking
+
+
+class _Fields:
+    """Typed access to one TOML table, with errors naming the file and the field."""
+
+    def __init__(self, path: Path, table: Any, prefix: str = ""):
+        self.path = path
+        self.prefix = prefix
+        if not isinstance(table, dict):
+            raise InputError(f"{path}: field {prefix.rstrip('.') or '(root)'} must be a table")
+        self.table = table
+
+    def where(self, key: str) -> str:
+        return f"{self.path}: field {self.prefix}{key}"
+
+    def get(self, key: str, kind: type | tuple[type, ...], default: Any = ..., what: str = ""):
+        if key not in self.table:
+            if default is ...:
+                raise InputError(
+                    f"{self.where(key)} is missing", hint=f"add {key} = <{what or _name(kind)}>"
+                )
+            return default
+        value = self.table[key]
+        # bool is an int in Python; a TOML `true` where a number is expected is a mistake.
+        ok = isinstance(value, kind) and not (isinstance(value, bool) and bool not in _tuple(kind))
+        if not ok:
+            raise InputError(
+                f"{self.where(key)} is {value!r}", hint=f"it must be {what or _name(kind)}"
+            )
+        return value
+
+    def number(self, key: str, default: Any = ...) -> float:
+        value = self.get(key, (int, float), default, "a number")
+        return value if value is None else float(value)
+
+    def name(self, key: str, default: Any = ...) -> str:
+        value = self.get(key, str, default, "a name of letters, digits and _")
+        if value is not None and not NAME_RE.match(value):
+            raise InputError(
+                f"{self.where(key)} is {value!r}",
+                hint="use letters, digits and _, starting with a letter (it becomes a ROS name)",
+            )
+        return value
+
+    def vec3(self, key: str, default: Any = ...) -> tf.Vec:
+        value = self.get(key, list, default, "a list of 3 numbers")
+        if len(value) != 3 or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value
+        ):
+            raise InputError(f"{self.where(key)} is {value!r}", hint="it must be 3 numbers")
+        return (float(value[0]), float(value[1]), float(value[2]))
+
+    def sub(self, key: str, default: Any = ...) -> _Fields:
+        return _Fields(self.path, self.get(key, dict, default, "a table"), f"{self.prefix}{key}.")
+
+    def entries(self, key: str, what: str) -> list[dict[str, Any]]:
+        """A list of tables, each a dict with string keys (``{"name": ..., **params}``)."""
+        value = self.get(key, list, [], f"a list of {what}")
+        for i, item in enumerate(value):
+            if not isinstance(item, dict) or not isinstance(item.get("name"), str):
+                raise InputError(
+                    f"{self.where(key)}[{i}] is {item!r}",
+                    hint=f'each {what} is a table with a name, e.g. {{ name = "..." }}',
+                )
+        return [dict(item) for item in value]
+
+
+def _tuple(kind: type | tuple[type, ...]) -> tuple[type, ...]:
+    return kind if isinstance(kind, tuple) else (kind,)
+
+
+def _name(kind: type | tuple[type, ...]) -> str:
+    names = {
+        str: "a string",
+        int: "an integer",
+        float: "a number",
+        bool: "true or false",
+        list: "a list",
+        dict: "a table",
+    }
+    return " or ".join(names.get(k, k.__name__) for k in _tuple(kind))
+
+
+# ------------------------------------------------------------------------------ module types
+
+
+@dataclass(frozen=True)
+class JointDef:
+    """A movable joint of a module type (limits in calibrated space, SI units)."""
+
+    name: str
+    type: str
+    lower: float
+    upper: float
+    max_velocity: float
+    max_effort: float
+    motor: str | None
+    motor_id: int | None
+    control: str
+    actuated: bool
+    armature: float
+    motor_params: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ComponentDef:
+    """A component a module runs: kind, optional name, link or chain it is about, params."""
+
+    kind: str
+    name: str
+    link: str | None
+    chain: str | None
+    params: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ModuleType:
+    """A module type file (``assemblies/modules/<key>.toml``) and its parsed URDF."""
+
+    key: str
+    path: Path
+    description: str
+    family: str
+    kind: str
+    revision: int
+    urdf: ModuleUrdf
+    shares_computer: bool
+    bus: dict[str, Any]
+    health: dict[str, Any]
+    connectors: dict[str, tuple[str, tf.Vec, tf.Vec]]
+    chains: dict[str, tuple[str, str, tuple[str, ...]]]
+    joints: dict[str, JointDef]
+    components: tuple[ComponentDef, ...]
+    interesting_links: tuple[str, ...]
+    injections: tuple[dict[str, Any], ...]
+    overrides: tuple[dict[str, Any], ...]
+
+    def has_link(self, link: str) -> bool:
+        """Whether ``link`` names a URDF link or a connector link (``connector_<name>``)."""
+        return link in self.urdf.links or (
+            link.startswith("connector_") and link[len("connector_") :] in self.connectors
+        )
+
+
+def module_type_names() -> list[str]:
+    """Every module type key, sorted."""
+    return sorted(p.stem for p in modules_dir().glob("*.toml"))
+
+
+def load_module_type(key: str, *, referrer: str = "") -> ModuleType:
+    """Load and check module type ``key``.
+
+    Args:
+        key: Module type key (file stem).
+        referrer: Where the name came from (``"<file>: field slots[0].fits"``), for the error.
+
+    Raises:
+        NotFoundError: If no such module type file exists.
+        InputError: If it or its URDF is malformed or inconsistent.
+    """
+    path = modules_dir() / f"{key}.toml"
+    if not NAME_RE.match(key) or not path.is_file():
+        known = ", ".join(module_type_names()) or "none"
+        raise NotFoundError(
+            f"{referrer + ': ' if referrer else ''}unknown module type {key!r}",
+            hint=f"known module types: {known} (files in {modules_dir()})",
+        )
+    module = _cached("module", path, _parse_module_type)
+    # The URDF has its own mtime: re-check it even when the TOML is unchanged.
+    urdf = _cached("urdf", module.urdf.path, parse_module_urdf)
+    if urdf is not module.urdf:
+        _cache.pop(("module", path), None)
+        module = _cached("module", path, _parse_module_type)
+    return module
+
+
+def _parse_module_type(path: Path) -> ModuleType:
+    f = _Fields(path, read_toml(path))
+    urdf_rel = f.get("urdf", str, what="a path relative to the module file")
+    urdf_path = (path.parent / urdf_rel).resolve()
+    if not urdf_path.is_file():
+        raise InputError(
+            f"{f.where('urdf')}: {urdf_path} does not exist", hint="fix the path or add the URDF"
+        )
+    urdf = _cached("urdf", urdf_path, parse_module_urdf)
+    kind = f.name("kind")
+    bus = f.sub("bus")
+    bus_kind = bus.get("kind", str)
+    if bus_kind not in BUS_KINDS:
+        raise InputError(
+            f"{bus.where('kind')} is {bus_kind!r}", hint=f"use {' or '.join(BUS_KINDS)}"
+        )
+
+    joints: dict[str, JointDef] = {}
+    for i, raw in enumerate(f.get("joints", list, [], "a list of [[joints]] tables")):
+        j = _Fields(path, raw, f"joints[{i}].")
+        name = j.name("name")
+        if name in joints:
+            raise InputError(f"{j.where('name')}: joint {name!r} is listed twice")
+        if name not in urdf.joints or urdf.joint_type(name) not in MOVABLE:
+            raise InputError(
+                f"{j.where('name')}: {name!r} is not a movable joint of {urdf.path}",
+                hint=f"movable joints there: {', '.join(_movable(urdf))}",
+            )
+        jtype = j.get("type", str, urdf.joint_type(name))
+        if jtype != urdf.joint_type(name):
+            raise InputError(
+                f"{j.where('type')} is {jtype!r} but {urdf.path} says {urdf.joint_type(name)!r}",
+                hint="make them agree",
+            )
+        bounded = jtype != "continuous"
+        lower = j.number("lower") if bounded else -math.inf
+        upper = j.number("upper") if bounded else math.inf
+        if lower >= upper:
+            raise InputError(f"{j.where('lower')} ({lower}) is not below upper ({upper})")
+        control = j.get("control", str, "position")
+        if control not in CONTROL_MODES:
+            raise InputError(
+                f"{j.where('control')} is {control!r}", hint="use position or velocity"
+            )
+        actuated = j.get("actuated", bool, True)
+        motor = j.get("motor", str, None)
+        if actuated and motor is None:
+            raise InputError(
+                f"{j.where('motor')} is missing", hint='name the motor model, e.g. "cia402"'
+            )
+        joints[name] = JointDef(
+            name=name,
+            type=jtype,
+            lower=lower,
+            upper=upper,
+            max_velocity=j.number("max_velocity"),
+            max_effort=j.number("max_effort"),
+            motor=motor,
+            motor_id=j.get("motor_id", int, None),
+            control=control,
+            actuated=actuated,
+            armature=j.number("armature", 0.0),
+            motor_params=dict(j.get("motor_params", dict, {})),
+        )
+    missing = [n for n in _movable(urdf) if n not in joints]
+    if missing:
+        raise InputError(
+            f"{path}: field joints: {urdf.path} has movable joints with no [[joints]] entry: "
+            f"{', '.join(missing)}",
+            hint="describe every movable joint (limits, motor) in the module file",
+        )
+
+    connectors: dict[str, tuple[str, tf.Vec, tf.Vec]] = {}
+    table = f.sub("connectors", {})
+    for cname in table.table:
+        c = table.sub(cname)
+        if not NAME_RE.match(cname):
+            raise InputError(f"{path}: connector name {cname!r} is not a valid name")
+        link = c.get("link", str)
+        if link not in urdf.links:
+            raise InputError(
+                f"{c.where('link')}: {link!r} is not a link of {urdf.path}",
+                hint=f"links there: {', '.join(urdf.links)}",
+            )
+        connectors[cname] = (link, c.vec3("xyz", (0.0, 0.0, 0.0)), c.vec3("rpy", (0.0, 0.0, 0.0)))
+
+    chains: dict[str, tuple[str, str, tuple[str, ...]]] = {}
+    for i, raw in enumerate(f.get("chains", list, [], "a list of [[chains]] tables")):
+        c = _Fields(path, raw, f"chains[{i}].")
+        name = c.name("name")
+        base, tip = c.get("base", str), c.get("tip", str)
+        for key, link in (("base", base), ("tip", tip)):
+            if link not in urdf.links:
+                raise InputError(f"{c.where(key)}: {link!r} is not a link of {urdf.path}")
+        chain = urdf.chain(base, tip)
+        if chain is None:
+            raise InputError(f"{c.where('base')}: {base!r} is not above {tip!r} in {urdf.path}")
+        chains[name] = (base, tip, tuple(chain))
+
+    module = ModuleType(
+        key=path.stem,
+        path=path,
+        description=f.get("description", str, ""),
+        family=f.get("family", str),
+        kind=kind,
+        revision=f.get("revision", int, 1),
+        urdf=urdf,
+        shares_computer=f.get("shares_computer", bool, False),
+        bus={k: v for k, v in bus.table.items()},
+        health=dict(f.get("health", dict, {})),
+        connectors=connectors,
+        chains=chains,
+        joints=joints,
+        components=(),
+        interesting_links=tuple(f.get("interesting_links", list, [])),
+        injections=tuple(f.entries("injections", "injection")),
+        overrides=tuple(f.entries("overrides", "override")),
+    )
+    for i, link in enumerate(module.interesting_links):
+        if not isinstance(link, str) or not module.has_link(link):
+            raise InputError(f"{path}: field interesting_links[{i}]: {link!r} is not a link")
+    _check_joint_params(module, module.overrides, f"{path}: field overrides")
+    _check_joint_params(module, module.injections, f"{path}: field injections")
+
+    components = []
+    for i, raw in enumerate(f.get("components", list, [], "a list of [[components]] tables")):
+        c = _Fields(path, raw, f"components[{i}].")
+        ckind = c.get("kind", str)
+        if ckind not in COMPONENT_KINDS:
+            raise InputError(
+                f"{c.where('kind')} is {ckind!r}", hint=f"use one of {', '.join(COMPONENT_KINDS)}"
+            )
+        link = c.get("link", str, None)
+        if link is not None and not module.has_link(link):
+            raise InputError(
+                f"{c.where('link')}: {link!r} is not a link or connector of this module"
+            )
+        chain = c.get("chain", str, None)
+        if chain is not None and chain not in chains:
+            raise InputError(
+                f"{c.where('chain')}: no chain {chain!r}",
+                hint=f"chains: {', '.join(chains) or 'none'}",
+            )
+        components.append(
+            ComponentDef(ckind, c.name("name", ckind), link, chain, dict(c.get("params", dict, {})))
+        )
+    names = [c.name for c in components]
+    for name in names:
+        if names.count(name) > 1:
+            raise InputError(
+                f"{path}: field components: two components are named {name!r}",
+                hint="give each a distinct name",
+            )
+    return _replace(module, components=tuple(components))
+
+
+def _replace(module: ModuleType, **changes: Any) -> ModuleType:
+    from dataclasses import replace
+
+    return replace(module, **changes)
+
+
+def _movable(urdf: ModuleUrdf) -> list[str]:
+    return [n for n in urdf.joints if urdf.joint_type(n) in MOVABLE]
+
+
+def _check_joint_params(module: ModuleType, entries: Any, where: str) -> None:
+    """Injection/override params named ``joint`` or ``joints`` must name joints of the module."""
+    for i, entry in enumerate(entries):
+        named = entry.get("joints", [])
+        named = [named] if isinstance(named, str) else list(named)
+        if "joint" in entry:
+            named.append(entry["joint"])
+        for joint in named:
+            if joint not in module.joints:
+                raise InputError(
+                    f"{where}[{i}] ({entry.get('name')}): module type {module.key} has no joint "
+                    f"{joint!r}",
+                    hint=f"its joints: {', '.join(module.joints)}",
+                )
+
+
+# ---------------------------------------------------------------------------------- templates
+
+
+@dataclass(frozen=True)
+class SlotDef:
+    """A place in a template for one module."""
+
+    name: str
+    fits: tuple[str, ...]
+    default: str | None
+    place: tuple[tf.Vec, tf.Vec]
+    index: int
+
+
+@dataclass(frozen=True)
+class ConnectionDef:
+    """``parent`` slot's connector carries ``child`` slot's connector."""
+
+    parent: str
+    parent_connector: str
+    child: str
+    child_connector: str
+    angle: float
+    index: int
+
+
+@dataclass(frozen=True)
+class StationDef:
+    """A ground-control station: its host and how many of each component kind it runs."""
+
+    name: str
+    host: str
+    components: tuple[tuple[str, int, dict[str, Any]], ...]
+
+
+@dataclass(frozen=True)
+class Template:
+    """An assembly template (``assemblies/<name>.toml``)."""
+
+    name: str
+    path: Path
+    description: str
+    mobile: bool
+    slots: tuple[SlotDef, ...]
+    connections: tuple[ConnectionDef, ...]
+    stations: tuple[StationDef, ...]
+    module_types: dict[str, ModuleType] = field(default_factory=dict)
+
+    def slot(self, name: str) -> SlotDef:
+        """The slot called ``name`` (KeyError if none)."""
+        for slot in self.slots:
+            if slot.name == name:
+                return slot
+        raise KeyError(name)
+
+    @property
+    def roots(self) -> list[str]:
+        """Slots no connection carries: one per robot."""
+        children = {c.child for c in self.connections}
+        return [s.name for s in self.slots if s.name not in children]
+
+
+def template_names() -> list[str]:
+    """Every template name, sorted."""
+    return sorted(p.stem for p in assemblies_dir().glob("*.toml"))
+
+
+def load_template(name: str) -> Template:
+    """Load and check template ``name`` and the module types its slots accept.
+
+    Raises:
+        NotFoundError: If there is no such template or a slot names an unknown module type.
+        InputError: If the template is malformed: bad fields, unknown slots or connectors,
+            a slot carried twice, a cycle.
+    """
+    path = assemblies_dir() / f"{name}.toml"
+    if not NAME_RE.match(name) or not path.is_file():
+        raise NotFoundError(
+            f"unknown template {name!r}",
+            hint=f"templates: {', '.join(template_names()) or 'none'} (files in {assemblies_dir()}); "
+            "see `msctl assemble --list`",
+        )
+    template = _cached("template", path, _parse_template)
+    # Module types are checked on every call (their files may have changed, cheap when cached).
+    types: dict[str, ModuleType] = {}
+    for slot in template.slots:
+        for i, key in enumerate(slot.fits):
+            if key not in types:
+                types[key] = load_module_type(
+                    key, referrer=f"{path}: field slots[{slot.index}].fits[{i}] (slot {slot.name})"
+                )
+    _check_connections(template, types)
+    return _replace_template(template, types)
+
+
+def _replace_template(template: Template, types: dict[str, ModuleType]) -> Template:
+    from dataclasses import replace
+
+    return replace(template, module_types=types)
+
+
+def _parse_template(path: Path) -> Template:
+    f = _Fields(path, read_toml(path))
+    slots: list[SlotDef] = []
+    for i, raw in enumerate(f.get("slots", list, what="a list of [[slots]] tables")):
+        s = _Fields(path, raw, f"slots[{i}].")
+        name = s.name("name")
+        if any(other.name == name for other in slots):
+            raise InputError(f"{s.where('name')}: slot {name!r} is defined twice")
+        fits = s.get("fits", list, what="a list of module type names")
+        if not fits or not all(isinstance(k, str) for k in fits):
+            raise InputError(f"{s.where('fits')} is {fits!r}", hint="list module type names")
+        place = s.sub("place", {})
+        slots.append(
+            SlotDef(
+                name=name,
+                fits=tuple(fits),
+                default=s.get("default", str, None),
+                place=(place.vec3("xyz", (0.0, 0.0, 0.0)), place.vec3("rpy", (0.0, 0.0, 0.0))),
+                index=i,
+            )
+        )
+    if not slots:
+        raise InputError(f"{path}: field slots is empty", hint="add at least one [[slots]] table")
+    slot_names = {s.name for s in slots}
+
+    connections: list[ConnectionDef] = []
+    carried: dict[str, int] = {}
+    for i, raw in enumerate(f.get("connections", list, [], "a list of [[connections]] tables")):
+        c = _Fields(path, raw, f"connections[{i}].")
+        ends = []
+        for key in ("parent", "child"):
+            value = c.get(key, str, what='"<slot>.<connector>"')
+            slot, dot, connector = value.partition(".")
+            if not dot or not connector:
+                raise InputError(
+                    f"{c.where(key)} is {value!r}",
+                    hint='write "<slot>.<connector>", e.g. "limb1.tip"',
+                )
+            if slot not in slot_names:
+                raise InputError(
+                    f"{c.where(key)}: no slot {slot!r}",
+                    hint=f"slots: {', '.join(sorted(slot_names))}",
+                )
+            ends.append((slot, connector))
+        (parent, pc), (child, cc) = ends
+        if child in carried:
+            raise InputError(
+                f"{c.where('child')}: slot {child!r} is already carried by connections[{carried[child]}]",
+                hint="a module hangs from exactly one parent (the assembly is a tree)",
+            )
+        carried[child] = i
+        connections.append(ConnectionDef(parent, pc, child, cc, c.number("angle", 0.0), i))
+    # With every slot carried at most once, a loop means some slots have no way up to a root.
+    parent_of = {c.child: c.parent for c in connections}
+    for slot in slot_names:
+        seen = {slot}
+        while slot in parent_of:
+            slot = parent_of[slot]
+            if slot in seen:
+                raise InputError(
+                    f"{path}: field connections: slots {slot!r} ... form a loop",
+                    hint="the assembly must be a tree",
+                )
+            seen.add(slot)
+
+    stations: list[StationDef] = []
+    for i, raw in enumerate(f.get("stations", list, [], "a list of [[stations]] tables")):
+        s = _Fields(path, raw, f"stations[{i}].")
+        name = s.name("name")
+        if name in slot_names or any(st.name == name for st in stations):
+            raise InputError(f"{s.where('name')}: {name!r} is already a slot or station name")
+        host = s.get("host", str, what="a hostname")
+        counts = s.sub("components", {})
+        params = s.sub("params", {})
+        entries = []
+        for kind in counts.table:
+            if kind not in COMPONENT_KINDS:
+                raise InputError(
+                    f"{counts.where(kind)}: unknown component kind",
+                    hint=f"use one of {', '.join(COMPONENT_KINDS)}",
+                )
+            count = counts.get(kind, int, what="a count")
+            if count < 0:
+                raise InputError(f"{counts.where(kind)} is {count}", hint="counts are 0 or more")
+            entries.append((kind, count, dict(params.get(kind, dict, {}))))
+        stations.append(StationDef(name, host, tuple(entries)))
+
+    return Template(
+        name=path.stem,
+        path=path,
+        description=f.get("description", str, ""),
+        mobile=f.get("mobile", bool, False),
+        slots=tuple(slots),
+        connections=tuple(connections),
+        stations=tuple(stations),
+    )
+
+
+def _check_connections(template: Template, types: dict[str, ModuleType]) -> None:
+    """Every connector named must exist on every module type its slot accepts."""
+    for c in template.connections:
+        for role, slot_name, connector in (
+            ("parent", c.parent, c.parent_connector),
+            ("child", c.child, c.child_connector),
+        ):
+            slot = template.slot(slot_name)
+            for key in slot.fits:
+                module = types[key]
+                if connector not in module.connectors:
+                    raise InputError(
+                        f"{template.path}: field connections[{c.index}].{role}: module type "
+                        f"{key} (slot {slot_name}) has no connector {connector!r}",
+                        hint=f"its connectors: {', '.join(module.connectors) or 'none'}",
+                    )
+                if role == "child":
+                    link = module.connectors[connector][0]
+                    if module.urdf.fixed_transform(link) is None:
+                        raise InputError(
+                            f"{template.path}: field connections[{c.index}].child: connector "
+                            f"{connector!r} of {key} is on link {link!r}, which moves relative to "
+                            f"the module's root link {module.urdf.root_link!r}",
+                            hint="carry a module by a connector rigidly fixed to its root link "
+                            "(swap parent and child?)",
+                        )
+
+
+# -------------------------------------------------------------------------------------- units
+
+
+@dataclass(frozen=True)
+class JointCalibrationDef:
+    """A unit's entry for one joint."""
+
+    motor_id: int | None
+    zero_offset: float
+    direction: int
+    lower: float | None
+    upper: float | None
+
+
+@dataclass(frozen=True)
+class Unit:
+    """A physical unit (``calibration/<serial>.toml``)."""
+
+    serial: str
+    path: Path
+    module_type: str
+    host: str
+    bus: dict[str, Any]
+    joints: dict[str, JointCalibrationDef]
+    injections: tuple[dict[str, Any], ...]
+    overrides: tuple[dict[str, Any], ...]
+    health: dict[str, Any]
+
+
+def unit_serials() -> list[str]:
+    """Every unit serial with a calibration file, sorted."""
+    return sorted(p.stem for p in calibration_dir().glob("*.toml"))
+
+
+def unit_exists(serial: str) -> bool:
+    """Whether a calibration file exists for ``serial``."""
+    return bool(SERIAL_RE.match(serial)) and (calibration_dir() / f"{serial}.toml").is_file()
+
+
+def load_unit(serial: str) -> Unit:
+    """Load a unit's calibration file (fields checked; joints checked by :func:`check_unit`).
+
+    Raises:
+        NotFoundError: If there is no calibration file for ``serial``.
+        InputError: If the file is malformed.
+    """
+    if not unit_exists(serial):
+        raise NotFoundError(
+            f"unknown unit {serial!r}: no {calibration_dir() / (serial + '.toml')}",
+            hint="see `msctl assemble --list` for the units",
+        )
+    return _cached("unit", calibration_dir() / f"{serial}.toml", _parse_unit)
+
+
+def _parse_unit(path: Path) -> Unit:
+    f = _Fields(path, read_toml(path))
+    bus = f.sub("bus")
+    bus.get("channel", str, what='the bus channel, e.g. "can0" or "/dev/ttyUSB0"')
+    joints: dict[str, JointCalibrationDef] = {}
+    table = f.sub("joints", {})
+    for name in table.table:
+        j = table.sub(name)
+        direction = j.get("direction", int, 1)
+        if direction not in (1, -1):
+            raise InputError(f"{j.where('direction')} is {direction}", hint="use 1 or -1")
+        joints[name] = JointCalibrationDef(
+            motor_id=j.get("motor_id", int, None),
+            zero_offset=j.number("zero_offset", 0.0),
+            direction=direction,
+            lower=j.number("lower", None),
+            upper=j.number("upper", None),
+        )
+    return Unit(
+        serial=path.stem,
+        path=path,
+        module_type=f.get("module_type", str, what="a module type name"),
+        host=f.get("host", str, what="the onboard computer's hostname"),
+        bus=dict(bus.table),
+        joints=joints,
+        injections=tuple(f.entries("injections", "injection")),
+        overrides=tuple(f.entries("overrides", "override")),
+        health=dict(f.get("health", dict, {})),
+    )
+
+
+def check_unit(unit: Unit, module: ModuleType) -> None:
+    """Check a unit's calibration against its module type.
+
+    Raises:
+        InputError: For a calibration entry naming a joint the module does not have, limits
+            outside the module's, a missing motor id, or overrides naming unknown joints.
+    """
+    for name, cal in unit.joints.items():
+        where = f"{unit.path}: field joints.{name}"
+        if name not in module.joints:
+            raise InputError(
+                f"{where}: module type {module.key} has no joint {name!r}",
+                hint=f"its joints: {', '.join(module.joints)}; rename or remove the entry",
+            )
+        jd = module.joints[name]
+        lower = jd.lower if cal.lower is None else cal.lower
+        upper = jd.upper if cal.upper is None else cal.upper
+        if not (jd.lower <= lower < upper <= jd.upper):
+            raise InputError(
+                f"{where}: limits [{lower}, {upper}] are not inside {module.key}'s "
+                f"[{jd.lower}, {jd.upper}]",
+                hint="a unit may only narrow a joint's range",
+            )
+    for name, jd in module.joints.items():
+        cal = unit.joints.get(name)
+        if jd.actuated and jd.motor_id is None and (cal is None or cal.motor_id is None):
+            raise InputError(
+                f"{unit.path}: field joints.{name}.motor_id is missing",
+                hint=f"module type {module.key} has no default id for {name}: add motor_id",
+            )
+    _check_joint_params(module, unit.overrides, f"{unit.path}: field overrides")
+    _check_joint_params(module, unit.injections, f"{unit.path}: field injections")
