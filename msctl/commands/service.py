@@ -1,0 +1,76 @@
+"""``msctl service``: list and call services, as ``ros2 service`` does."""
+
+from __future__ import annotations
+
+import typer
+
+from msctl.errors import InputError, NetworkError, NotFoundError, OperationTimeout
+
+app = typer.Typer(help="Services: list and call.", no_args_is_help=True)
+
+
+@app.command("list")
+def list_services(
+    show_types: bool = typer.Option(False, "--show-types", "-t", help="Show each service's type."),
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON document."),
+) -> None:
+    """List every service on the network."""
+    from components.comm.graph import snapshot
+    from msctl.console import out, print_json
+    from msctl.plane import connected
+
+    with connected("service_list") as node:
+        services = {
+            k: v for k, v in snapshot(node.session, node.domain).services().items() if v.servers
+        }
+    if json_output:
+        print_json(
+            [
+                {"name": s.name, "types": sorted(s.types), "servers": s.servers}
+                for s in services.values()
+            ]
+        )
+        return
+    for s in services.values():
+        line = s.name + (f" [{', '.join(sorted(s.types))}]" if show_types else "")
+        out.print(line, highlight=False, markup=False)
+
+
+@app.command("call")
+def call(
+    service: str = typer.Argument(..., help="Service name, e.g. /limb1/halt."),
+    srv_type: str = typer.Argument(None, help="Service type (default: found on the graph)."),
+    values: str = typer.Argument(None, help='Request fields as YAML, e.g. "{a: 1, b: 2}".'),
+    timeout: float = typer.Option(3.0, "--timeout", help="Seconds to wait for the response."),
+    json_output: bool = typer.Option(False, "--json", help="Print the response as JSON."),
+) -> None:
+    """Call a service once and print its response."""
+    from components.comm.services import ServiceError, ServiceTimeout
+    from components.comm.types import UnknownTypeError, normalize_type_name, registry
+    from msctl.console import out, print_json
+    from msctl.plane import build_message, connected, find_type, parse_values, to_plain, to_yaml
+
+    with connected("service_call") as node:
+        try:
+            type_name = (
+                normalize_type_name(srv_type) if srv_type else find_type(node, service, "service")
+            )
+        except UnknownTypeError as exc:
+            raise InputError(str(exc)) from exc
+        if type_name not in registry().service_names():
+            raise NotFoundError(
+                f"unknown service type {type_name!r}",
+                hint=f"known: {', '.join(registry().service_names())}",
+            )
+        client = node.client(service, type_name)
+        request = build_message(client.parts.request, parse_values(values))
+        try:
+            response = client.call(request, timeout=timeout)
+        except ServiceTimeout as exc:
+            raise OperationTimeout(str(exc)) from exc
+        except ServiceError as exc:
+            raise NetworkError(str(exc)) from exc
+    if json_output:
+        print_json(to_plain(response))
+    else:
+        out.print(to_yaml(response), highlight=False, markup=False)

@@ -1,0 +1,252 @@
+"""``msctl topic``: list, echo, pub and hz, as ``ros2 topic`` does, over our data plane."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import queue
+import signal
+import statistics
+import threading
+import time
+from typing import Any
+
+import typer
+
+from msctl.errors import InputError, OperationTimeout
+
+app = typer.Typer(help="Topics: list, echo, publish, measure rate.", no_args_is_help=True)
+
+JSON_OPT = typer.Option(False, "--json", help="Print JSON instead of tables/YAML.")
+
+
+class _Stopper:
+    """Ctrl-C / SIGTERM end a streaming command cleanly (sessions are closed on the way out)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> threading.Event:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self._previous[signum] = signal.signal(signum, lambda *_: self.event.set())
+        return self.event
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+
+@app.command("list")
+def list_topics(
+    show_types: bool = typer.Option(False, "--show-types", "-t", help="Show each topic's type."),
+    verbose: bool = typer.Option(
+        False, "--verbose", "-v", help="Show publisher/subscriber counts."
+    ),
+    json_output: bool = JSON_OPT,
+) -> None:
+    """List every topic on the network."""
+    from components.comm.graph import snapshot
+    from msctl.console import out, print_json
+    from msctl.plane import connected
+
+    with connected("topic_list") as node:
+        topics = snapshot(node.session, node.domain).topics()
+    if json_output:
+        print_json(
+            [
+                {
+                    "name": t.name,
+                    "types": sorted(t.types),
+                    "publishers": t.publishers,
+                    "subscribers": t.subscribers,
+                }
+                for t in topics.values()
+            ]
+        )
+        return
+    for t in topics.values():
+        line = t.name
+        if show_types or verbose:
+            line += f" [{', '.join(sorted(t.types))}]"
+        if verbose:
+            line += f" {t.publishers} publisher(s), {t.subscribers} subscriber(s)"
+        out.print(line, highlight=False, markup=False)
+
+
+def _resolve_type(node: Any, topic: str, msg_type: str | None, timeout: float) -> str:
+    from components.comm.types import UnknownTypeError, normalize_type_name, registry
+    from msctl.errors import NotFoundError
+    from msctl.plane import find_type
+
+    try:
+        type_name = (
+            normalize_type_name(msg_type) if msg_type else find_type(node, topic, "topic", timeout)
+        )
+    except UnknownTypeError as exc:
+        raise InputError(str(exc)) from exc
+    if not registry().known(type_name):
+        raise NotFoundError(
+            f"topic {topic} carries {type_name}, a type msctl does not know",
+            hint="register its .msg definition (components.comm.types.registry().register_msg)",
+        )
+    return type_name
+
+
+@app.command("echo")
+def echo(
+    topic: str = typer.Argument(..., help="Topic name, e.g. /limb1/joint_read."),
+    msg_type: str = typer.Argument(None, help="Message type (default: found on the graph)."),
+    once: bool = typer.Option(False, "--once", help="Print one message and exit."),
+    count: int = typer.Option(0, "--times", "-n", help="Exit after this many messages."),
+    timeout: float = typer.Option(
+        0.0, "--timeout", help="Fail if no message arrives within this many seconds (0: wait)."
+    ),
+    latched: bool = typer.Option(False, "--latched", help="Also get the last latched sample."),
+    json_output: bool = JSON_OPT,
+) -> None:
+    """Print the messages of a topic as they arrive (YAML, or one JSON document each)."""
+    from components.comm.qos import LATCHED, QoS
+    from msctl.console import out
+    from msctl.plane import connected, to_plain, to_yaml
+
+    limit = 1 if once else count
+    inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+    with connected("echo") as node, _Stopper() as stop:
+        type_name = _resolve_type(node, topic, msg_type, timeout or 3.0)
+        node.subscription(topic, type_name, inbox.put, LATCHED if latched else QoS())
+        printed = 0
+        started = time.monotonic()
+        while not stop.is_set():
+            try:
+                message = inbox.get(timeout=0.1)
+            except queue.Empty:
+                if timeout and printed == 0 and time.monotonic() - started > timeout:
+                    raise OperationTimeout(
+                        f"no message on {topic} within {timeout:g} s",
+                        hint=f"check a publisher exists: `msctl topic list -v | grep {topic}`",
+                    ) from None
+                continue
+            if json_output:
+                out.file.write(json.dumps(to_plain(message)) + "\n")
+                out.file.flush()
+            else:
+                out.print(to_yaml(message), highlight=False, markup=False)
+                out.print("---", highlight=False, markup=False)
+            printed += 1
+            if limit and printed >= limit:
+                break
+
+
+@app.command("pub")
+def pub(
+    topic: str = typer.Argument(..., help="Topic name."),
+    msg_type: str = typer.Argument(..., help="Message type, e.g. std_msgs/msg/String."),
+    values: str = typer.Argument(None, help='Field values as YAML, e.g. "{data: hello}".'),
+    once: bool = typer.Option(False, "--once", "-1", help="Publish one message and exit."),
+    rate: float = typer.Option(1.0, "--rate", "-r", help="Messages per second."),
+    times: int = typer.Option(0, "--times", "-t", help="Publish this many messages then exit."),
+    wait_matching: float = typer.Option(
+        1.0, "--wait-matching", help="Seconds to wait for a subscriber before the first message."
+    ),
+    latched: bool = typer.Option(False, "--latched", help="Transient-local (latched) QoS."),
+) -> None:
+    """Publish a message, once, N times, or at a rate until Ctrl-C."""
+    from components.comm.graph import snapshot
+    from components.comm.names import qualify
+    from components.comm.qos import LATCHED, QoS
+    from components.comm.types import UnknownTypeError, normalize_type_name, registry
+    from msctl.console import err
+    from msctl.errors import NotFoundError
+    from msctl.plane import build_message, connected, parse_values
+
+    if rate <= 0 or not math.isfinite(rate):
+        raise InputError(f"--rate must be a positive number of messages per second, not {rate}")
+    try:
+        type_name = normalize_type_name(msg_type)
+    except UnknownTypeError as exc:
+        raise InputError(str(exc)) from exc
+    if not registry().known(type_name):
+        raise NotFoundError(f"unknown message type {msg_type!r}", hint="e.g. std_msgs/msg/String")
+    message = build_message(type_name, parse_values(values))
+    total = 1 if once else times
+    qualified = qualify(topic, "/")
+    with connected("pub") as node, _Stopper() as stop:
+        publisher = node.publisher(topic, type_name, LATCHED if latched else QoS())
+        deadline = time.monotonic() + wait_matching
+        while time.monotonic() < deadline and not stop.is_set():
+            info = snapshot(node.session, node.domain, timeout=0.3).topics().get(qualified)
+            if info is not None and info.subscribers > 0:
+                time.sleep(0.05)  # let the subscriber's declaration reach our session
+                break
+            time.sleep(0.05)
+        sent = 0
+        period = 1.0 / rate
+        next_time = time.monotonic()
+        while not stop.is_set():
+            publisher.publish(message)
+            sent += 1
+            err.print(f"publishing #{sent} on {qualified}", highlight=False)
+            if total and sent >= total:
+                break
+            next_time += period
+            stop.wait(max(0.0, next_time - time.monotonic()))
+        if latched and total:
+            stop.wait(0.5)  # a latched sample must outlive this process a moment to be fetched
+
+
+@app.command("hz")
+def hz(
+    topic: str = typer.Argument(..., help="Topic name."),
+    msg_type: str = typer.Argument(None, help="Message type (default: found on the graph)."),
+    window: int = typer.Option(10000, "--window", "-w", help="Samples in the statistics window."),
+    duration: float = typer.Option(0.0, "--for", help="Stop after this many seconds (0: Ctrl-C)."),
+    json_output: bool = JSON_OPT,
+) -> None:
+    """Print the rate of a topic every second (average, min, max, std dev of the period)."""
+    from msctl.console import out, print_json
+    from msctl.plane import connected
+
+    stamps: list[float] = []
+    lock = threading.Lock()
+
+    def on_sample(_: bytes) -> None:
+        now = time.monotonic()
+        with lock:
+            stamps.append(now)
+            if len(stamps) > window + 1:
+                del stamps[: len(stamps) - window - 1]
+
+    reports: list[dict[str, Any]] = []
+    with connected("hz") as node, _Stopper() as stop:
+        type_name = _resolve_type(node, topic, msg_type, 3.0)
+        node.subscription(topic, type_name, on_sample, raw=True)
+        ends = None if not duration else time.monotonic() + duration
+        while not stop.is_set() and (ends is None or time.monotonic() < ends):
+            stop.wait(1.0 if ends is None else max(0.0, min(1.0, ends - time.monotonic())))
+            with lock:
+                periods = [b - a for a, b in itertools.pairwise(stamps)]
+            if not periods:
+                if not json_output:
+                    out.print(f"no new messages on {topic}", highlight=False)
+                continue
+            mean = statistics.fmean(periods)
+            report = {
+                "topic": topic,
+                "rate": 1.0 / mean if mean > 0 else math.inf,
+                "min": min(periods),
+                "max": max(periods),
+                "std_dev": statistics.pstdev(periods),
+                "window": len(periods),
+            }
+            reports.append(report)
+            if not json_output:
+                out.print(
+                    f"average rate: {report['rate']:.3f}\n"
+                    f"\tmin: {report['min']:.3f}s max: {report['max']:.3f}s "
+                    f"std dev: {report['std_dev']:.5f}s window: {report['window']}",
+                    highlight=False,
+                )
+    if json_output:
+        print_json(reports[-1] if reports else {"topic": topic, "rate": 0.0, "window": 0})

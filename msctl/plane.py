@@ -1,0 +1,199 @@
+"""What every ``msctl`` command that touches the network shares: connecting, finding types,
+and turning messages into and out of the YAML/dict form the ``ros2`` CLI uses."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+from msctl.errors import InputError, NetworkError, NotFoundError
+
+
+@contextmanager
+def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
+    """Open a session and a node for a CLI command; close both on exit.
+
+    Args:
+        role: Part of the node name (``msctl_<role>_<pid>``), so the graph shows who pokes it.
+        require_router: Fail with a clear message when no router or peer is reachable.
+
+    Raises:
+        InputError: If the session settings (environment) are unusable.
+        NetworkError: If nothing is reachable and ``require_router`` is set.
+    """
+    from components.comm.node import Node
+    from components.comm.session import SessionConfigError, SessionSettings, open_session
+
+    try:
+        # A short-lived command is a client of the router: its queries (graph, services)
+        # are answered by the router at once, where a fresh peer would first have to learn
+        # the routes (~50 ms of empty answers). MSCTL_ZENOH_MODE still wins.
+        mode = None if os.environ.get("MSCTL_ZENOH_MODE") else "client"
+        settings = SessionSettings.from_env(mode=mode)
+        if settings.mode == "client":
+            settings = dataclasses.replace(settings, listen=())
+        session = open_session(settings)
+    except SessionConfigError as exc:
+        raise InputError(str(exc)) from exc
+    node = None
+    try:
+        if require_router:
+            _wait_for_network(session, settings)
+        node = Node(session, f"msctl_{role}_{os.getpid()}", "/", domain=settings.domain)
+        yield node
+    finally:
+        if node is not None:
+            node.close()
+        session.close()
+
+
+def _wait_for_network(session: Any, settings: Any, timeout: float = 1.5) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        info = session.info
+        if list(info.routers_zid()) or list(info.peers_zid()):
+            return
+        time.sleep(0.02)
+    raise NetworkError(
+        f"no Zenoh router reachable at {', '.join(settings.connect)}",
+        hint="start one with `msctl router` (or `msctl up`), or point MSCTL_ZENOH_CONNECT at it",
+    )
+
+
+def find_type(node: Any, name: str, kind: str, timeout: float = 2.0) -> str:
+    """The type of a topic (``kind="topic"``) or service seen on the graph.
+
+    Raises:
+        NotFoundError: If nothing with that name appears within ``timeout``.
+        InputError: If the graph shows several types for it.
+    """
+    from components.comm.graph import snapshot
+    from components.comm.names import qualify
+
+    qualified = qualify(name, "/")
+    deadline = time.monotonic() + timeout
+    while True:
+        graph = snapshot(node.session, node.domain, timeout=0.5)
+        table = graph.topics() if kind == "topic" else graph.services()
+        info = table.get(qualified)
+        if info is not None and info.types:
+            if len(info.types) > 1:
+                raise InputError(
+                    f"{kind} {qualified} carries several types ({', '.join(sorted(info.types))})",
+                    hint="name the one you want explicitly",
+                )
+            return next(iter(info.types))
+        if time.monotonic() > deadline:
+            known = ", ".join(list(table)[:10]) or "none"
+            raise NotFoundError(
+                f"no {kind} named {qualified} on the network (seen: {known})",
+                hint=f"check the name with `msctl {kind} list`",
+            )
+        time.sleep(0.1)
+
+
+def parse_values(text: str | None) -> dict[str, Any]:
+    """Parse VALUES as ``ros2 topic pub`` takes them: a YAML mapping (``"{data: hi}"``).
+
+    Raises:
+        InputError: If the text is not a YAML mapping.
+    """
+    import yaml
+
+    if text is None or not text.strip():
+        return {}
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(f"VALUES is not valid YAML: {exc}") from exc
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputError(
+            f'VALUES must be a mapping like "{{data: hello}}", not {type(value).__name__}'
+        )
+    return value
+
+
+def build_message(type_name: str, values: dict[str, Any], path: str = "") -> Any:
+    """A message of ``type_name`` with ``values`` filled in, others at their defaults.
+
+    Raises:
+        InputError: Naming the field that does not exist or holds the wrong kind of value.
+    """
+    from rosbags.typesys.base import Nodetype
+
+    from components.comm.types import registry
+    from components.messages import msg
+
+    fields = dict(registry().fields(type_name))
+    built: dict[str, Any] = {}
+    for key, value in values.items():
+        where = f"{path}{key}"
+        if key not in fields:
+            raise InputError(
+                f"{type_name} has no field {where!r}; its fields are: {', '.join(fields)}"
+            )
+        built[key] = _convert(fields[key], value, where, Nodetype)
+    return msg(type_name, **built)
+
+
+def _convert(desc: Any, value: Any, where: str, nodetype: Any) -> Any:
+    node, detail = desc
+    try:
+        if node == nodetype.BASE:
+            base = detail[0]
+            if base in ("string", "wstring"):
+                return str(value)
+            if base == "bool":
+                return bool(value)
+            if base in ("float32", "float64"):
+                return float(value)
+            return int(value)
+        if node == nodetype.NAME:
+            if not isinstance(value, dict):
+                raise InputError(f"field {where!r} is a {detail}; give a mapping")
+            return build_message(detail, value, f"{where}.")
+        inner, size = detail
+        if not isinstance(value, list):
+            raise InputError(f"field {where!r} is a sequence; give a list like [1, 2]")
+        if node == nodetype.ARRAY and len(value) != size:
+            raise InputError(f"field {where!r} holds exactly {size} values, not {len(value)}")
+        items = [_convert(inner, v, f"{where}[{i}]", nodetype) for i, v in enumerate(value)]
+        if inner[0] == nodetype.BASE and inner[1][0] not in ("string", "wstring", "bool"):
+            from components.messages import _NUMPY_TYPES
+
+            return np.array(items, dtype=_NUMPY_TYPES.get(inner[1][0], np.float64))
+        return items
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"field {where!r}: cannot use {value!r} ({exc})") from exc
+
+
+def to_plain(message: Any) -> Any:
+    """A message as plain dicts, lists and numbers (for YAML and JSON output)."""
+    if hasattr(message, "__msgtype__"):
+        return {
+            name: to_plain(getattr(message, name))
+            for name in message.__dataclass_fields__
+            if name != "__msgtype__" and not name.isupper()
+        }
+    if isinstance(message, np.ndarray):
+        return message.tolist()
+    if isinstance(message, list | tuple):
+        return [to_plain(v) for v in message]
+    if isinstance(message, np.generic):
+        return message.item()
+    return message
+
+
+def to_yaml(message: Any) -> str:
+    """A message as YAML, the way ``ros2 topic echo`` shows it."""
+    import yaml
+
+    return yaml.safe_dump(to_plain(message), sort_keys=False, default_flow_style=False).rstrip()
