@@ -1,0 +1,364 @@
+"""The Dynamixel backend through the real dynamixel-sdk, over a pty, against the emulated chain."""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
+
+from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
+from components.motors.dynamixel_chain import MODELS, DynamixelBackend, JointUnits
+from components.motors.emulation.dynamixel import (
+    EmulatedDynamixelChain,
+    PacketParser,
+    build_packet,
+    build_status,
+    crc16,
+    stuff,
+    unstuff,
+)
+
+IDS = [1, 2, 3, 4, 5]
+XM430 = MODELS["XM430-W350"]
+TICK = 2 * math.pi / 4096
+#: The emulator is a Python thread: on a loaded CI machine it can answer tens of ms late, so
+#: the tests size the reply timeout as for a slow adapter (about 80 ms instead of 34 ms).
+OPTIONS = {"latency_timer_ms": 40.0}
+
+
+def joint(dxl_id: int) -> str:
+    return f"limb1_joint{dxl_id}"
+
+
+def poll(predicate: Callable[[], Any], timeout: float = 5.0, step: float = 0.01) -> Any:
+    """Call ``predicate`` until it returns something truthy; fail after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"condition not met within {timeout} s")
+        time.sleep(step)
+
+
+def diag(backend: DynamixelBackend, name: str):
+    return next(d for d in backend.diagnostics() if d.joint == name)
+
+
+@pytest.fixture(autouse=True)
+def no_leaks() -> Iterator[None]:
+    """Every test closes its emulator threads and file descriptors."""
+    fds_before = set(os.listdir("/proc/self/fd"))
+    yield
+    leaked = [t.name for t in threading.enumerate() if t.name.startswith("dynamixel-emulator")]
+    assert not leaked
+    assert set(os.listdir("/proc/self/fd")) <= fds_before
+
+
+@pytest.fixture
+def chain() -> Iterator[EmulatedDynamixelChain]:
+    with EmulatedDynamixelChain(ids=IDS) as emulated:
+        yield emulated
+
+
+@pytest.fixture
+def backend(chain: EmulatedDynamixelChain) -> Iterator[DynamixelBackend]:
+    motors = [MotorSpec(joint(i), i, "XM430-W350") for i in IDS]
+    dxl = DynamixelBackend(chain.port, motors, {**OPTIONS, "baudrate": 1_000_000})
+    dxl.open()
+    yield dxl
+    dxl.close()
+
+
+# -- protocol pieces -------------------------------------------------------------------------
+
+
+def test_crc_and_packets_match_the_protocol_manual() -> None:
+    # Examples from the ROBOTIS Protocol 2.0 e-manual: PING id 1, its status (XM430-W210,
+    # firmware 0x26), and READ of Present Position (132, 4 bytes) from id 1.
+    assert build_packet(1, 0x01) == bytes.fromhex("FFFFFD00 01 0300 01 194E")
+    assert build_status(1, 0, bytes([0x06, 0x04, 0x26])) == bytes.fromhex(
+        "FFFFFD00 01 0700 55 00 060426 655D"
+    )
+    assert build_packet(1, 0x02, bytes([0x84, 0, 4, 0])) == bytes.fromhex(
+        "FFFFFD00 01 0700 02 84000400 1D15"
+    )
+    assert crc16(bytes.fromhex("FFFFFD00 01 0300 01")) == 0x4E19
+
+
+def test_crc_agrees_with_the_sdk() -> None:
+    sdk = PacketHandler(2.0)
+    for size in (1, 7, 64, 300):
+        data = os.urandom(size)
+        assert crc16(data) == sdk.updateCRC(0, list(data), size)
+
+
+def test_stuffing_round_trip_and_parser() -> None:
+    body = bytes([0x03, 0xFF, 0xFF, 0xFD, 0x01, 0xFF, 0xFF, 0xFD, 0xFD, 0xFF, 0xFF, 0xFD])
+    stuffed = stuff(body)
+    assert stuffed.count(0xFD) == body.count(0xFD) + 3
+    assert b"\xff\xff\xfd\x00" not in stuffed
+    assert unstuff(stuffed) == body
+
+    params = bytes([0x74, 0x00, 0xFF, 0xFF, 0xFD, 0x00])
+    good = build_packet(7, 0x03, params)
+    corrupt = bytearray(build_packet(8, 0x01))
+    corrupt[-1] ^= 0xFF
+    parser = PacketParser()
+    # Line noise first, then a packet split across two reads, then one with a bad CRC.
+    packets = list(parser.feed(b"\x00\xff\x12" + good[:5]))
+    packets += list(parser.feed(good[5:] + bytes(corrupt)))
+    assert [(p.dxl_id, p.instruction, p.params, p.crc_ok) for p in packets] == [
+        (7, 0x03, params, True),
+        (8, 0x01, b"", False),
+    ]
+
+
+def test_sdk_unstuffs_what_the_emulator_stuffs(chain: EmulatedDynamixelChain) -> None:
+    # Goal Position bytes FF FF FD 00 force the emulator to stuff its status packet.
+    chain.set_register(1, "goal_position", 0x00FDFFFF)
+    port = PortHandler(chain.port)
+    assert port.openPort()
+    try:
+        value, result, error = PacketHandler(2.0).read4ByteTxRx(port, 1, 116)
+    finally:
+        port.closePort()
+    assert (result, error, value) == (COMM_SUCCESS, 0, 0x00FDFFFF)
+
+
+# -- units -----------------------------------------------------------------------------------
+
+
+def test_units_convert_in_one_place() -> None:
+    units = JointUnits(XM430, XM430.torque_constant)
+    assert units.position(2048) == 0.0
+    assert units.position(3072) == pytest.approx(math.pi / 2)
+    assert units.position_ticks(-math.pi / 2) == 1024
+    assert units.velocity(100) == pytest.approx(100 * 0.229 * 2 * math.pi / 60)
+    assert units.velocity_units(units.velocity(-37)) == -37
+    # 100 units of 2.69 mA through the XM430-W350's ~1.78 N·m/A.
+    assert units.effort(100) == pytest.approx(0.269 * 4.1 / 2.3)
+    load = JointUnits(MODELS["XL430-W250"], 1.0)
+    assert load.effort(500) == pytest.approx(0.75)  # 50.0 % of 1.5 N·m stall torque
+    finger = JointUnits(MODELS["XL330-M288"], MODELS["XL330-M288"].torque_constant, 0.008)
+    assert finger.position(3072) == pytest.approx(0.008 * math.pi / 2)
+    assert finger.effort(1000) == pytest.approx(1.0 * 0.52 / 1.47 / 0.008)
+
+
+# -- through the pty -------------------------------------------------------------------------
+
+
+def test_registry_finds_the_backend() -> None:
+    assert backend_class("dynamixel") is DynamixelBackend
+
+
+def test_open_pings_sets_mode_and_enables_torque(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    for i in IDS:
+        assert chain.register(i, "torque_enable") == 1
+        assert chain.register(i, "operating_mode") == 3
+    assert all(d.level == 0 for d in backend.diagnostics()), backend.diagnostics()
+    states = backend.read()
+    assert sorted(states) == [joint(i) for i in IDS]
+    assert states[joint(1)].position == pytest.approx(0.0)
+    assert states[joint(1)].temperature == 35.0
+
+
+def test_position_goals_move_the_joints(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    goals = {joint(1): 0.5, joint(2): -0.3, joint(5): 1.2}
+    backend.write([MotorCommand(name, position=value) for name, value in goals.items()])
+    # SYNC_WRITE has no reply: the emulator applies it a moment later.
+    poll(lambda: chain.register(1, "goal_position") == 2048 + round(0.5 / TICK))
+
+    def arrived() -> bool:
+        states = backend.read()
+        return all(abs(states[name].position - value) < 2 * TICK for name, value in goals.items())
+
+    poll(arrived)
+    assert backend.read()[joint(3)].position == pytest.approx(0.0)
+
+
+def test_position_goals_are_clamped_to_the_servo_limits(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    backend.write([MotorCommand(joint(1), position=10.0)])
+    poll(lambda: chain.register(1, "goal_position") == 4095)
+
+
+def test_velocity_mode_switch_and_effort(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    backend.write([MotorCommand(joint(2), velocity=1.0)])
+    assert chain.register(2, "operating_mode") == 1
+    assert chain.register(2, "torque_enable") == 1
+    state = poll(lambda: (s := backend.read()[joint(2)]).velocity > 0.9 and s)
+    assert state.velocity == pytest.approx(1.0, abs=0.03)
+    start = state.position
+    later = poll(lambda: (s := backend.read()[joint(2)]).position > start + 0.05 and s)
+    assert later.velocity == pytest.approx(1.0, abs=0.03)
+    # At constant speed the emulated current is steady: effort is its conversion.
+    raw_current = chain.register(2, "present_current")
+    assert raw_current > 0
+    assert later.effort == pytest.approx(raw_current * 2.69e-3 * 4.1 / 2.3)
+
+    # A position command switches back (torque off -> mode -> torque on) and holds there.
+    backend.write([MotorCommand(joint(2), position=0.2)])
+    assert chain.register(2, "operating_mode") == 3
+    assert chain.register(2, "torque_enable") == 1
+    poll(lambda: abs(backend.read()[joint(2)].position - 0.2) < 2 * TICK)
+
+
+def test_hardware_error_names_joint_and_bit_then_recover_clears_it(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    chain.set_hardware_error(2, 1 << 5)
+
+    def flagged():
+        backend.read()
+        d = diag(backend, joint(2))
+        return d.level == 2 and d
+
+    message = poll(flagged).message
+    assert "limb1_joint2" in message and "servo id 2" in message and "overload" in message
+    assert chain.register(2, "torque_enable") == 0  # the servo shut down by itself
+    assert all(diag(backend, joint(i)).level == 0 for i in IDS if i != 2)
+
+    backend.recover()
+    assert chain.register(2, "hardware_error_status") == 0
+    assert chain.register(2, "torque_enable") == 1
+    backend.read()
+    assert diag(backend, joint(2)).level == 0, diag(backend, joint(2))
+
+
+def test_over_temperature(chain: EmulatedDynamixelChain) -> None:
+    motors = [
+        MotorSpec(joint(1), 1, "XM430-W350"),
+        MotorSpec(joint(2), 2, "XM430-W350", {"temperature_limit": 60}),
+    ]
+    with DynamixelBackend(chain.port, motors, OPTIONS) as dxl:
+        # Past the servo's own limit (80 °C): the servo flags overheating and shuts down.
+        chain.set_temperature(1, 85)
+        # Past the module data's tighter limit only: the backend's own threshold.
+        chain.set_temperature(2, 65)
+        states = dxl.read()
+        assert states[joint(1)].temperature == 85.0
+        overheated = diag(dxl, joint(1))
+        assert overheated.level == 2 and "overheating" in overheated.message
+        over_limit = diag(dxl, joint(2))
+        assert over_limit.level == 2 and "over temperature: 65 °C (limit 60 °C)" in (
+            over_limit.message
+        )
+        chain.set_temperature(2, 57)
+        dxl.read()
+        assert diag(dxl, joint(2)).level == 1  # hot: within 5 °C of the limit
+
+
+def test_silent_servo_is_reported_alone_and_picked_up_again(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    chain.silence(3)
+    silenced_at = time.monotonic()
+
+    def reported():
+        states = backend.read()
+        d = diag(backend, joint(3))
+        return d.level == 2 and (states, d)
+
+    states, d = poll(reported, timeout=1.5)
+    assert time.monotonic() - silenced_at < 1.0
+    assert d.message == "limb1_joint3: servo id 3 not answering"
+    assert sorted(states) == [joint(i) for i in IDS if i != 3]
+    assert all(diag(backend, joint(i)).level == 0 for i in IDS if i != 3)
+
+    # The rest of the chain still reads and moves while id 3 is gone.
+    backend.write([MotorCommand(joint(4), position=0.3)])
+    poll(lambda: abs(backend.read()[joint(4)].position - 0.3) < 2 * TICK)
+
+    # Back, after a power cycle that left its torque off: re-enabled and OK again.
+    chain.resume(3)
+    assert chain.register(3, "torque_enable") == 0
+    poll(lambda: joint(3) in backend.read() and diag(backend, joint(3)).level == 0)
+    assert chain.register(3, "torque_enable") == 1
+
+
+def test_servo_absent_at_open_does_not_raise(chain: EmulatedDynamixelChain) -> None:
+    chain.silence(2)
+    motors = [MotorSpec(joint(i), i, "XM430-W350") for i in (1, 2)]
+    with DynamixelBackend(chain.port, motors, {**OPTIONS, "reprobe_interval_s": 0.1}) as dxl:
+        d = diag(dxl, joint(2))
+        assert d.level == 2 and "servo id 2 not answering" in d.message
+        assert sorted(dxl.read()) == [joint(1)]
+        chain.resume(2)
+        poll(lambda: joint(2) in dxl.read())
+        assert chain.register(2, "torque_enable") == 1
+
+
+def test_halt_holds_position_and_stops_velocity(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    backend.write([MotorCommand(joint(1), velocity=2.0), MotorCommand(joint(2), position=2.5)])
+    poll(lambda: backend.read()[joint(2)].position > 0.5)
+    backend.halt()
+    poll(lambda: chain.register(1, "goal_velocity") == 0)
+    # Goal pulled back to where the joint was, not left 2.5 rad away.
+    poll(lambda: chain.register(2, "goal_position") < 2048 + 2.0 / TICK)
+    poll(lambda: abs(backend.read()[joint(1)].velocity) < 1e-9)
+    poll(lambda: abs(backend.read()[joint(2)].velocity) < 1e-9)
+    assert backend.read()[joint(2)].position < 2.0
+
+
+def test_close_is_idempotent_and_turns_torque_off(chain: EmulatedDynamixelChain) -> None:
+    dxl = DynamixelBackend(chain.port, [MotorSpec(joint(1), 1, "XM430-W350")], OPTIONS)
+    dxl.open()
+    dxl.close()
+    dxl.close()
+    poll(lambda: chain.register(1, "torque_enable") == 0)  # a reply-less SYNC_WRITE
+    assert dxl.read() == {}
+    dxl.write([MotorCommand(joint(1), position=1.0)])
+    assert diag(dxl, "").level == 2
+
+
+def test_bus_that_goes_away_is_a_diagnostic_not_an_exception() -> None:
+    chain = EmulatedDynamixelChain(ids=[1, 2])
+    motors = [MotorSpec(joint(i), i, "XM430-W350") for i in (1, 2)]
+    with DynamixelBackend(chain.port, motors, {**OPTIONS, "reopen_interval_s": 0.05}) as dxl:
+        assert sorted(dxl.read()) == [joint(1), joint(2)]
+        chain.close()
+        poll(lambda: not dxl.read() and diag(dxl, "").level == 2)
+        dxl.write([MotorCommand(joint(1), position=0.1)])
+        dxl.halt()
+        dxl.recover()
+        assert diag(dxl, joint(1)).level == 2
+        assert "lost" in diag(dxl, "").message
+
+
+def test_unopenable_device_names_the_path_and_the_fix() -> None:
+    dxl = DynamixelBackend("/dev/ttyUSB-missing-42", [MotorSpec(joint(1), 1, "XM430-W350")], {})
+    with pytest.raises(MotorError, match=r"/dev/ttyUSB-missing-42.*dialout"):
+        dxl.open()
+    dxl.close()
+
+
+def test_unknown_model_is_a_motor_error_naming_the_joint(chain: EmulatedDynamixelChain) -> None:
+    dxl = DynamixelBackend(chain.port, [MotorSpec(joint(1), 1, "AX-12A")], {})
+    with pytest.raises(MotorError, match=r"limb1_joint1.*AX-12A"):
+        dxl.open()
+
+
+def test_model_mismatch_is_a_warning() -> None:
+    with (
+        EmulatedDynamixelChain(ids=[1], model="XL430-W250") as other,
+        DynamixelBackend(other.port, [MotorSpec(joint(1), 1, "XM430-W350")], OPTIONS) as dxl,
+    ):
+        d = diag(dxl, joint(1))
+        assert d.level == 1 and "XL430-W250" in d.message
