@@ -1,0 +1,44 @@
+"""Build a joint manager from its module's plan."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from components.assembly import ComponentPlan, ResolvedAssembly
+from components.build import BuildError, BuiltComponent
+from components.executor.registry import RegistryError, apply_all
+from components.joint_manager.core import JointManagerConfig, JointManagerCore
+from components.joint_manager.interface import JOINT_MANAGER
+
+
+def build(
+    plan: ComponentPlan, assembly: ResolvedAssembly, options: Mapping[str, Any]
+) -> BuiltComponent:
+    """A JointManagerCore for ``plan.module``: unit calibration, injections, overrides."""
+    if plan.module is None:
+        raise BuildError(f"{plan.name}: a joint manager needs a module")
+    module = assembly.module(plan.module)
+    joints = module.actuated_joints
+    config_fields = {
+        k: v for k, v in plan.params.items() if k in JointManagerConfig.__dataclass_fields__
+    }
+    core = JointManagerCore(
+        plan.name,
+        module=module.slot,
+        joints=[j.spec for j in joints],
+        calibration={j.spec.name: j.calibration for j in joints},
+        config=JointManagerConfig(**config_fields),
+    )
+    injections = [dict(i) for i in module.injections]
+    # The rezero injection saves new offsets back to the unit's own calibration file,
+    # which the assembler recorded among the lock file's sources.
+    unit_file = assembly.document.get("sources", {}).get("units", {}).get(module.unit)
+    for injection in injections:
+        if injection.get("name") == "rezero" and unit_file:
+            injection.setdefault("calibration_file", unit_file)
+    try:
+        apply_all(core, "joint_manager", injections, [dict(o) for o in module.overrides])
+    except (RegistryError, ValueError) as exc:
+        raise BuildError(f"{plan.name}: {exc}") from exc
+    return BuiltComponent(core, JOINT_MANAGER, module.namespace, "joint_manager")
