@@ -291,6 +291,20 @@ def test_silent_servo_is_reported_alone_and_picked_up_again(
     assert chain.register(3, "torque_enable") == 1
 
 
+def test_servo_silencing_the_rest_of_a_sync_read_does_not_blind_the_chain() -> None:
+    with (
+        EmulatedDynamixelChain(ids=IDS, gap_stops_sync_read=True) as strict,
+        DynamixelBackend(
+            strict.port, [MotorSpec(joint(i), i, "XM430-W350") for i in IDS], OPTIONS
+        ) as dxl,
+    ):
+        strict.silence(2)
+        # Ids 3..5 miss the group reply too; individual reads still get them in this cycle.
+        assert sorted(dxl.read()) == [joint(i) for i in IDS if i != 2]
+        assert [d.level for d in dxl.diagnostics()[1:]] == [0, 2, 0, 0, 0]
+        assert sorted(dxl.read()) == [joint(i) for i in IDS if i != 2]
+
+
 def test_servo_absent_at_open_does_not_raise(chain: EmulatedDynamixelChain) -> None:
     chain.silence(2)
     motors = [MotorSpec(joint(i), i, "XM430-W350") for i in (1, 2)]
@@ -326,6 +340,14 @@ def test_close_is_idempotent_and_turns_torque_off(chain: EmulatedDynamixelChain)
     assert dxl.read() == {}
     dxl.write([MotorCommand(joint(1), position=1.0)])
     assert diag(dxl, "").level == 2
+
+
+def test_hold_on_close_keeps_torque(chain: EmulatedDynamixelChain) -> None:
+    motors = [MotorSpec(joint(1), 1, "XM430-W350")]
+    with DynamixelBackend(chain.port, motors, {**OPTIONS, "hold_on_close": True}):
+        pass
+    time.sleep(0.05)  # nothing to wait for: there must be no torque-off packet at all
+    assert chain.register(1, "torque_enable") == 1
 
 
 def test_bus_that_goes_away_is_a_diagnostic_not_an_exception() -> None:

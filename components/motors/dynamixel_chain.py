@@ -2,7 +2,7 @@
 
 Everything model-specific is data: :data:`X_SERIES_REGISTERS` (control table addresses and
 sizes) and :data:`MODELS` (resolution, units, torque constant, limits per model). Conversion
-between register values and SI units happens only in :class:`DynamixelModel`.
+between register values and SI units happens only in :class:`JointUnits`.
 
 Bus traffic per :meth:`DynamixelBackend.read` is one SYNC_READ of the contiguous block
 ``present_current .. present_temperature`` (addresses 126..146, 21 bytes per servo). That block
@@ -160,7 +160,7 @@ def hardware_error_text(bits: int) -> str:
 
 @dataclass(frozen=True)
 class DynamixelModel:
-    """Constants of one servo model, and the only place raw values become SI units.
+    """Constants of one servo model (data only; :class:`JointUnits` converts).
 
     Attributes:
         name: Model key as written in module data (``MotorSpec.model``).
@@ -172,9 +172,9 @@ class DynamixelModel:
         effort_register: ``"current"`` (Present Current in ``current_unit_a``) or ``"load"``
             (XL430: Present Load in 0.1 % of stall torque).
         current_unit_a: One Present/Goal Current unit, in ampere.
-        torque_constant: N·m per ampere at the output (stall torque / stall current at 12 V).
-        stall_torque: N·m at 12 V from the datasheet (used by load-reporting models).
-        no_load_speed_rpm: Output speed at 12 V without load (emulator motion limit).
+        torque_constant: N·m per ampere at the output (stall torque / stall current).
+        stall_torque: N·m at rated voltage from the datasheet (load-reporting models use it).
+        no_load_speed_rpm: Output speed at rated voltage without load (emulator motion limit).
         temperature_limit: Default Temperature Limit (register 31), °C.
         registers: Control table of the family.
     """
@@ -192,39 +192,54 @@ class DynamixelModel:
     temperature_limit: int = 80
     registers: dict[str, tuple[int, int]] = field(default_factory=lambda: X_SERIES_REGISTERS)
 
-    # -- the conversions ------------------------------------------------------------------
 
-    def ticks_to_rad(self, ticks: int) -> float:
-        """Present/Goal Position ticks to raw joint radians."""
-        return (ticks - self.center_tick) * 2.0 * math.pi / self.ticks_per_rev
+@dataclass(frozen=True)
+class JointUnits:
+    """The one place register values become SI joint units (and back) for one servo.
 
-    def rad_to_ticks(self, rad: float) -> int:
-        """Raw joint radians to Goal Position ticks (rounded)."""
-        return round(self.center_tick + rad * self.ticks_per_rev / (2.0 * math.pi))
+    Attributes:
+        model: The servo's model constants.
+        torque_constant: N·m per ampere (the model's unless module data overrides it).
+        joint_per_rad: Joint units per output radian: 1 for a revolute joint, metres per
+            radian for a linear one (a gripper's rack and pinion), which makes positions metres,
+            velocities m/s and efforts newtons.
+    """
 
-    def velocity_to_rad_s(self, units: int) -> float:
-        """Present/Goal Velocity units to rad/s."""
-        return units * self.velocity_unit_rpm * 2.0 * math.pi / 60.0
+    model: DynamixelModel
+    torque_constant: float
+    joint_per_rad: float = 1.0
 
-    def rad_s_to_velocity(self, rad_s: float) -> int:
-        """rad/s to Goal/Profile Velocity units (rounded)."""
-        return round(rad_s * 60.0 / (2.0 * math.pi * self.velocity_unit_rpm))
+    def position(self, ticks: int) -> float:
+        """Present/Goal Position ticks to joint position (rad, or m for a linear joint)."""
+        rad = (ticks - self.model.center_tick) * 2.0 * math.pi / self.model.ticks_per_rev
+        return rad * self.joint_per_rad
 
-    def effort_to_nm(self, raw: int, torque_constant: float | None = None) -> float:
-        """Present Current (or Present Load) units to N·m at the output shaft."""
-        if self.effort_register == "load":
-            return raw * 1e-3 * self.stall_torque
-        kt = self.torque_constant if torque_constant is None else torque_constant
-        return raw * self.current_unit_a * kt
+    def position_ticks(self, position: float) -> int:
+        """Joint position to Goal Position ticks (rounded)."""
+        rad = position / self.joint_per_rad
+        return round(self.model.center_tick + rad * self.model.ticks_per_rev / (2.0 * math.pi))
 
-    def nm_to_current(self, nm: float, torque_constant: float | None = None) -> int:
-        """N·m to Goal Current units (rounded); load-reporting models have no current goal."""
-        kt = self.torque_constant if torque_constant is None else torque_constant
-        return round(nm / (self.current_unit_a * kt))
+    def velocity(self, units: int) -> float:
+        """Present/Goal Velocity units to joint velocity (rad/s or m/s)."""
+        return units * self.model.velocity_unit_rpm * 2.0 * math.pi / 60.0 * self.joint_per_rad
+
+    def velocity_units(self, velocity: float) -> int:
+        """Joint velocity to Goal/Profile Velocity units (rounded)."""
+        rad_s = velocity / self.joint_per_rad
+        return round(rad_s * 60.0 / (2.0 * math.pi * self.model.velocity_unit_rpm))
+
+    def effort(self, raw: int) -> float:
+        """Present Current (or Present Load) to joint effort (N·m, or N for a linear joint)."""
+        if self.model.effort_register == "load":
+            nm = raw * 1e-3 * self.model.stall_torque
+        else:
+            nm = raw * self.model.current_unit_a * self.torque_constant
+        return nm / self.joint_per_rad
 
 
-#: Known models. Torque constants are stall torque / stall current at 12 V from the ROBOTIS
-#: e-manual datasheets: good to ~10 %, which is what a current-based effort estimate gives.
+#: Known models. Torque constants are stall torque / stall current at rated voltage (12 V; 5 V
+#: for XL330) from the ROBOTIS e-manual datasheets: good to ~10 %, which is what a
+#: current-based effort estimate gives anyway.
 MODELS: dict[str, DynamixelModel] = {
     model.name: model
     for model in (
@@ -240,6 +255,8 @@ MODELS: dict[str, DynamixelModel] = {
                        stall_torque=3.4, no_load_speed_rpm=46.0),
         DynamixelModel("XL430-W250", 1060, effort_register="load", stall_torque=1.5,
                        no_load_speed_rpm=57.0, temperature_limit=72),
+        DynamixelModel("XL330-M288", 1200, current_unit_a=1.0e-3, torque_constant=0.52 / 1.47,
+                       stall_torque=0.52, no_load_speed_rpm=103.0, temperature_limit=70),
     )
 }
 
@@ -259,7 +276,7 @@ class _Servo:
     position_mode: int
     profile_velocity: float | None
     temperature_limit: float
-    torque_constant: float
+    units: JointUnits
     mode: int | None = None
     answering: bool = False
     ever_answered: bool = False
@@ -294,7 +311,8 @@ class DynamixelBackend(MotorBackend):
             ``"extended_position"`` or ``"current_position"``: the mode used for position
             commands), ``profile_velocity`` (rad/s cap on position moves; absent = the servo's
             Velocity Limit), ``temperature_limit`` (°C, overrides the model's) and
-            ``torque_constant`` (N·m/A, overrides the model's).
+            ``torque_constant`` (N·m/A, overrides the model's) and ``meters_per_rad`` (a
+            linear joint such as a rack-and-pinion finger: positions in m, efforts in N).
         options: ``baudrate`` (default 1_000_000; servos ship at 57_600, so configure them
             once with Dynamixel Wizard), ``latency_timer_ms`` (the USB adapter's latency timer,
             default 16 as FTDI ships; 1 if ``/sys/bus/usb-serial/devices/*/latency_timer`` was
@@ -304,7 +322,10 @@ class DynamixelBackend(MotorBackend):
             ``status_interval_s`` (how often Hardware Error Status is re-read while a servo
             keeps its alert bit set, default 0.5), ``boot_timeout_s`` (how long
             :meth:`recover` waits for a rebooted servo, default 1.0), ``reopen_interval_s``
-            (how often a lost port is reopened, default 1.0).
+            (how often a lost port is reopened, default 1.0), ``hold_on_close`` (keep torque
+            on at :meth:`close`, default False), ``protocol`` (must be 2.0 if
+            given). Other keys from module data (``return_delay_us``, ``bulk_read``) are
+            accepted and ignored.
     """
 
     def __init__(self, channel: str, motors: list[MotorSpec], options: dict[str, Any]):
@@ -316,6 +337,7 @@ class DynamixelBackend(MotorBackend):
         self.status_interval = float(self.options.get("status_interval_s", 0.5))
         self.boot_timeout = float(self.options.get("boot_timeout_s", 1.0))
         self.reopen_interval = float(self.options.get("reopen_interval_s", 1.0))
+        self.hold_on_close = bool(self.options.get("hold_on_close", False))
         self._port: PortHandler | None = None
         self._packet = PacketHandler(2.0)
         self._servos: list[_Servo] = []
@@ -334,6 +356,12 @@ class DynamixelBackend(MotorBackend):
         """
         if self._opened:
             return
+        protocol = float(self.options.get("protocol", 2.0))
+        if protocol != 2.0:
+            raise MotorError(
+                f"{self.channel}: Dynamixel protocol {protocol:g} is not supported; this backend "
+                "speaks Protocol 2.0 (X-series): set the bus's protocol to 2.0 in module data"
+            )
         self._servos = [self._make_servo(spec) for spec in self.motors]
         self._by_joint = {s.joint: s for s in self._servos}
         try:
@@ -344,14 +372,27 @@ class DynamixelBackend(MotorBackend):
             raise MotorError(self._port_error_text(exc)) from exc
         self._opened = True
         now = time.monotonic()
-        for servo in self._servos:
-            self._probe(servo, now)
+        try:
+            for servo in self._servos:
+                self._probe(servo, now)
+        except Exception as exc:
+            # The device opened but is not a working serial line (or vanished at once).
+            self._opened = False
+            self._close_port()
+            raise MotorError(self._port_error_text(exc)) from exc
 
     def close(self) -> None:
-        """Torque off every answering servo and release the port. Idempotent, never raises."""
+        """Torque off every answering servo and release the port. Idempotent, never raises.
+
+        With the ``hold_on_close`` option the servos keep holding their last goal instead (a
+        limb that must not sag under gravity while its process restarts).
+        """
         if not self._opened:
             return
         self._opened = False
+        if self.hold_on_close:
+            self._close_port()
+            return
         try:
             if self._port is not None and self._port.is_open:
                 self._sync_write("torque_enable", {s.sid: 0 for s in self._servos if s.answering})
@@ -407,7 +448,7 @@ class DynamixelBackend(MotorBackend):
                     velocities[servo.sid] = 0
                 elif servo.state is not None and servo.state.position is not None:
                     positions[servo.sid] = self._clamp_ticks(
-                        servo, servo.model.rad_to_ticks(servo.state.position)
+                        servo, servo.units.position_ticks(servo.state.position)
                     )
             self._sync_write("goal_velocity", velocities)
             self._sync_write("goal_position", positions)
@@ -426,7 +467,7 @@ class DynamixelBackend(MotorBackend):
             if self._port is None:
                 self._try_reopen(now, force=True)
                 return
-            rebooted = []
+            rebooted: list[_Servo] = []
             for servo in self._servos:
                 if servo.answering and servo.hardware_error:
                     result, _ = self._packet.reboot(self._port, servo.sid)
@@ -440,8 +481,9 @@ class DynamixelBackend(MotorBackend):
                 servo.answering = False
                 while not self._probe(servo, time.monotonic()) and time.monotonic() < deadline:
                     time.sleep(0.02)
+            rebooted_ids = {s.sid for s in rebooted}
             for servo in self._servos:
-                if not servo.answering and servo not in rebooted:
+                if not servo.answering and servo.sid not in rebooted_ids:
                     self._probe(servo, time.monotonic())
                 elif servo.answering and not servo.torque_on:
                     self._bring_up_or_drop(servo, time.monotonic())
@@ -497,7 +539,11 @@ class DynamixelBackend(MotorBackend):
             position_mode=mode,
             profile_velocity=None if profile is None else float(profile),
             temperature_limit=float(spec.params.get("temperature_limit", model.temperature_limit)),
-            torque_constant=float(spec.params.get("torque_constant", model.torque_constant)),
+            units=JointUnits(
+                model,
+                torque_constant=float(spec.params.get("torque_constant", model.torque_constant)),
+                joint_per_rad=float(spec.params.get("meters_per_rad", 1.0)),
+            ),
         )
 
     def _port_error_text(self, exc: object) -> str:
@@ -606,8 +652,9 @@ class DynamixelBackend(MotorBackend):
             raise OSError(f"sync read failed: {self._packet.getTxRxResult(result)}")
         replies: dict[int, tuple[bytes, int]] = {}
         wanted = set(ids)
-        # Replies come back in id order; a silent servo leaves a gap, and the next reply still
-        # arrives within the group timeout, so keep receiving until all came or time ran out.
+        # Replies come back in id order. A silent servo leaves a gap (later replies still come
+        # within the group timeout) or, on some firmware, ends the reply; either way keep what
+        # arrived, and the caller reads the missing servos one by one.
         while len(replies) < len(ids):
             packet, result = self._packet.rxPacket(self._port, False)
             if result != COMM_SUCCESS:
@@ -668,7 +715,7 @@ class DynamixelBackend(MotorBackend):
         servo.max_ticks, _ = self._read_register(servo, "max_position_limit")
         servo.velocity_limit, _ = self._read_register(servo, "velocity_limit")
         if servo.profile_velocity is not None:
-            profile = abs(servo.model.rad_s_to_velocity(servo.profile_velocity))
+            profile = abs(servo.units.velocity_units(servo.profile_velocity))
             self._write_register(servo, "profile_velocity", profile)
         self._enable_torque(servo)
         servo.answering = True
@@ -754,11 +801,12 @@ class DynamixelBackend(MotorBackend):
             return to_signed(value, size) if name in SIGNED_REGISTERS else value
 
         servo.voltage = field_value("present_input_voltage") * 0.1
+        units = servo.units
         servo.state = MotorState(
             joint=servo.joint,
-            position=model.ticks_to_rad(field_value("present_position")),
-            velocity=model.velocity_to_rad_s(field_value("present_velocity")),
-            effort=model.effort_to_nm(field_value("present_current"), servo.torque_constant),
+            position=units.position(field_value("present_position")),
+            velocity=units.velocity(field_value("present_velocity")),
+            effort=units.effort(field_value("present_current")),
             temperature=float(field_value("present_temperature")),
             stamp=stamp,
         )
@@ -797,14 +845,14 @@ class DynamixelBackend(MotorBackend):
             if command.position is not None and math.isfinite(command.position):
                 if servo.mode not in POSITION_MODES:
                     servo.mode = servo.position_mode  # so clamping uses the new mode's range
-                    goal = self._clamp_ticks(servo, servo.model.rad_to_ticks(command.position))
+                    goal = self._clamp_ticks(servo, servo.units.position_ticks(command.position))
                     self._switch_mode(servo, servo.position_mode, goal)
                     continue
                 positions[servo.sid] = self._clamp_ticks(
-                    servo, servo.model.rad_to_ticks(command.position)
+                    servo, servo.units.position_ticks(command.position)
                 )
             elif command.velocity is not None and math.isfinite(command.velocity):
-                units = servo.model.rad_s_to_velocity(command.velocity)
+                units = servo.units.velocity_units(command.velocity)
                 units = max(-servo.velocity_limit, min(servo.velocity_limit, units))
                 if servo.mode != VELOCITY_MODE:
                     self._switch_mode(servo, VELOCITY_MODE, units)

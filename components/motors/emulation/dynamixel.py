@@ -351,6 +351,9 @@ class EmulatedDynamixelChain:
             servo, unless ``models`` names another for an id.
         models: Per-id model keys.
         boot_time_s: How long a servo stays silent after REBOOT.
+        gap_stops_sync_read: In a SYNC_READ each servo waits for the status packet of the one
+            listed before it; when True, a silent servo also silences every servo after it in
+            that reply (as some firmware does), instead of just leaving a gap.
 
     The serving thread starts on construction; :meth:`close` (or leaving the ``with`` block)
     stops it and closes both ends of the pty.
@@ -362,10 +365,12 @@ class EmulatedDynamixelChain:
         model: str = "XM430-W350",
         models: dict[int, str] | None = None,
         boot_time_s: float = 0.05,
+        gap_stops_sync_read: bool = False,
     ):
         now = time.monotonic()
         models = models or {}
         self.boot_time = boot_time_s
+        self.gap_stops_sync_read = gap_stops_sync_read
         self.servos: dict[int, EmulatedServo] = {
             dxl_id: EmulatedServo(dxl_id, MODELS[models.get(dxl_id, model)], now)
             for dxl_id in sorted(ids)
@@ -559,6 +564,8 @@ class EmulatedDynamixelChain:
         # Servos answer in the order the instruction lists them; a silent one leaves a gap.
         for dxl_id in packet.params[4:]:
             servo = live.get(dxl_id)
+            if servo is None and dxl_id in self.servos and self.gap_stops_sync_read:
+                break
             if servo is None or address + length > len(servo.table):
                 continue
             data = servo.table[address:address + length]
