@@ -1,0 +1,1 @@
+"""The motor interface component: one module's motors on the data plane."""
