@@ -237,10 +237,35 @@ def test_conversion_is_in_one_place_and_checked():
     assert conv.position_counts(math.pi) == 1000
     rpm = _Conversion.from_spec(MotorSpec("j", 1, "cia402", {"velocity_units": "rpm"}))
     assert rpm.velocity(60) == pytest.approx(2 * math.pi)
-    with pytest.raises(MotorError, match="limb9_joint1: motor_params.gear_ratio"):
+    with pytest.raises(MotorError, match=r"limb9_joint1: motor_params\.gear_ratio"):
         _Conversion.from_spec(MotorSpec("limb9_joint1", 1, "cia402", {"gear_ratio": 0}))
     with pytest.raises(MotorError, match="velocity_units"):
         _Conversion.from_spec(MotorSpec("j", 1, "cia402", {"velocity_units": "furlongs"}))
     assert decode_state(0x0627) == "OPERATION ENABLED"
     assert decode_state(0x0008) == "FAULT"
     assert backend_class("canopen") is CanopenBackend
+
+
+def test_feedback_on_sync_as_the_module_data_asks():
+    channel = f"cia402-{uuid.uuid4().hex[:12]}"
+    options = {"interface": "virtual", "sync_period": 0.01, "heartbeat_ms": 100}
+    with EmulatedCia402Bus(channel, [3]) as emulator:
+        spec = MotorSpec("limb1_joint3", 3, "cia402", dict(PARAMS))
+        with CanopenBackend(channel, [spec], options) as backend:
+            assert emulator.drive(3).read_object(0x1801, 2) == 1  # TPDO2 follows SYNC
+            assert emulator.drive(3).read_object(0x1017) == 100
+            settle_at(backend, "limb1_joint3", 0.4)
+
+
+def test_bus_that_goes_away_is_an_error_and_is_reopened(rig):
+    _, backend = rig
+    # Fault injection: the adapter vanishes under the backend (its python-can bus dies).
+    backend._network.bus.shutdown()
+    entry = wait_until(lambda: (e := diag(backend, "")).level == 2 and e, what="bus ERROR")
+    assert backend.channel in entry.message
+    backend.write([MotorCommand("limb1_joint1", position=0.3)])  # never raises
+    backend.read()
+    wait_until(
+        lambda: all(d.level == 0 for d in backend.diagnostics()), 4.0, "all OK after reopen"
+    )
+    settle_at(backend, "limb1_joint1", 0.3)

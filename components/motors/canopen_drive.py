@@ -277,6 +277,7 @@ class _Drive:
     sp_sent: tuple[int, int] | None = None
     sp_pending: tuple[int, int] | None = None
     sent_rpdo1: tuple[int, int] | None = None
+    sent_rpdo3: tuple[int, int] | None = None
 
     @property
     def node_id(self) -> int:
@@ -373,6 +374,7 @@ class CanopenBackend(MotorBackend):
             return
         self._closed = False
         network = canopen.Network()
+        network.listeners.append(_BusErrorListener(self._note_bus_error))
         try:
             network.connect(interface=self.interface, channel=self.channel, bitrate=self.bitrate)
         except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
@@ -528,7 +530,7 @@ class CanopenBackend(MotorBackend):
                 d.sp_pending = None
                 d.sp_sent = None
                 d.target_velocity = 0
-                self._send_rpdo3(d)
+                self._send_rpdo3(d, force=True)
                 self._send_rpdo1(d)
 
     def recover(self) -> None:
@@ -636,7 +638,7 @@ class CanopenBackend(MotorBackend):
             d.target_velocity = 0
             d.sp_phase, d.sp_pending, d.sp_sent = _SP_IDLE, None, None
             d.controlword = 0
-            d.sent_rpdo1 = None
+            d.sent_rpdo1 = d.sent_rpdo3 = None
             d.statusword = None  # wait for this configuration's first statusword
             d.configured = d.ever_configured = True
             d.config_error = None
@@ -728,11 +730,17 @@ class CanopenBackend(MotorBackend):
         if self._transmit(pdo):
             d.sent_rpdo1 = frame
 
-    def _send_rpdo3(self, d: _Drive) -> None:
+    def _send_rpdo3(self, d: _Drive, force: bool = False) -> None:
+        frame = (d.target_velocity, d.max_torque)
+        # Velocity targets are streamed (a drive may watch them arrive); in profile position
+        # the frame only carries the torque limit, so it is sent when that changes.
+        if frame == d.sent_rpdo3 and d.mode == MODE_PROFILE_POSITION and not force:
+            return
         pdo = d.node.rpdo[3]
         pdo[0x60FF].raw = d.target_velocity
         pdo[0x6072].raw = d.max_torque
-        self._transmit(pdo)
+        if self._transmit(pdo):
+            d.sent_rpdo3 = frame
 
     def _advance_setpoint(self, d: _Drive, now: float) -> None:
         """One step of the profile position set-point handshake (lock held).
@@ -780,6 +788,10 @@ class CanopenBackend(MotorBackend):
 
     def _note_bus_error(self, exc: BaseException) -> None:
         with self._lock:
+            if self._bus_error is None:
+                # Give the adapter a moment before the first re-open (and the diagnostic a
+                # chance to be seen); recover() asks for an immediate retry.
+                self._next_reconnect = time.monotonic() + self._RECONNECT_PERIOD
             self._bus_error = (
                 f"CAN bus {self.channel}: {exc}; check the cable, termination and that the "
                 f"{self.interface} link is up (reconnecting every {self._RECONNECT_PERIOD:g} s)"
@@ -861,13 +873,9 @@ class CanopenBackend(MotorBackend):
         if network is None:
             return False
         notifier = network.notifier
-        failed = notifier is None or notifier.exception is not None
+        if self._bus_error is None and (notifier is None or notifier.exception is not None):
+            self._note_bus_error(notifier.exception if notifier else RuntimeError("not receiving"))
         with self._lock:
-            if failed and self._bus_error is None:
-                self._bus_error = (
-                    f"CAN bus {self.channel}: receiving stopped "
-                    f"({notifier.exception if notifier else 'no notifier'}); check the adapter"
-                )
             broken = self._bus_error is not None
             if not broken:
                 return True
@@ -954,6 +962,21 @@ class CanopenBackend(MotorBackend):
         mode = _MODE_NAMES.get(d.mode_display or 0, f"mode {d.mode_display}")
         halted = ", halted" if d.halted else ""
         return MotorDiagnostic(joint, OK, f"{who} operation enabled, {mode}{halted}", values)
+
+
+class _BusErrorListener(can.Listener):
+    """Turns a receive error of python-can's notifier into a bus diagnostic."""
+
+    def __init__(self, report: Any):
+        self._report = report
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """Frames are canopen's business; this listener only watches for errors."""
+
+    def on_error(self, exc: Exception) -> None:
+        """Report the error; the pause keeps a dead bus from spinning the receive thread."""
+        self._report(exc)
+        time.sleep(0.1)
 
 
 def _quietly(action: Any) -> None:
