@@ -299,7 +299,7 @@ def _parse_module_type(path: Path) -> ModuleType:
         )
 
     joints: dict[str, JointDef] = {}
-    for i, raw in enumerate(f.get("joints", list, [], "a list of [[joints]] tables")):
+    for i, raw in enumerate(f.get("joints", list, [], "a list of joints tables")):
         j = _Fields(path, raw, f"joints[{i}].")
         name = j.name("name")
         if name in joints:
@@ -348,7 +348,7 @@ def _parse_module_type(path: Path) -> ModuleType:
     missing = [n for n in _movable(urdf) if n not in joints]
     if missing:
         raise InputError(
-            f"{path}: field joints: {urdf.path} has movable joints with no [[joints]] entry: "
+            f"{path}: field joints: {urdf.path} has movable joints with no joints entry: "
             f"{', '.join(missing)}",
             hint="describe every movable joint (limits, motor) in the module file",
         )
@@ -368,7 +368,7 @@ def _parse_module_type(path: Path) -> ModuleType:
         connectors[cname] = (link, c.vec3("xyz", (0.0, 0.0, 0.0)), c.vec3("rpy", (0.0, 0.0, 0.0)))
 
     chains: dict[str, tuple[str, str, tuple[str, ...]]] = {}
-    for i, raw in enumerate(f.get("chains", list, [], "a list of [[chains]] tables")):
+    for i, raw in enumerate(f.get("chains", list, [], "a list of chains tables")):
         c = _Fields(path, raw, f"chains[{i}].")
         name = c.name("name")
         base, tip = c.get("base", str), c.get("tip", str)
@@ -406,7 +406,7 @@ def _parse_module_type(path: Path) -> ModuleType:
     _check_joint_params(module, module.injections, f"{path}: field injections")
 
     components = []
-    for i, raw in enumerate(f.get("components", list, [], "a list of [[components]] tables")):
+    for i, raw in enumerate(f.get("components", list, [], "a list of components tables")):
         c = _Fields(path, raw, f"components[{i}].")
         ckind = c.get("kind", str)
         if ckind not in COMPONENT_KINDS:
@@ -567,7 +567,7 @@ def _replace_template(template: Template, types: dict[str, ModuleType]) -> Templ
 def _parse_template(path: Path) -> Template:
     f = _Fields(path, read_toml(path))
     slots: list[SlotDef] = []
-    for i, raw in enumerate(f.get("slots", list, what="a list of [[slots]] tables")):
+    for i, raw in enumerate(f.get("slots", list, what="a list of slots tables")):
         s = _Fields(path, raw, f"slots[{i}].")
         name = s.name("name")
         if any(other.name == name for other in slots):
@@ -586,12 +586,12 @@ def _parse_template(path: Path) -> Template:
             )
         )
     if not slots:
-        raise InputError(f"{path}: field slots is empty", hint="add at least one [[slots]] table")
+        raise InputError(f"{path}: field slots is empty", hint="add at least one slot (a slots table)")
     slot_names = {s.name for s in slots}
 
     connections: list[ConnectionDef] = []
     carried: dict[str, int] = {}
-    for i, raw in enumerate(f.get("connections", list, [], "a list of [[connections]] tables")):
+    for i, raw in enumerate(f.get("connections", list, [], "a list of connections tables")):
         c = _Fields(path, raw, f"connections[{i}].")
         ends = []
         for key in ("parent", "child"):
@@ -630,7 +630,7 @@ def _parse_template(path: Path) -> Template:
             seen.add(slot)
 
     stations: list[StationDef] = []
-    for i, raw in enumerate(f.get("stations", list, [], "a list of [[stations]] tables")):
+    for i, raw in enumerate(f.get("stations", list, [], "a list of stations tables")):
         s = _Fields(path, raw, f"stations[{i}].")
         name = s.name("name")
         if name in slot_names or any(st.name == name for st in stations):
@@ -741,7 +741,13 @@ def load_unit(serial: str) -> Unit:
             f"unknown unit {serial!r}: no {calibration_dir() / (serial + '.toml')}",
             hint="see `msctl assemble --list` for the units",
         )
-    return _cached("unit", calibration_dir() / f"{serial}.toml", _parse_unit)
+    unit = _cached("unit", calibration_dir() / f"{serial}.toml", _parse_unit)
+    if not NAME_RE.match(unit.module_type) or not (modules_dir() / f"{unit.module_type}.toml").is_file():
+        raise NotFoundError(
+            f"{unit.path}: field module_type: unknown module type {unit.module_type!r}",
+            hint=f"known module types: {', '.join(module_type_names()) or 'none'}",
+        )
+    return unit
 
 
 def _parse_unit(path: Path) -> Unit:
