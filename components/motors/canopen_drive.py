@@ -28,13 +28,15 @@ torque) and SI joint units lives in :class:`_Conversion`.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 import canopen
@@ -216,6 +218,34 @@ def _clamp_int(value: float, lower: int, upper: int) -> int:
     if not math.isfinite(value):
         return 0 if lower <= 0 <= upper else lower
     return max(lower, min(upper, round(value)))
+
+
+_Method = TypeVar("_Method", bound=Callable[..., Any])
+
+
+def _never_raises(fallback: Callable[[], Any]) -> Callable[[_Method], _Method]:
+    """Last safety net of the executor-facing methods: log a bug, return ``fallback()``.
+
+    Bus and drive faults are handled inside and become diagnostics; this only catches what
+    nobody foresaw, so that it cannot take the executor down.
+    """
+
+    def wrap(method: _Method) -> _Method:
+        @functools.wraps(method)
+        def guarded(self: Any, *args: Any, **kwargs: Any) -> Any:
+            try:
+                return method(self, *args, **kwargs)
+            except Exception:
+                logger.exception("canopen backend on %s: %s failed", self.channel, method.__name__)
+                return fallback()
+
+        return guarded  # type: ignore[return-value]
+
+    return wrap
+
+
+def _internal_error() -> list[MotorDiagnostic]:
+    return [MotorDiagnostic("", ERROR, "canopen backend internal error; see the log")]
 
 
 # PDO layouts (index, subindex) per map number; see the module docstring.
@@ -442,6 +472,7 @@ class CanopenBackend(MotorBackend):
 
     # ---------------------------------------------------------------------- data path
 
+    @_never_raises(dict)
     def read(self) -> dict[str, MotorState]:
         """Latest state of every drive whose heartbeat and feedback are fresh. Never raises."""
         now = time.monotonic()
@@ -464,6 +495,7 @@ class CanopenBackend(MotorBackend):
                 )
         return states
 
+    @_never_raises(lambda: None)
     def write(self, commands: list[MotorCommand]) -> None:
         """Send position (profile position) or velocity (profile velocity) targets.
 
@@ -503,6 +535,7 @@ class CanopenBackend(MotorBackend):
                     self._send_rpdo3(d)
                     self._send_rpdo1(d)
 
+    @_never_raises(_internal_error)
     def diagnostics(self) -> list[MotorDiagnostic]:
         """Bus health first (``joint`` empty), then one entry per drive."""
         now = time.monotonic()
@@ -519,6 +552,7 @@ class CanopenBackend(MotorBackend):
                 out.append(self._drive_diagnostic(d, now))
         return out
 
+    @_never_raises(lambda: None)
     def halt(self) -> None:
         """Stop every drive now with the halt bit (velocity targets zero, positions held)."""
         now = time.monotonic()
@@ -533,6 +567,7 @@ class CanopenBackend(MotorBackend):
                 self._send_rpdo3(d, force=True)
                 self._send_rpdo1(d)
 
+    @_never_raises(lambda: None)
     def recover(self) -> None:
         """Forget reported emergencies, fault-reset and re-enable every drive. Never raises."""
         with self._lock:
