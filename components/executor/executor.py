@@ -72,6 +72,17 @@ class _Inbox:
         self.scheduled = False
 
 
+class _Call:
+    """A call posted from another thread with :meth:`Executor.call_soon`."""
+
+    __slots__ = ("args", "component", "handler")
+
+    def __init__(self, component: Component, handler: Callable, args: tuple[Any, ...]) -> None:
+        self.component = component
+        self.handler = handler
+        self.args = args
+
+
 class Executor:
     """Runs cores. Use as a context manager or call :meth:`close`.
 
@@ -173,6 +184,26 @@ class Executor:
 
         component.node.service(serve.service, serve.srv_type, on_request, deferred=True)
 
+    def call_soon(self, component: Component, handler: str | Callable, *args: Any) -> None:
+        """Have the executor thread call ``handler(*args, now)`` for ``component``.
+
+        Thread-safe: this is how I/O outside the data plane (a graph watcher, a file
+        watcher) reaches a core without the core needing locks. Calls run in the order
+        posted, interleaved with samples and timers, and only while :meth:`run` (or
+        :meth:`spin_once`) is running; ``now`` is appended as for every other handler.
+
+        Args:
+            component: The component (as returned by :meth:`add`) the call is counted for.
+            handler: A method name of the component's core, or any callable.
+            *args: Positional arguments before ``now``.
+
+        Raises:
+            AttributeError: If ``handler`` names a method the core lacks.
+        """
+        if isinstance(handler, str):
+            handler = self._handler(component.core, handler)
+        self._work.put(_Call(component, handler, args))
+
     # ------------------------------------------------------------------ running
     def run(self, duration: float | None = None) -> None:
         """Run until :meth:`stop`, a signal, or ``duration`` seconds; then shut down cleanly."""
@@ -235,6 +266,9 @@ class Executor:
                         return
                     message = item.items.popleft()
                 self._call(item.component, item.handler, message, self.clock())
+            return
+        if isinstance(item, _Call):
+            self._call(item.component, item.handler, *item.args, self.clock())
             return
         component, handler, pending = item
         response = self._call(component, handler, pending.request, self.clock())
