@@ -47,7 +47,11 @@ def resolved(tmp_path_factory: pytest.TempPathFactory):
             target = tmp_path_factory.mktemp(name) / "assembly"
             write_assembly(
                 target,
-                {URDF_NAME: resolution.urdf, MJCF_NAME: mjcf, LOCK_NAME: lock_text(resolution.document)},
+                {
+                    URDF_NAME: resolution.urdf,
+                    MJCF_NAME: mjcf,
+                    LOCK_NAME: lock_text(resolution.document),
+                },
             )
             _written[name] = (load_assembly(target), mjcf)
         return _written[name]
@@ -77,7 +81,7 @@ def test_urdf_loads_in_pinocchio_and_yourdfpy(resolved, name: str) -> None:
         # The chain really joins base to tip: its joints are the tip's ancestors after the base.
         tip_joint = model.frames[model.getFrameId(chain.tip_link)].parentJoint
         ancestors = [model.names[j] for j in model.supports[tip_joint]]
-        assert ancestors[-len(chain.joints):] == list(chain.joints)
+        assert ancestors[-len(chain.joints) :] == list(chain.joints)
 
 
 @pytest.mark.parametrize("name", TEMPLATES)
@@ -231,7 +235,9 @@ def test_swap_changes_only_that_slot() -> None:
     for before, after in zip(first["modules"], second["modules"], strict=True):
         if before["slot"] != "limb3":
             assert before == after
-    changed = [a["name"] for a, b in zip(first["components"], second["components"], strict=True) if a != b]
+    changed = [
+        a["name"] for a, b in zip(first["components"], second["components"], strict=True) if a != b
+    ]
     assert changed and all(name.startswith("limb3/") for name in changed)
     # A third resolution with no --use keeps the swap (the previous resolution wins over defaults).
     third = resolve("dragon_x4", previous=second["units"]).document
@@ -243,11 +249,21 @@ def test_module_masses_and_inertias_match_their_shapes() -> None:
     import numpy as np
 
     def rpy_matrix(r: float, p: float, y: float):
-        cr, sr, cp, sp, cy, sy = (math.cos(r), math.sin(r), math.cos(p), math.sin(p),
-                                  math.cos(y), math.sin(y))
-        return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                         [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                         [-sp, cp * sr, cp * cr]])
+        cr, sr, cp, sp, cy, sy = (
+            math.cos(r),
+            math.sin(r),
+            math.cos(p),
+            math.sin(p),
+            math.cos(y),
+            math.sin(y),
+        )
+        return np.array(
+            [
+                [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                [-sp, cp * sr, cp * cr],
+            ]
+        )
 
     totals = {}
     for key in data.module_type_names():
@@ -272,8 +288,14 @@ def test_module_masses_and_inertias_match_their_shapes() -> None:
             rot = rpy_matrix(*(float(v) for v in origin.get("rpy").split()))
             expected = rot @ local @ rot.T
             i = inertial.find("inertia").attrib
-            given = np.array([[i["ixx"], i["ixy"], i["ixz"]], [i["ixy"], i["iyy"], i["iyz"]],
-                              [i["ixz"], i["iyz"], i["izz"]]], dtype=float)
+            given = np.array(
+                [
+                    [i["ixx"], i["ixy"], i["ixz"]],
+                    [i["ixy"], i["iyy"], i["iyz"]],
+                    [i["ixz"], i["iyz"], i["izz"]],
+                ],
+                dtype=float,
+            )
             assert np.allclose(given, expected, rtol=1e-5, atol=1e-9), (key, link.get("name"))
             assert inertial.find("origin").get("xyz") == origin.get("xyz")
         totals[key] = total

@@ -31,7 +31,11 @@ def _copy(src: Path, dst: Path) -> None:
 @pytest.fixture
 def world(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Path]:
     """A private copy of the data, a private MSCTL_HOME, and a good dragon resolution in it."""
-    assemblies, calibration, home = tmp_path / "assemblies", tmp_path / "calibration", tmp_path / "home"
+    assemblies, calibration, home = (
+        tmp_path / "assemblies",
+        tmp_path / "calibration",
+        tmp_path / "home",
+    )
     _copy(REPO / "assemblies", assemblies)
     _copy(REPO / "calibration", calibration)
     monkeypatch.setenv("MSCTL_ASSEMBLIES_DIR", str(assemblies))
@@ -96,11 +100,20 @@ CASES = {
         edit("assemblies/dragon.toml", '"hl_limb_v1"', '"hl_limb_v9"'),
         ["dragon"],
         4,
-        ["dragon.toml", "slots[0].fits[0]", "slot limb1", "unknown module type 'hl_limb_v9'",
-         "known module types: gl_limb, hl_limb_v1"],
+        [
+            "dragon.toml",
+            "slots[0].fits[0]",
+            "slot limb1",
+            "unknown module type 'hl_limb_v9'",
+            "known module types: gl_limb, hl_limb_v1",
+        ],
     ),
     "unknown module type in a unit": (
-        edit("calibration/hlv1-limb-01.toml", 'module_type = "hl_limb_v1"', 'module_type = "hl_limb_v7"'),
+        edit(
+            "calibration/hlv1-limb-01.toml",
+            'module_type = "hl_limb_v1"',
+            'module_type = "hl_limb_v7"',
+        ),
         ["dragon"],
         4,
         ["hlv1-limb-01.toml", "field module_type", "'hl_limb_v7'", "known module types"],
@@ -115,7 +128,12 @@ CASES = {
         nothing,
         ["dragon", "--use", "wheel1=hlv1-limb-04"],
         2,
-        ["hlv1-limb-04 is a hl_limb_v1", "slot wheel1", "hl_wheel_v1, hl_wheel_v2", "hlv1-limb-04.toml"],
+        [
+            "hlv1-limb-04 is a hl_limb_v1",
+            "slot wheel1",
+            "hl_wheel_v1, hl_wheel_v2",
+            "hlv1-limb-04.toml",
+        ],
     ),
     "same unit in two slots": (
         nothing,
@@ -127,8 +145,13 @@ CASES = {
         edit("calibration/hlv1-limb-02.toml", 'host = "hl-limb-02"', 'host = "hl-limb-01"'),
         ["dragon"],
         2,
-        ["hlv1-limb-01.toml: field host", "hlv1-limb-02.toml", "'hl-limb-01'", "computer to itself",
-         "fix the hostname"],
+        [
+            "hlv1-limb-01.toml: field host",
+            "hlv1-limb-02.toml",
+            "'hl-limb-01'",
+            "computer to itself",
+            "fix the hostname",
+        ],
     ),
     "shared computer, same bus": (
         edit("calibration/gl-limb-02.toml", "/dev/ttyUSB1", "/dev/ttyUSB0"),
@@ -140,15 +163,22 @@ CASES = {
         edit("assemblies/dragon.toml", 'parent = "limb1.tip"', 'parent = "limb1.elbow"'),
         ["dragon"],
         2,
-        ["dragon.toml: field connections[1].parent", "no connector 'elbow'",
-         "its connectors: base, side_left, side_right, tip"],
+        [
+            "dragon.toml: field connections[1].parent",
+            "no connector 'elbow'",
+            "its connectors: base, side_left, side_right, tip",
+        ],
     ),
     "calibration for a joint the module lacks": (
         append("calibration/hlv1-limb-01.toml", "\n[joints.joint9]\nmotor_id = 10\n"),
         ["dragon"],
         2,
-        ["hlv1-limb-01.toml: field joints.joint9", "hl_limb_v1 has no joint 'joint9'",
-         "joint1, joint2", "rename or remove"],
+        [
+            "hlv1-limb-01.toml: field joints.joint9",
+            "hl_limb_v1 has no joint 'joint9'",
+            "joint1, joint2",
+            "rename or remove",
+        ],
     ),
     "override for a joint the module lacks": (
         edit("calibration/hlv1-limb-03.toml", 'joint = "joint5"', 'joint = "joint12"'),
@@ -160,7 +190,10 @@ CASES = {
         edit("assemblies/dragon.toml", "mobile = true", "mobile = yes"),
         ["dragon"],
         2,
-        ["dragon.toml:{line:assemblies/dragon.toml:mobile = yes}: malformed TOML", "fix the syntax"],
+        [
+            "dragon.toml:{line:assemblies/dragon.toml:mobile = yes}: malformed TOML",
+            "fix the syntax",
+        ],
     ),
     "malformed calibration TOML": (
         edit("calibration/hlv1-wheel-02.toml", "[bus]", "[bus"),
@@ -172,12 +205,18 @@ CASES = {
         edit("assemblies/modules/urdf/hl_wheel_v1.urdf", "</robot>", "</robt>"),
         ["dragon"],
         2,
-        ["hl_wheel_v1.urdf:{line:assemblies/modules/urdf/hl_wheel_v1.urdf:</robt>}: URDF does not parse",
-         "fix the XML at line"],
+        [
+            "hl_wheel_v1.urdf:{line:assemblies/modules/urdf/hl_wheel_v1.urdf:</robt>}: "
+            "URDF does not parse",
+            "fix the XML at line",
+        ],
     ),
     "URDF joint to a missing link": (
-        edit("assemblies/modules/urdf/hl_wheel_v1.urdf", '<child link="wheel_left_link"/>',
-             '<child link="wheel_lft_link"/>'),
+        edit(
+            "assemblies/modules/urdf/hl_wheel_v1.urdf",
+            '<child link="wheel_left_link"/>',
+            '<child link="wheel_lft_link"/>',
+        ),
         ["dragon"],
         2,
         ["hl_wheel_v1.urdf: joint 'wheel_left' child link 'wheel_lft_link' is not a <link>"],

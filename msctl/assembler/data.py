@@ -542,8 +542,8 @@ def load_template(name: str) -> Template:
     if not NAME_RE.match(name) or not path.is_file():
         raise NotFoundError(
             f"unknown template {name!r}",
-            hint=f"templates: {', '.join(template_names()) or 'none'} (files in {assemblies_dir()}); "
-            "see `msctl assemble --list`",
+            hint=f"templates: {', '.join(template_names()) or 'none'} "
+            f"(files in {assemblies_dir()}); see `msctl assemble --list`",
         )
     template = _cached("template", path, _parse_template)
     # Module types are checked on every call (their files may have changed, cheap when cached).
@@ -586,7 +586,9 @@ def _parse_template(path: Path) -> Template:
             )
         )
     if not slots:
-        raise InputError(f"{path}: field slots is empty", hint="add at least one slot (a slots table)")
+        raise InputError(
+            f"{path}: field slots is empty", hint="add at least one slot (a slots table)"
+        )
     slot_names = {s.name for s in slots}
 
     connections: list[ConnectionDef] = []
@@ -611,7 +613,8 @@ def _parse_template(path: Path) -> Template:
         (parent, pc), (child, cc) = ends
         if child in carried:
             raise InputError(
-                f"{c.where('child')}: slot {child!r} is already carried by connections[{carried[child]}]",
+                f"{c.where('child')}: slot {child!r} is already carried by "
+                f"connections[{carried[child]}]",
                 hint="a module hangs from exactly one parent (the assembly is a tree)",
             )
         carried[child] = i
@@ -742,7 +745,10 @@ def load_unit(serial: str) -> Unit:
             hint="see `msctl assemble --list` for the units",
         )
     unit = _cached("unit", calibration_dir() / f"{serial}.toml", _parse_unit)
-    if not NAME_RE.match(unit.module_type) or not (modules_dir() / f"{unit.module_type}.toml").is_file():
+    if (
+        not NAME_RE.match(unit.module_type)
+        or not (modules_dir() / f"{unit.module_type}.toml").is_file()
+    ):
         raise NotFoundError(
             f"{unit.path}: field module_type: unknown module type {unit.module_type!r}",
             hint=f"known module types: {', '.join(module_type_names()) or 'none'}",

@@ -152,7 +152,8 @@ def choose_units(
                 raise InputError(f"slot {slot}: {serial!r} is not one of {', '.join(candidates)}")
         else:
             raise InputError(
-                f"{template.path}: slot {slot}: {len(candidates)} units fit ({', '.join(candidates)})",
+                f"{template.path}: slot {slot}: {len(candidates)} units fit "
+                f"({', '.join(candidates)})",
                 hint=f"choose one with --use {slot}=<unit>",
             )
         chosen[slot], owner[serial] = serial, slot

@@ -189,7 +189,9 @@ def _print_summary(document: dict[str, Any]) -> None:
 
     from msctl.console import out
 
-    units = Table(title=f"{document['template']}: {document.get('description', '')}", title_justify="left")
+    units = Table(
+        title=f"{document['template']}: {document.get('description', '')}", title_justify="left"
+    )
     for column in ("slot", "unit", "type", "host", "bus", "joints"):
         units.add_column(column)
     for m in document["modules"]:
@@ -326,8 +328,15 @@ def _list(json_output: bool) -> None:
         [
             [k, v["error"], "", "", "", "", ""]
             if "error" in v
-            else [k, v["family"], v["kind"], str(v["revision"]), v["bus"], str(v["joints"]),
-                  v["description"]]
+            else [
+                k,
+                v["family"],
+                v["kind"],
+                str(v["revision"]),
+                v["bus"],
+                str(v["joints"]),
+                v["description"],
+            ]
             for k, v in modules.items()
         ],
     )
