@@ -1,0 +1,1 @@
+"""Module URDFs (package data; an __init__ so setuptools ships this directory)."""
