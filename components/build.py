@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from components.assembly import ComponentPlan, ResolvedAssembly
     from components.executor.core import Core
+    from components.executor.executor import Component, Executor
     from components.executor.interface import InterfaceSpec
 
 #: Component kind -> "module:function" building it. Kinds without an entry are not built
@@ -41,6 +42,11 @@ class BuiltComponent:
         namespace: ROS namespace of its node (the module's, e.g. ``/limb1``).
         node_name: Node name on the graph (e.g. ``joint_manager``).
         resources: Things to close after the executor stops (a motor bus, a simulated world).
+        on_bound: Called as ``on_bound(executor, component)`` once the core is added to its
+            executor and before it runs, for components that need the executor's session or
+            its :meth:`~components.executor.executor.Executor.call_soon` (the health
+            monitor's graph watcher). What it opens goes into ``resources``. Whoever runs
+            built components calls it: :func:`components.executor.runner.run_built` does.
     """
 
     core: Core
@@ -48,6 +54,7 @@ class BuiltComponent:
     namespace: str
     node_name: str
     resources: list[Any] = field(default_factory=list)
+    on_bound: Callable[[Executor, Component], None] | None = None
 
     def close(self) -> None:
         """Release the resources (idempotent where they are)."""

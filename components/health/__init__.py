@@ -1,0 +1,1 @@
+"""Health monitor: one module's components, topics, motors and computer as one DiagnosticArray."""

@@ -1,0 +1,159 @@
+"""Build a module's health monitor from the resolved assembly, and bind its graph watcher.
+
+The core is pure; what it needs from the outside world comes in two ways:
+
+* host metrics: a :class:`~components.health.host.HostMetricsReader` whose ``read`` the core
+  calls from its timer;
+* graph changes: the graph lives on the executor's session, which exists only once the core
+  is added to an executor, so the built component carries an ``on_bound`` hook
+  (:class:`GraphFeed`). Run through :func:`components.executor.runner.run_built`, the hook
+  opens a :class:`~components.comm.graph.Graph` and forwards each expected node's appearance
+  and disappearance into the executor thread with ``Executor.call_soon``; the graph is
+  closed with the component's other resources.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from components.assembly import ComponentPlan, ResolvedAssembly
+from components.build import BuildError, BuiltComponent, buildable
+from components.comm.liveliness import Entity, EntityKind
+from components.health.core import (
+    ExpectedComponent,
+    HealthMonitorCore,
+    HealthThresholds,
+    MotorWatch,
+)
+from components.health.host import HostMetricsReader
+from components.health.interface import HEALTH_MONITOR
+
+if TYPE_CHECKING:
+    from components.comm.graph import Graph
+    from components.executor.executor import Component, Executor
+
+#: The node that stands in for every module's motor interface in simulation.
+SIMULATOR_NODE = "/sim/simulator"
+
+
+def node_name(plan: ComponentPlan) -> str:
+    """The node name a planned component runs as: its name within its module or station
+    (``limb1/joint_manager`` -> ``joint_manager``, ``limb1/location_tip`` -> ``location_tip``)."""
+    return plan.name.rsplit("/", 1)[-1]
+
+
+def expected_components(
+    plan: ComponentPlan, assembly: ResolvedAssembly, options: Mapping[str, Any]
+) -> list[ExpectedComponent]:
+    """The components of ``plan.module`` the monitor should see on the graph.
+
+    With ``options["launched"]`` (names of the components the launcher started), exactly
+    those of the module; otherwise every component of the module whose kind can be built
+    (kinds without a builder are never started, so expecting them would be a false alarm).
+    With ``options["sim"]``, the motor interface is satisfied by the simulator node.
+    """
+    launched = options.get("launched")
+    launched_names = None if launched is None else set(launched)
+    sim = bool(options.get("sim"))
+    expected = []
+    for other in assembly.components:
+        if other.module != plan.module or other.name == plan.name:
+            continue
+        runs_as = "simulator" if sim and other.kind == "motor_interface" else other.kind
+        if launched_names is not None:
+            if other.name not in launched_names:
+                continue
+        elif not buildable(runs_as):
+            continue
+        if runs_as == "simulator":
+            node = SIMULATOR_NODE
+        else:
+            node = f"{other.namespace.rstrip('/')}/{node_name(other)}"
+        expected.append(ExpectedComponent(node_name(other), node))
+    return expected
+
+
+class GraphFeed:
+    """Forwards graph changes of the expected nodes to the health core (an ``on_bound`` hook).
+
+    Zenoh delivers liveliness changes on its own threads; this keeps, per node name, the set
+    of live node tokens (a restarted process briefly overlaps its predecessor) and posts
+    ``on_component_seen(node, alive)`` into the executor thread when a node's presence
+    changes.
+
+    Args:
+        built: The built health monitor; the graph is added to its resources.
+        nodes: Fully qualified names of the nodes to follow.
+    """
+
+    def __init__(self, built: BuiltComponent, nodes: Iterable[str]) -> None:
+        self.built = built
+        self.nodes = frozenset(nodes)
+        self.graph: Graph | None = None
+        self._live: dict[str, set[tuple[str, int]]] = {}
+        self._lock = threading.Lock()
+        self._post: Any = None
+
+    def __call__(self, executor: Executor, component: Component) -> None:
+        """Start following the graph on ``executor``'s session (called once, before run)."""
+        from components.comm.graph import Graph
+
+        def post(node: str, alive: bool) -> None:
+            executor.call_soon(component, "on_component_seen", node, alive)
+
+        self._post = post
+        # history=True in Graph replays the nodes already up, so a component that started
+        # before the monitor is seen at once.
+        self.graph = Graph(executor.session, component.node.domain, on_change=self._on_change)
+        self.built.resources.append(self.graph)
+
+    def _on_change(self, entity: Entity, alive: bool) -> None:
+        if entity.kind is not EntityKind.NODE or entity.node_fqn not in self.nodes:
+            return
+        node = entity.node_fqn
+        with self._lock:
+            live = self._live.setdefault(node, set())
+            before = bool(live)
+            if alive:
+                live.add(entity.node_key)
+            else:
+                live.discard(entity.node_key)
+            if bool(live) != before and self._post is not None:
+                # Posted under the lock so that appear/vanish reach the core in order.
+                self._post(node, bool(live))
+
+
+def build(
+    plan: ComponentPlan, assembly: ResolvedAssembly, options: Mapping[str, Any]
+) -> BuiltComponent:
+    """A health monitor for ``plan.module``, thresholds from the module's ``[health]`` data.
+
+    Raises:
+        BuildError: If the plan has no module, or a threshold is not a number.
+    """
+    if plan.module is None:
+        raise BuildError(f"{plan.name}: a health monitor needs a module")
+    module = assembly.module(plan.module)
+    data = plan.params.get("thresholds", module.health)
+    where = f"[health] of module {module.slot} ({module.module_type}, unit {module.unit})"
+    try:
+        thresholds = HealthThresholds.from_mapping(data, where)
+    except ValueError as exc:
+        raise BuildError(f"{plan.name}: {exc}") from exc
+    expected = expected_components(plan, assembly, options)
+    reader = HostMetricsReader()
+    core = HealthMonitorCore(
+        plan.name,
+        module=module.slot,
+        components=expected,
+        motors=[MotorWatch(j.spec.name, j.raw_name) for j in module.actuated_joints],
+        thresholds=thresholds,
+        read_host_metrics=reader.read,
+        unit=module.unit,
+        host=module.host,
+    )
+    built = BuiltComponent(core, HEALTH_MONITOR, module.namespace, node_name(plan), [reader])
+    built.on_bound = GraphFeed(built, [c.node for c in expected])
+    return built

@@ -1,0 +1,34 @@
+"""How the health monitor meets the data plane (names relative to the module namespace).
+
+It listens to the module's main topics (``joint_states`` best-effort like every sensor stream,
+so the monitor measures the rate subscribers actually get), publishes ``health``, checks for
+silences ten times a second and reads the host every two seconds. Graph changes do not come
+through this spec: the builder's ``on_bound`` hook watches the graph and posts them to the
+core with ``Executor.call_soon``.
+"""
+
+from __future__ import annotations
+
+from components.comm.qos import QoS
+from components.executor.interface import Every, InterfaceSpec, Publish, Subscribe
+from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE
+
+#: Seconds between silence checks: a topic going quiet is seen within this of its threshold.
+CHECK_PERIOD = 0.1
+#: Seconds between host metric reads (CPU load is averaged over this interval).
+HOST_PERIOD = 2.0
+
+#: Best effort like every sensor stream, but deep enough that a 100 Hz stream is counted
+#: sample by sample even when the executor thread is briefly busy (keep-last 5 would drop).
+RATE_QOS = QoS(reliability="best_effort", depth=100)
+
+HEALTH_MONITOR = InterfaceSpec(
+    subscribe=(
+        Subscribe("joint_states", JOINT_STATE, "on_joint_states", qos=RATE_QOS),
+        Subscribe("joint_read", JOINT_STATE, "on_joint_read"),
+        Subscribe("diagnostics", DIAGNOSTIC_ARRAY, "on_diagnostics"),
+    ),
+    publish=(Publish("health", DIAGNOSTIC_ARRAY),),
+    every=(Every(CHECK_PERIOD, "tick"), Every(HOST_PERIOD, "on_host_timer")),
+)
+"""The health monitor's static interface."""
