@@ -60,6 +60,8 @@ _register()
 
 def main() -> None:
     """Entry point: run the app and turn project errors into one red line and an exit code."""
+    from rich.markup import escape
+
     from msctl.console import err
 
     try:
@@ -68,7 +70,8 @@ def main() -> None:
     except MsctlError as exc:
         if os.environ.get("MSCTL_DEBUG") == "1":
             err.print_exception()
-        err.print(f"[bold red]error:[/] {exc}", highlight=False)
+        # Escaped: an operator's text such as "[joints.joint3]" must print as written.
+        err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         err.print("[yellow]interrupted[/]")
@@ -77,7 +80,7 @@ def main() -> None:
         if os.environ.get("MSCTL_DEBUG") == "1":
             raise
         err.print(
-            f"[bold red]internal error:[/] {type(exc).__name__}: {exc} "
+            f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))} "
             "(run again with MSCTL_DEBUG=1 for the traceback, and report it)",
             highlight=False,
         )

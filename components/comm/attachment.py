@@ -15,7 +15,9 @@ from dataclasses import dataclass
 
 import xxhash
 
-_CURRENT = struct.Struct("<qqB16s")
+#: The 33-byte form: seq, timestamp, GID length (16), GID.
+CURRENT_FORMAT = struct.Struct("<qqB16s")
+_CURRENT = CURRENT_FORMAT
 CURRENT_SIZE = _CURRENT.size  # 33
 _INT64 = struct.Struct("<q")
 

@@ -14,7 +14,13 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from components.comm.attachment import Attachment, AttachmentError, gid_of
+from components.comm.attachment import (
+    CURRENT_FORMAT,
+    CURRENT_SIZE,
+    Attachment,
+    AttachmentError,
+    gid_of,
+)
 from components.comm.liveliness import EntityKind
 from components.comm.names import key_name, qualify
 from components.comm.qos import QoS
@@ -23,6 +29,9 @@ from components.comm.types import dds_type_name, normalize_type_name, registry
 
 if TYPE_CHECKING:
     from components.comm.node import Node
+
+
+_pack_attachment = CURRENT_FORMAT.pack
 
 
 def data_key(domain: int, topic: str, type_name: str) -> str:
@@ -96,7 +105,8 @@ class Publisher:
 
     def publish_raw(self, payload: bytes) -> None:
         """Send already-serialized CDR bytes (with header) with a fresh attachment."""
-        attachment = Attachment(next(self._seq), time.time_ns(), self.gid).encode()
+        # Packed directly (not through Attachment) because this runs for every sample.
+        attachment = _pack_attachment(next(self._seq), time.time_ns(), 16, self.gid)
         self._zpub.put(payload, attachment=attachment)
 
     def close(self) -> None:
@@ -152,7 +162,7 @@ class Subscription:
         )
         self.token_key = self.entity.token()
         self.received = 0
-        self.last_attachment: Attachment | None = None
+        self._last_attachment: bytes | None = None
         # Listen to every type on the topic so a publisher of the wrong type (or of another
         # version of the type) is seen and counted, not silently ignored.
         listen_key = f"{node.domain}/{key_name(self.topic)}/*/*"
@@ -179,11 +189,16 @@ class Subscription:
             return
         attachment = sample.attachment
         if attachment is not None:
-            try:
-                self.last_attachment = Attachment.decode(attachment.to_bytes())
-            except AttachmentError as exc:
-                drops.drop(self.topic, "bad_attachment", str(exc))
-                return
+            raw_attachment = attachment.to_bytes()
+            # The current 33-byte form is checked with two comparisons; only the rare older
+            # keyed form (or a malformed one) pays for a full parse.
+            if len(raw_attachment) != CURRENT_SIZE or raw_attachment[16] != 16:
+                try:
+                    Attachment.decode(raw_attachment)
+                except AttachmentError as exc:
+                    drops.drop(self.topic, "bad_attachment", str(exc))
+                    return
+            self._last_attachment = raw_attachment
         payload = sample.payload.to_bytes()
         if self._raw:
             message: Any = payload
@@ -199,6 +214,13 @@ class Subscription:
         except Exception:
             drops.drop(self.topic, "callback_error")
             log.exception("subscription callback on %s failed", self.topic)
+
+    @property
+    def last_attachment(self) -> Attachment | None:
+        """The attachment of the latest good sample, if it had one."""
+        if self._last_attachment is None:
+            return None
+        return Attachment.decode(self._last_attachment)
 
     def close(self) -> None:
         """Undeclare the subscriber and its token (idempotent)."""

@@ -214,16 +214,45 @@ class TypeRegistry:
         return bytes(self._store.serialize_cdr(message, self._require_msg(name)))
 
     def deserializer(self, name: str) -> Callable[[bytes], Any]:
-        """A fast bound decoder for one type (used on hot receive paths)."""
+        """A fast bound decoder for one type (used on hot receive paths).
+
+        Calls the type's generated little-endian decoder directly (the generic
+        ``deserialize_cdr`` looks the type up on every call) and checks the encapsulation
+        header and the length as it does.
+        """
         canonical = self._require_msg(name)
+
         store = self._store
-        return lambda data: store.deserialize_cdr(data, canonical)
+        definition = store.get_msgdef(canonical)
+        decode_le, cls = definition.deserialize_cdr_le, definition.cls
+
+        def decode(data: bytes) -> Any:
+            if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
+                raise ValueError("invalid or unsupported CDR encapsulation")
+            if data[1] == 0:  # big-endian senders are rare; take the generic path
+                return store.deserialize_cdr(data, canonical)
+            message, pos = decode_le(memoryview(data)[4:], 0, cls, store)
+            if pos + 4 + 3 < len(data):
+                raise ValueError(f"{len(data) - pos - 4} trailing bytes after a {canonical}")
+            return message
+
+        return decode
 
     def serializer(self, name: str) -> Callable[[Any], bytes]:
         """A fast bound encoder for one type (used on hot publish paths)."""
         canonical = self._require_msg(name)
+
         store = self._store
-        return lambda message: bytes(store.serialize_cdr(message, canonical))
+        definition = store.get_msgdef(canonical)
+        size_of, encode_le = definition.getsize_cdr, definition.serialize_cdr_le
+
+        def encode(message: Any) -> bytes:
+            buffer = bytearray(4 + size_of(0, message, store))
+            buffer[1] = 1  # CDR little-endian encapsulation
+            encode_le(memoryview(buffer)[4:], 0, message, store)
+            return bytes(buffer)
+
+        return encode
 
     def deserialize(self, data: bytes, name: str) -> Any:
         """Decode CDR bytes (with header) into a message object."""
