@@ -16,6 +16,9 @@ class NameError_(ValueError):
 
 
 def _check_components(name: str, what: str) -> None:
+    if "//" in name.strip("/"):
+        # ROS refuses repeated slashes, and Zenoh refuses the empty key chunk they make.
+        raise NameError_(f"invalid {what} {name!r}: it must not contain '//'")
     for part in name.strip("/").split("/"):
         if part and not _COMPONENT.match(part):
             raise NameError_(
