@@ -91,7 +91,7 @@ class SessionSettings:
         if value := env.get("MSCTL_ZENOH_LISTEN"):
             changes["listen"] = _endpoints(value, "MSCTL_ZENOH_LISTEN")
         if value := env.get("MSCTL_ZENOH_MULTICAST"):
-            changes["multicast"] = value.strip().lower() in ("1", "true", "yes", "on")
+            changes["multicast"] = _boolean(value, "MSCTL_ZENOH_MULTICAST")
         if value := env.get("MSCTL_ZENOH_LEASE_MS"):
             changes["lease_ms"] = _integer(value, "MSCTL_ZENOH_LEASE_MS", minimum=100)
         if value := env.get("ROS_DOMAIN_ID"):
@@ -165,7 +165,22 @@ def _endpoints(text: str, variable: str) -> tuple[str, ...]:
     endpoints = tuple(e.strip() for e in text.split(",") if e.strip())
     if not endpoints:
         raise SessionConfigError(f"{variable} is set but names no endpoint")
+    for endpoint in endpoints:
+        if "/" not in endpoint:
+            raise SessionConfigError(
+                f"{variable}: endpoint {endpoint!r} lacks a protocol; "
+                "write it like tcp/127.0.0.1:7447"
+            )
     return endpoints
+
+
+def _boolean(text: str, variable: str) -> bool:
+    value = text.strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise SessionConfigError(f"{variable}={text!r} is not one of 1/0, true/false, yes/no, on/off")
 
 
 def _integer(text: str, variable: str, minimum: int) -> int:
