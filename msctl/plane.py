@@ -28,7 +28,12 @@ def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
         NetworkError: If nothing is reachable and ``require_router`` is set.
     """
     from components.comm.node import Node
-    from components.comm.session import SessionConfigError, SessionSettings, open_session
+    from components.comm.session import (
+        SessionConfigError,
+        SessionOpenError,
+        SessionSettings,
+        open_session,
+    )
 
     try:
         # A short-lived command is a client of the router: its queries (graph, services)
@@ -39,6 +44,13 @@ def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
         if settings.mode == "client":
             settings = dataclasses.replace(settings, listen=())
         session = open_session(settings)
+    except SessionOpenError as exc:
+        # The settings were fine; nothing answered at the endpoints (a client needs a router).
+        raise NetworkError(
+            f"no Zenoh router reachable at {', '.join(settings.connect)}",
+            hint="start one with `msctl router` (or `msctl up`), or point MSCTL_ZENOH_CONNECT "
+            "at it",
+        ) from exc
     except SessionConfigError as exc:
         raise InputError(str(exc)) from exc
     node = None

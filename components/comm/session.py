@@ -42,6 +42,10 @@ class SessionConfigError(ValueError):
     """A session setting (environment variable or file) that cannot be used."""
 
 
+class SessionOpenError(SessionConfigError):
+    """Zenoh refused to open a session with usable settings (e.g. a client reaching no router)."""
+
+
 @dataclass(frozen=True)
 class SessionSettings:
     """How to open a Zenoh session.
@@ -145,6 +149,13 @@ class SessionSettings:
             # Latched topics use Zenoh's advanced publisher, which orders its cache by
             # timestamp; rmw_zenoh turns timestamping on for the same reason.
             "timestamping/enabled": True,
+            # Retry a lost router quickly (Zenoh's default first retry is after 1 s): a
+            # restarted router must carry data again within a second.
+            "connect/retry": {
+                "period_init_ms": 100,
+                "period_max_ms": 1000,
+                "period_increase_factor": 1.5,
+            },
         }
         if self.listen:
             values["listen/endpoints"] = list(self.listen)
@@ -198,7 +209,8 @@ def open_session(settings: SessionSettings | None = None) -> Any:
     Python callback subscriber that is left open hangs interpreter exit.
 
     Raises:
-        SessionConfigError: If the settings are unusable or Zenoh refuses to open.
+        SessionConfigError: If the settings are unusable.
+        SessionOpenError: If Zenoh refuses to open (a client that reaches no router).
     """
     import zenoh
 
@@ -207,7 +219,7 @@ def open_session(settings: SessionSettings | None = None) -> Any:
     try:
         return zenoh.open(config)
     except Exception as exc:
-        raise SessionConfigError(
+        raise SessionOpenError(
             f"cannot open a Zenoh {settings.mode} session (connect {list(settings.connect)}, "
             f"listen {list(settings.listen)}): {exc}"
         ) from exc
