@@ -28,6 +28,32 @@ BUILDERS: dict[str, str] = {
 }
 
 
+@dataclass(frozen=True)
+class KindInfo:
+    """How a running component of a kind shows itself on the data plane.
+
+    Attributes:
+        node_name: Its node's name in its namespace (``/limb1/joint_manager``).
+        first_output: A topic it publishes soon after starting (relative to its namespace,
+            or absolute), which the launcher waits for to call it healthy.
+    """
+
+    node_name: str
+    first_output: str
+
+
+#: The launcher's view of each kind, so it can judge health without building anything.
+KINDS: dict[str, KindInfo] = {
+    "joint_manager": KindInfo("joint_manager", "diagnostics"),
+    "motor_interface": KindInfo("motor_interface", "joint_states"),
+    "simulator": KindInfo("simulator", "/sim/diagnostics"),
+    "health_monitor": KindInfo("health_monitor", "health"),
+}
+
+#: The one simulated world that replaces every motor interface off-robot.
+SIMULATOR_COMPONENT = "sim/simulator"
+
+
 class BuildError(ValueError):
     """A component that cannot be built from the assembly; the message says which and why."""
 
@@ -69,12 +95,17 @@ Builder = Callable[["ComponentPlan", "ResolvedAssembly", Mapping[str, Any]], Bui
 
 
 def buildable(kind: str) -> bool:
-    """Whether a builder exists (and imports) for ``kind``."""
-    try:
-        _builder(kind)
-    except BuildError:
+    """Whether a builder exists for ``kind`` (checked without importing it: fast)."""
+    import importlib.util
+
+    target = BUILDERS.get(kind)
+    if target is None:
         return False
-    return True
+    module_name = target.partition(":")[0]
+    try:
+        return importlib.util.find_spec(module_name) is not None
+    except ModuleNotFoundError:
+        return False
 
 
 def _builder(kind: str) -> Builder:

@@ -1,0 +1,74 @@
+"""A component process: builds the named components of a resolved assembly and runs them.
+
+The launcher starts one of these per process group (a module, the simulator, a ground
+station) with an argument list made only from the assembly's own data::
+
+    python -m components.executor.worker --lock PATH --component limb1/joint_manager ...
+
+Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 3 when a component cannot be built (the
+reason is the last line of stderr, which the launcher shows), 2 for bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from components.assembly import AssemblyError, ComponentPlan, load_assembly
+from components.build import SIMULATOR_COMPONENT, BuildError, build_component
+from components.comm.session import SessionConfigError
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the worker; returns the process exit code."""
+    parser = argparse.ArgumentParser(prog="msctl-worker", description=__doc__.split("\n")[0])
+    parser.add_argument("--lock", required=True, type=Path, help="assembly.lock.json to read")
+    parser.add_argument(
+        "--component", action="append", required=True, help="component name (repeatable)"
+    )
+    parser.add_argument("--speed", type=float, default=1.0, help="simulation speed factor")
+    parser.add_argument("--for", dest="duration", type=float, default=None)
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    log = logging.getLogger("msctl.worker")
+    try:
+        assembly = load_assembly(args.lock)
+    except AssemblyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    options = {"sim": SIMULATOR_COMPONENT in args.component, "speed": args.speed}
+    built = []
+    try:
+        for name in args.component:
+            if name == SIMULATOR_COMPONENT:
+                plan = ComponentPlan(
+                    name=name, kind="simulator", host="", module=None, namespace="/sim"
+                )
+            else:
+                plan = assembly.component(name)
+            built.append(build_component(plan, assembly, options))
+            log.info("built %s (%s)", name, plan.kind)
+    except (BuildError, AssemblyError, KeyError) as exc:
+        for item in built:
+            item.close()
+        print(f"error: cannot build {name}: {exc}", file=sys.stderr)
+        return 3
+    from components.executor.runner import run_built
+
+    try:
+        run_built(built, duration=args.duration)
+    except SessionConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    log.info("stopped cleanly")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,127 @@
+"""From the resolved assembly to the processes this computer runs.
+
+Off-robot (this computer is none of the assembly's robot computers) the whole assembly runs
+here and every motor interface is replaced by one MuJoCo simulator; on a robot computer only
+its own part runs. Components are grouped into executor processes: one per module, one for
+the simulator, one per ground-control station, so start-up is a handful of interpreters, not
+sixty.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+from dataclasses import dataclass, field
+
+from components.assembly import ResolvedAssembly
+from components.build import KINDS, SIMULATOR_COMPONENT, buildable
+
+#: What a process or component name may look like: it reaches an argument list, so nothing
+#: that could be read as an option, a path or a shell fragment.
+SAFE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_./-]{0,127}$")
+
+
+def this_host() -> str:
+    """This computer's identity: ``MSCTL_HOST`` or the hostname."""
+    return os.environ.get("MSCTL_HOST") or socket.gethostname()
+
+
+@dataclass(frozen=True)
+class ComponentRun:
+    """One component as the launcher follows it."""
+
+    name: str
+    kind: str
+    namespace: str
+    node_fqn: str
+    first_output: str
+
+
+@dataclass(frozen=True)
+class ProcessPlan:
+    """One executor process and the components it runs."""
+
+    name: str
+    components: tuple[ComponentRun, ...]
+
+
+@dataclass
+class HostPlan:
+    """What this computer runs for an assembly.
+
+    Attributes:
+        host: This computer.
+        simulated: Motor interfaces replaced by the simulator.
+        off_robot: This computer is none of the assembly's robot computers.
+        processes: The processes to start.
+        not_built: Components of this host's part whose kind does not exist in the code yet
+            (reported, never replaced by a placeholder).
+    """
+
+    host: str
+    simulated: bool
+    off_robot: bool
+    processes: list[ProcessPlan] = field(default_factory=list)
+    not_built: list[tuple[str, str]] = field(default_factory=list)
+
+    @property
+    def components(self) -> list[ComponentRun]:
+        """Every component started, in process order."""
+        return [c for p in self.processes for c in p.components]
+
+
+def _qualify(namespace: str, topic: str) -> str:
+    if topic.startswith("/"):
+        return topic
+    return namespace.rstrip("/") + "/" + topic
+
+
+def _run(name: str, kind: str, namespace: str) -> ComponentRun:
+    info = KINDS[kind]
+    return ComponentRun(
+        name=name,
+        kind=kind,
+        namespace=namespace,
+        node_fqn=_qualify(namespace, info.node_name),
+        first_output=_qualify(namespace, info.first_output),
+    )
+
+
+def plan_host(
+    assembly: ResolvedAssembly, host: str | None = None, sim: bool | None = None
+) -> HostPlan:
+    """The processes ``host`` runs for ``assembly``.
+
+    Args:
+        assembly: The resolved assembly.
+        host: The computer (default: :func:`this_host`).
+        sim: Force simulation on (True) or off (False); default: simulate when off-robot.
+    """
+    host = host or this_host()
+    robot_hosts = {m.host for m in assembly.modules}
+    off_robot = host not in robot_hosts
+    simulated = off_robot if sim is None else sim
+    if off_robot:
+        planned = list(assembly.components)
+    else:
+        planned = assembly.components_on(host)
+    plan = HostPlan(host=host, simulated=simulated, off_robot=off_robot)
+    groups: dict[str, list[ComponentRun]] = {}
+    for component in planned:
+        if simulated and component.kind == "motor_interface":
+            continue  # the simulator stands in for every motor interface
+        if not buildable(component.kind) or component.kind not in KINDS:
+            plan.not_built.append((component.name, component.kind))
+            continue
+        group = component.module or component.name.split("/")[0]
+        groups.setdefault(group, []).append(
+            _run(component.name, component.kind, component.namespace)
+        )
+    if simulated:
+        if buildable("simulator"):
+            groups = {"sim": [_run(SIMULATOR_COMPONENT, "simulator", "/sim")], **groups}
+        else:
+            plan.not_built.append((SIMULATOR_COMPONENT, "simulator"))
+    plan.processes = [ProcessPlan(name, tuple(runs)) for name, runs in groups.items()]
+    return plan
