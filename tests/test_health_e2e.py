@@ -219,3 +219,35 @@ def test_frozen_component_turns_error_after_the_lease(monitored_module) -> None:
         process.send_signal(signal.SIGCONT)
     seen_after = watcher.first_since(frozen_at, "components/joint_manager", ERROR) - frozen_at
     assert seen_after < 2.0, f"ERROR only {seen_after:.2f} s after the process froze"
+
+
+class _Resource:
+    def __init__(self) -> None:
+        self.closed = 0
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def test_run_built_calls_on_bound_and_closes_resources_even_when_a_hook_fails(
+    session_settings: SessionSettings,
+) -> None:
+    """on_bound gets (executor, component); resources close on success and on failure."""
+    from components.build import BuiltComponent
+
+    seen: list[tuple[Executor, Any]] = []
+    good = BuiltComponent(_Recorder(), InterfaceSpec(), "/test", "good", [_Resource()])
+    good.on_bound = lambda executor, component: seen.append((executor, component))
+    run_built([good], session_settings, duration=0.2)
+    assert len(seen) == 1 and seen[0][1].core is good.core
+    assert good.resources[0].closed == 1
+
+    failing = BuiltComponent(_Recorder(), InterfaceSpec(), "/test", "failing", [_Resource()])
+
+    def refuse(executor: Executor, component: Any) -> None:
+        raise RuntimeError("no graph today")
+
+    failing.on_bound = refuse
+    with pytest.raises(RuntimeError, match="no graph today"):
+        run_built([failing], session_settings, duration=0.2)
+    assert failing.resources[0].closed == 1
