@@ -80,3 +80,33 @@ def open_sessions(session_settings: SessionSettings) -> Iterator[Callable[[], An
     finally:
         for session in reversed(sessions):
             session.close()
+
+
+# --------------------------------------------------------------------------- quick opening
+#: Zenoh waits ``scouting/delay`` (0.5 s) in ``zenoh.open`` for the first connections; tests
+#: that poll for routes anyway can skip it. Modules opt in by overriding ``router_endpoint``
+#: and ``session_settings`` with :func:`quick_router` and :func:`quick_peer_settings`.
+QUICK_OPEN = {"scouting/delay": 0}
+
+
+def quick_router() -> Iterator[str]:
+    """A real loopback router that opens at once (use as ``yield from quick_router()``)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(
+        SessionSettings(mode="router", connect=(), listen=(endpoint,), extra=dict(QUICK_OPEN))
+    )
+    try:
+        yield endpoint
+    finally:
+        router.close()
+
+
+def quick_peer_settings(router_endpoint: str) -> SessionSettings:
+    """Peer settings joining ``router_endpoint`` that open at once (routes come soon after)."""
+    return SessionSettings(
+        mode="peer",
+        connect=(router_endpoint,),
+        listen=("tcp/127.0.0.1:0",),
+        multicast=False,
+        extra=dict(QUICK_OPEN),
+    )
