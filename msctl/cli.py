@@ -32,6 +32,12 @@ _GROUPS: dict[str, str] = {
     "assemble": "msctl.commands.assemble",
 }
 _COMMANDS: dict[str, str] = {
+    "up": "msctl.commands.up",
+    "down": "msctl.commands.down",
+    "ps": "msctl.commands.ps",
+    "logs": "msctl.commands.logs",
+    "restart": "msctl.commands.restart",
+    "stop": "msctl.commands.stop",
     "router": "msctl.commands.router",
 }
 

@@ -131,15 +131,18 @@ def _picker():
     return choose
 
 
-def _resolve(template: str, uses: list[str], json_output: bool) -> None:
+def resolve_and_write(template: str, uses: list[str]) -> tuple[dict[str, Any], Path, list[str]]:
+    """Resolve ``template`` (with ``--use`` choices) and write the assembly atomically.
+
+    Returns:
+        The lock document, the directory written, and the slots whose unit changed.
+    """
     from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME, assembly_dir
     from msctl.assembler import parse_uses, resolve
     from msctl.assembler.store import lock_text, write_assembly
-    from msctl.console import err, print_json
 
     if template in ACTIONS:  # pragma: no cover - dispatched before
         raise InputError(f"{template!r} is reserved")
-    start = time.perf_counter()
     previous = _previous_units()
     resolution = resolve(template, parse_uses(uses), previous, _picker())
     mjcf = resolution.mjcf()
@@ -151,9 +154,18 @@ def _resolve(template: str, uses: list[str], json_output: bool) -> None:
             LOCK_NAME: lock_text(resolution.document),
         },
     )
-    elapsed = (time.perf_counter() - start) * 1000
     document = resolution.document
     changed = [s for s, u in document["units"].items() if previous.get(s) not in (None, u)]
+    return document, target, changed
+
+
+def _resolve(template: str, uses: list[str], json_output: bool) -> None:
+    from components.assembly import LOCK_NAME
+    from msctl.console import err, print_json
+
+    start = time.perf_counter()
+    document, target, changed = resolve_and_write(template, uses)
+    elapsed = (time.perf_counter() - start) * 1000
     if json_output:
         print_json(document)
     else:

@@ -102,10 +102,7 @@ def plan_host(
     robot_hosts = {m.host for m in assembly.modules}
     off_robot = host not in robot_hosts
     simulated = off_robot if sim is None else sim
-    if off_robot:
-        planned = list(assembly.components)
-    else:
-        planned = assembly.components_on(host)
+    planned = list(assembly.components) if off_robot else assembly.components_on(host)
     plan = HostPlan(host=host, simulated=simulated, off_robot=off_robot)
     groups: dict[str, list[ComponentRun]] = {}
     for component in planned:

@@ -1,0 +1,81 @@
+"""``msctl down``: stop everything (this computer's run, and with --all every host's)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import typer
+
+from msctl.errors import MsctlError
+
+COMMAND_SETTINGS = {"help": "Stop every component (verified gone); --all for every host."}
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def command(
+    all_hosts: bool = typer.Option(False, "--all", help="Also stop every agent's run."),
+    timeout: float = typer.Option(15.0, "--timeout", help="Seconds to wait for everything to end."),
+) -> None:
+    """Stop the run on this computer (and every host with --all), then check nothing is left."""
+    from msctl.console import err
+    from msctl.launcher import state
+
+    if all_hosts:
+        from msctl.launcher.fleet import ask_all
+        from msctl.plane import connected
+
+        with connected("down") as node:
+            for namespace, answer in ask_all(node, "down").items():
+                err.print(f"{namespace}: {answer.get('error', 'stopping')}", highlight=False)
+    document = state.read_state()
+    if not document or not state.supervisor_alive(document):
+        if not all_hosts:
+            err.print("nothing is running on this computer")
+        leftovers = [p for p in (document or {}).get("processes", []) if p.get("pgid")]
+        _kill_leftovers(leftovers)
+        return
+    pid = document["supervisor_pid"]
+    os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and state.supervisor_alive(state.read_state()):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        if state.supervisor_alive(state.read_state()):
+            os.kill(pid, signal.SIGKILL)
+    _kill_leftovers(document.get("processes", []))
+    still = [
+        p["name"]
+        for p in document.get("processes", [])
+        if p.get("pgid") and _group_alive(p["pgid"])
+    ]
+    if still:
+        raise MsctlError(f"processes still alive after down: {', '.join(still)}")
+    err.print(
+        f"[green]down[/]: {document.get('template')} stopped on {document.get('host')}, "
+        "nothing left"
+    )
+
+
+def _kill_leftovers(processes: list[dict]) -> None:
+    for process in processes:
+        pgid = process.get("pgid")
+        if pgid and _group_alive(pgid):
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass

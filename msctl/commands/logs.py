@@ -1,0 +1,97 @@
+"""``msctl logs``: the output of a component's process on this computer."""
+
+from __future__ import annotations
+
+import re
+import time
+from datetime import datetime, timedelta
+from pathlib import Path
+
+import typer
+
+from msctl.errors import InputError, NotFoundError
+
+COMMAND_SETTINGS = {"help": "Show (or follow) a component's log."}
+
+_STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d)")
+_SINCE = re.compile(r"^(\d+(?:\.\d+)?)([smhd]?)$")
+
+
+def _since_seconds(text: str) -> float:
+    match = _SINCE.match(text.strip())
+    if not match:
+        raise InputError(f"--since {text!r}: write it like 30s, 5m, 2h")
+    value, unit = float(match.group(1)), match.group(2) or "s"
+    return value * {"s": 1, "m": 60, "h": 3600, "d": 86400}[unit]
+
+
+def _log_file(component: str | None) -> list[Path]:
+    from msctl.launcher import state
+
+    document = state.read_state()
+    logs = state.log_dir()
+    if component is None:
+        return sorted(logs.glob("*.log"))
+    if document:
+        for process in document.get("processes", []):
+            if component == process["name"] or component in process.get("components", []):
+                return [Path(process["log"])]
+    candidate = logs / f"{component.replace('/', '_')}.log"
+    if candidate.exists():
+        return [candidate]
+    known = [c["name"] for c in (document or {}).get("components", [])]
+    raise NotFoundError(
+        f"no log for {component!r} on this computer",
+        hint=f"known: {', '.join(known) or 'none (nothing ran here)'}; "
+        "`msctl ps` shows where it runs",
+    )
+
+
+def command(
+    component: str = typer.Argument(None, help="Component or process (default: all)."),
+    follow: bool = typer.Option(False, "--follow", "-f", help="Keep printing new lines."),
+    since: str = typer.Option(None, "--since", help="Only lines newer than this (30s, 5m, 2h)."),
+    lines: int = typer.Option(200, "--lines", "-n", help="Show at most this many lines each."),
+) -> None:
+    """Print a component's log (its whole process's output)."""
+    from msctl.console import out
+
+    cutoff = None
+    if since:
+        cutoff = datetime.now() - timedelta(seconds=_since_seconds(since))
+    files = _log_file(component)
+    if not files:
+        raise NotFoundError("no logs on this computer yet", hint="start something with `msctl up`")
+    for path in files:
+        text = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        if cutoff is not None:
+            keep, kept = [], False
+            for line in text:
+                stamp = _STAMP.match(line)
+                if stamp:
+                    kept = datetime.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S") >= cutoff
+                if kept:
+                    keep.append(line)
+            text = keep
+        if len(files) > 1:
+            out.print(f"==> {path.name} <==", highlight=False, markup=False)
+        for line in text[-lines:]:
+            out.print(line, highlight=False, markup=False)
+    if follow:
+        positions = {p: p.stat().st_size for p in files}
+        try:
+            while True:
+                for path in files:
+                    size = path.stat().st_size if path.exists() else 0
+                    if size < positions[path]:
+                        positions[path] = 0  # rotated
+                    if size > positions[path]:
+                        with path.open(encoding="utf-8", errors="replace") as handle:
+                            handle.seek(positions[path])
+                            chunk = handle.read()
+                            positions[path] = handle.tell()
+                        for line in chunk.splitlines():
+                            out.print(line, highlight=False, markup=False)
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            return

@@ -1,0 +1,258 @@
+"""``msctl up``: start this computer's part of the resolved assembly, and watch it come up."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from typing import Any
+
+import typer
+
+from msctl.errors import InputError, MsctlError, NotFoundError, OperationTimeout
+
+COMMAND_SETTINGS = {"help": "Start this computer's part of the assembly (simulated off-robot)."}
+
+_DAEMON_ENV = "MSCTL_UP_DAEMON"
+
+
+def load_resolved(template: str | None, uses: list[str]) -> Any:
+    """Resolve ``template`` first when given, then load the resolved assembly."""
+    from components.assembly import AssemblyError, load_assembly
+
+    if template:
+        from msctl.commands.assemble import resolve_and_write
+
+        resolve_and_write(template, uses)
+    try:
+        return load_assembly()
+    except AssemblyError as exc:
+        raise NotFoundError(str(exc), hint="resolve one with `msctl assemble dragon`") from exc
+
+
+def command(
+    template: str = typer.Argument(None, help="Resolve this template first (e.g. dragon)."),
+    sim: bool = typer.Option(None, "--sim/--real", help="Force simulation on or off."),
+    duration: float = typer.Option(None, "--for", help="Run this many seconds, then stop."),
+    detach: bool = typer.Option(False, "--detach", help="Return once up; keep running."),
+    host: str = typer.Option(None, "--host", help="Act as this computer (default MSCTL_HOST)."),
+    all_hosts: bool = typer.Option(False, "--all", help="Start every host's part via agents."),
+    use: list[str] = typer.Option(None, "--use", help="SLOT=UNIT when resolving TEMPLATE."),
+    speed: float = typer.Option(1.0, "--speed", help="Simulation speed factor."),
+    timeout: float = typer.Option(60.0, "--timeout", help="Seconds to wait for all-healthy."),
+) -> None:
+    """Start the components of this computer, wait until every one is healthy, then run."""
+    from msctl.launcher import state
+    from msctl.launcher.plan import plan_host, this_host
+
+    if speed <= 0:
+        raise InputError(f"--speed must be positive, not {speed}")
+    if all_hosts:
+        from msctl.launcher.remote import up_all
+
+        up_all(load_resolved(template, use or []), sim, speed, timeout)
+        return
+    previous = state.read_state()
+    if state.supervisor_alive(previous) and os.environ.get(_DAEMON_ENV) != "1":
+        raise MsctlError(
+            f"{previous.get('template')} is already up on {previous.get('host')} "
+            f"(supervisor pid {previous.get('supervisor_pid')})",
+            hint="see it with `msctl ps`, stop it with `msctl down`",
+        )
+    assembly = load_resolved(template, use or [])
+    host = host or this_host()
+    plan = plan_host(assembly, host, sim)
+    if not plan.processes:
+        raise InputError(
+            f"{host} runs nothing of {assembly.template}",
+            hint="use --host to act as one of its computers, or --sim to run it all here",
+        )
+    if detach and os.environ.get(_DAEMON_ENV) != "1":
+        _detach(plan, sim, duration, host, speed, timeout)
+        return
+    _run_foreground(assembly, plan, duration, speed, timeout)
+
+
+def _run_foreground(
+    assembly: Any, plan: Any, duration: float | None, speed: float, timeout: float
+) -> None:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from msctl.console import err
+    from msctl.launcher.run import Launch
+
+    launch = Launch(assembly, plan, speed=speed)
+    previous = {
+        s: signal.signal(s, lambda *_: launch.request_stop())
+        for s in (signal.SIGINT, signal.SIGTERM)
+    }
+    daemon = os.environ.get(_DAEMON_ENV) == "1"
+    try:
+        mode = "simulation" if plan.simulated else "hardware"
+        err.print(
+            f"[bold]{assembly.template}[/] on {plan.host} ({mode}"
+            + (", off-robot" if plan.off_robot else "")
+            + f"): {len(plan.components)} components in {len(plan.processes)} processes",
+            highlight=False,
+        )
+        if plan.not_built:
+            err.print(
+                f"[dim]not started ({len(plan.not_built)}, kinds not implemented yet): "
+                + ", ".join(sorted({k for _, k in plan.not_built}))
+                + "[/]",
+                highlight=False,
+            )
+        started = time.monotonic()
+        try:
+            launch.start()
+        except RuntimeError as exc:
+            raise MsctlError(
+                str(exc), hint="free the port or point MSCTL_ZENOH_CONNECT elsewhere"
+            ) from exc
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} healthy"),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+            disable=daemon,
+        ) as progress:
+            task = progress.add_task("starting", total=len(plan.components))
+            while not launch.all_healthy():
+                launch.step()
+                views = launch.components()
+                healthy = sum(v.state == "running" for v in views)
+                waiting = [v.name for v in views if v.state != "running"]
+                progress.update(
+                    task, completed=healthy, description=f"waiting for {', '.join(waiting[:3])}"
+                )
+                if launch.failed():
+                    _report_failure(launch, "failed")
+                if time.monotonic() - started > timeout:
+                    _report_failure(launch, f"not healthy after {timeout:g} s")
+                if launch._stop:
+                    break
+                time.sleep(0.05)
+        elapsed = time.monotonic() - started
+        if not launch._stop:
+            launch.write_state()
+            _print_summary(launch, elapsed)
+            launch.run(None if duration is None else max(0.0, duration - elapsed), _print_events)
+    finally:
+        launch.shutdown()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        err.print(f"{assembly.template} stopped on {plan.host}", highlight=False)
+
+
+_printed_events = 0
+
+
+def _print_events(launch: Any) -> None:
+    global _printed_events
+    from msctl.console import err
+
+    for event in launch.events[_printed_events:]:
+        err.print(f"[yellow]{event}[/]", highlight=False)
+    _printed_events = len(launch.events)
+
+
+def _report_failure(launch: Any, what: str) -> None:
+    from msctl.console import err
+
+    bad = [v for v in launch.components() if v.state != "running"]
+    for view in bad:
+        process = launch.supervisor.processes[view.process]
+        why = process.last_error or (
+            "its node never appeared" if not view.node_seen else "it never published"
+        )
+        err.print(
+            f"[red]{view.name}[/] ({view.kind}, process {view.process}): {why}", highlight=False
+        )
+        for line in list(process.log.tail)[-8:]:
+            err.print(f"    {line}", highlight=False, markup=False)
+    names = ", ".join(v.name for v in bad[:5])
+    raise OperationTimeout(
+        f"{names} {what}",
+        hint=f"logs in {launch.supervisor.log_dir}; see `msctl logs <component>`",
+    )
+
+
+def _print_summary(launch: Any, elapsed: float) -> None:
+    from rich.table import Table
+
+    from msctl.console import err
+
+    table = Table(title=f"{launch.assembly.template} up in {elapsed:.2f} s", title_justify="left")
+    for column in ("component", "kind", "process", "pid", "state"):
+        table.add_column(column)
+    document = launch.document()
+    for c in document["components"]:
+        table.add_row(c["name"], c["kind"], c["process"], str(c["pid"]), c["state"])
+    err.print(table)
+    err.print(
+        "[dim]Ctrl-C stops everything; `msctl ps`, `msctl logs`, `msctl down` from another shell[/]"
+    )
+
+
+def _detach(
+    plan: Any, sim: bool | None, duration: float | None, host: str, speed: float, timeout: float
+) -> None:
+    from msctl.console import err
+    from msctl.launcher import state
+
+    argv = [
+        sys.executable,
+        "-m",
+        "msctl",
+        "up",
+        "--host",
+        host,
+        "--speed",
+        repr(speed),
+        "--timeout",
+        repr(timeout),
+    ]
+    if sim is not None:
+        argv.append("--sim" if sim else "--real")
+    if duration is not None:
+        argv += ["--for", repr(duration)]
+    state.run_dir().mkdir(parents=True, exist_ok=True)
+    log_path = state.run_dir() / "supervisor.log"
+    with log_path.open("a") as log:
+        daemon = subprocess.Popen(
+            argv,
+            env={**os.environ, _DAEMON_ENV: "1"},
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    deadline = time.monotonic() + timeout + 15
+    while time.monotonic() < deadline:
+        document = state.read_state()
+        if daemon.poll() is not None:
+            raise MsctlError(
+                f"the supervisor exited with code {daemon.returncode}",
+                hint=f"see {log_path}",
+            )
+        if (
+            document
+            and document.get("supervisor_pid") == daemon.pid
+            and document["components"]
+            and all(c["state"] == "running" for c in document["components"])
+        ):
+            err.print(
+                f"[green]up[/] {document['template']} on {host}: "
+                f"{len(document['components'])} components healthy (supervisor pid {daemon.pid}); "
+                "`msctl ps`, `msctl down`",
+                highlight=False,
+            )
+            return
+        time.sleep(0.1)
+    raise OperationTimeout(
+        f"not healthy after {timeout:g} s", hint=f"see {log_path} and `msctl ps`"
+    )

@@ -1,0 +1,71 @@
+"""Finding and asking every supervisor on the network (this computer's and the agents')."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from msctl.launcher import state
+from msctl.launcher.control import AGENT_SRV
+
+
+def supervisors(node: Any) -> dict[str, str]:
+    """``{host namespace: service name}`` of every supervisor on the graph."""
+    from components.comm.graph import snapshot
+
+    found = {}
+    for name, info in snapshot(node.session, node.domain).services().items():
+        if name.startswith("/msctl/") and name.endswith("/request") and AGENT_SRV in info.types:
+            found[name[: -len("/request")]] = name
+    return found
+
+
+def ask_all(
+    node: Any, verb: str, args: dict[str, Any] | None = None, timeout: float = 3.0
+) -> dict[str, Any]:
+    """Send one request to every supervisor; ``{namespace: payload or {"error": ...}}``."""
+    from components.comm.services import ServiceError
+    from components.comm.types import registry
+
+    answers: dict[str, Any] = {}
+    for namespace, service in supervisors(node).items():
+        client = node.client(service, AGENT_SRV)
+        try:
+            request = registry().msg_class(client.parts.request)(
+                verb=verb, args=json.dumps(args or {})
+            )
+            response = client.call(request, timeout=timeout)
+            if response.success:
+                answers[namespace] = json.loads(response.payload) if response.payload else {}
+            else:
+                answers[namespace] = {"error": response.message}
+        except ServiceError as exc:
+            answers[namespace] = {"error": str(exc)}
+        finally:
+            client.close()
+    return answers
+
+
+def fleet_state(timeout: float = 3.0) -> tuple[list[dict[str, Any]], list[str]]:
+    """Every host's run document (network first, this computer's state file as fallback),
+    and notes about what could not be reached."""
+    from msctl.errors import NetworkError
+    from msctl.plane import connected
+
+    documents: dict[str, dict[str, Any]] = {}
+    notes: list[str] = []
+    local = state.read_state()
+    try:
+        with connected("ps") as node:
+            for namespace, answer in ask_all(node, "ps", timeout=timeout).items():
+                if "error" in answer:
+                    notes.append(f"{namespace}: {answer['error']}")
+                elif "host" in answer:
+                    documents[answer["host"]] = answer
+    except NetworkError as exc:
+        notes.append(f"network: {exc} (showing this computer's state file only)")
+    if local and local.get("host") not in documents:
+        if not state.supervisor_alive(local) and local.get("state") != "stopped":
+            local = {**local, "state": "stopped (supervisor gone)"}
+        documents[local["host"]] = local
+    return list(documents.values()), notes

@@ -1,0 +1,328 @@
+"""One run of this computer's part of an assembly: router, processes, health, control.
+
+The loop runs on one thread: it polls the supervisor, judges components healthy, rewrites the
+state file and answers control requests (which the Zenoh thread only queues), so the
+supervisor is never touched from two threads.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from components.assembly import ResolvedAssembly
+from components.comm.session import SessionSettings, open_session
+from msctl.launcher import state
+from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request
+from msctl.launcher.plan import HostPlan
+from msctl.launcher.supervisor import ProcessState, RestartPolicy, Supervisor
+from msctl.launcher.watch import HealthWatch
+
+ROUTER_PROCESS = "router"
+
+
+def router_reachable(endpoint: str, timeout: float = 0.5) -> bool:
+    """Whether a Zenoh router answers on ``endpoint``."""
+    import zenoh
+
+    settings = SessionSettings(mode="client", connect=(endpoint,), listen=())
+    config = settings.to_config()
+    config.insert_json5("connect/timeout_ms", str(int(timeout * 1000)))
+    try:
+        session = zenoh.open(config)
+    except Exception:
+        return False
+    session.close()
+    return True
+
+
+def listen_endpoint_for(connect_endpoint: str) -> str:
+    """Where to listen so that ``connect_endpoint`` reaches us (rmw_zenohd's default for
+    the default ``tcp/localhost:7447``)."""
+    if connect_endpoint.startswith("tcp/localhost:"):
+        return "tcp/[::]:" + connect_endpoint.rsplit(":", 1)[1]
+    return connect_endpoint
+
+
+@dataclass
+class ComponentView:
+    """A component as ``ps`` shows it."""
+
+    name: str
+    kind: str
+    process: str
+    state: str
+    node_seen: bool
+    output_seen: bool
+
+
+@dataclass
+class Launch:
+    """Runs a host plan until stopped.
+
+    Args:
+        assembly: The resolved assembly.
+        plan: This host's processes.
+        settings: Session settings components will use (from the environment).
+        speed: Simulation speed factor.
+        policy: Restart policy.
+    """
+
+    assembly: ResolvedAssembly
+    plan: HostPlan
+    settings: SessionSettings = field(default_factory=SessionSettings.from_env)
+    speed: float = 1.0
+    policy: RestartPolicy = field(default_factory=RestartPolicy)
+    events: list[str] = field(default_factory=list)
+    started_router: bool = False
+
+    def __post_init__(self) -> None:
+        self.supervisor = Supervisor(state.log_dir(), self.policy)
+        self.endpoint = self.settings.connect[0] if self.settings.connect else ""
+        self.session: Any = None
+        self.watch: HealthWatch | None = None
+        self._node: Any = None
+        self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._stop = False
+        self._started = time.time()
+        self._last_state_write = 0.0
+
+    # ------------------------------------------------------------------ start
+    def start(self) -> None:
+        """Reach or start the router, then start every process of the plan."""
+        if self.endpoint and not router_reachable(self.endpoint):
+            router = self.supervisor.add(
+                ROUTER_PROCESS,
+                [
+                    sys.executable,
+                    "-m",
+                    "msctl",
+                    "router",
+                    "--listen",
+                    listen_endpoint_for(self.endpoint),
+                ],
+            )
+            self.supervisor.start(router.name)
+            self.started_router = True
+            deadline = time.monotonic() + 10.0
+            while not router_reachable(self.endpoint):
+                self.supervisor.poll()
+                if router.state is ProcessState.FAILED or time.monotonic() > deadline:
+                    raise RuntimeError(
+                        f"the embedded router could not listen on {self.endpoint}: "
+                        f"{router.last_error or 'no answer'}"
+                    )
+                time.sleep(0.05)
+            self.supervisor.mark_running(ROUTER_PROCESS)
+        self.session = open_session(replace(self.settings, mode="peer"))
+        self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
+        self._serve_control()
+        lock = self.assembly.lock_path
+        for process in self.plan.processes:
+            argv = [sys.executable, "-m", "components.executor.worker", "--lock", str(lock)]
+            for component in process.components:
+                argv += ["--component", component.name]
+            if any(c.kind == "simulator" for c in process.components):
+                argv += ["--speed", repr(self.speed)]
+            self.supervisor.add(process.name, argv, components=[c.name for c in process.components])
+            self.supervisor.start(process.name)
+        self.write_state()
+
+    def _serve_control(self) -> None:
+        from components.comm.node import Node
+
+        self._node = Node(
+            self.session, "supervisor", host_namespace(self.plan.host), self.settings.domain
+        )
+        self._node.service("request", AGENT_SRV, self._requests.put, deferred=True)
+
+    # ------------------------------------------------------------------ loop
+    def step(self) -> None:
+        """One turn of the loop: processes, health, requests, state file."""
+        events = self.supervisor.poll()
+        for event in events:
+            self.events.append(event)
+            name = event.split(":", 1)[0]
+            process = self.supervisor.processes.get(name)
+            if process is not None and self.watch is not None:
+                self.watch.forget(process.components)
+        if self.watch is not None:
+            status = self.watch.status()
+            for process in self.supervisor.processes.values():
+                if (
+                    process.state is ProcessState.STARTING
+                    and process.components
+                    and all(all(status[c]) for c in process.components)
+                ):
+                    self.supervisor.mark_running(process.name)
+        while True:
+            try:
+                pending = self._requests.get_nowait()
+            except queue.Empty:
+                break
+            self._answer(pending)
+        if time.monotonic() - self._last_state_write > 0.5:
+            self.write_state()
+
+    def all_healthy(self) -> bool:
+        """Every process RUNNING (its components seen and publishing)."""
+        return all(p.state is ProcessState.RUNNING for p in self.supervisor.processes.values())
+
+    def failed(self) -> list[Any]:
+        """Processes that gave up."""
+        return [p for p in self.supervisor.processes.values() if p.state is ProcessState.FAILED]
+
+    def run(self, duration: float | None, on_step: Callable[[Launch], None] | None = None) -> None:
+        """Loop until :meth:`request_stop`, a ``down`` request, or ``duration``."""
+        deadline = None if duration is None else time.monotonic() + duration
+        while not self._stop and (deadline is None or time.monotonic() < deadline):
+            self.step()
+            if on_step is not None:
+                on_step(self)
+            time.sleep(0.05)
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to return (signal-safe)."""
+        self._stop = True
+
+    # ------------------------------------------------------------------ control
+    def _answer(self, pending: Any) -> None:
+        import json
+
+        from components.messages import msg
+
+        def reply(success: bool, message: str, payload: Any = None) -> None:
+            pending.reply(
+                msg(
+                    "msctl_msgs/srv/AgentRequest_Response",
+                    success=success,
+                    message=message,
+                    payload=json.dumps(payload) if payload is not None else "",
+                )
+            )
+
+        try:
+            request = parse_request(pending.request.verb, pending.request.args)
+            payload = self._do(request.verb, request.args)
+        except RequestError as exc:
+            reply(False, str(exc))
+            return
+        reply(True, "ok", payload)
+
+    def _process_of(self, name: str) -> str:
+        if name in self.supervisor.processes:
+            return name
+        for process in self.supervisor.processes.values():
+            if name in process.components:
+                return process.name
+        known = sorted({*self.supervisor.processes, *(c.name for c in self.plan.components)})
+        raise RequestError(
+            f"no component or process {name!r} on {self.plan.host}; known: " + ", ".join(known)
+        )
+
+    def _do(self, verb: str, args: dict[str, Any]) -> Any:
+        if verb == "ps":
+            return self.document()
+        if verb == "down":
+            self.request_stop()
+            return {"host": self.plan.host}
+        if verb == "up":
+            raise RequestError(f"{self.plan.host} already runs {self.assembly.template}")
+        name = args.get("component")
+        if name is None and verb == "logs":
+            return {
+                p: list(self.supervisor.processes[p].log.tail) for p in self.supervisor.processes
+            }
+        if name is None:
+            raise RequestError(f"{verb} needs a component")
+        process = self._process_of(name)
+        if verb == "logs":
+            lines = int(args.get("lines", 50))
+            return {process: list(self.supervisor.processes[process].log.tail)[-lines:]}
+        if verb == "restart":
+            self.supervisor.restart(process)
+        elif verb == "stop":
+            self.supervisor.stop(process)
+        elif verb == "start":
+            self.supervisor.start(process)
+        if self.watch is not None:
+            self.watch.forget(self.supervisor.processes[process].components)
+        self.events.append(f"{process}: {verb} requested")
+        return {"process": process, "state": self.supervisor.processes[process].state.value}
+
+    # ------------------------------------------------------------------ state
+    def components(self) -> list[ComponentView]:
+        """Every component with its state."""
+        status = self.watch.status() if self.watch is not None else {}
+        views = []
+        for process in self.supervisor.processes.values():
+            for name in process.components:
+                node_seen, output_seen = status.get(name, (False, False))
+                component_state = process.state.value
+                if process.state is ProcessState.STARTING and node_seen and output_seen:
+                    component_state = ProcessState.RUNNING.value
+                kind = next((c.kind for c in self.plan.components if c.name == name), "")
+                views.append(
+                    ComponentView(name, kind, process.name, component_state, node_seen, output_seen)
+                )
+        return views
+
+    def document(self) -> dict[str, Any]:
+        """What ``ps`` and the state file hold."""
+        processes = self.supervisor.snapshot()
+        by_process = {p["name"]: p for p in processes}
+        return {
+            "host": self.plan.host,
+            "template": self.assembly.template,
+            "simulated": self.plan.simulated,
+            "off_robot": self.plan.off_robot,
+            "supervisor_pid": os.getpid(),
+            "router": self.endpoint,
+            "started_router": self.started_router,
+            "started": self._started,
+            "state": "stopped" if self._stop else "running",
+            "processes": processes,
+            "components": [
+                {
+                    "name": c.name,
+                    "kind": c.kind,
+                    "host": self.plan.host,
+                    "process": c.process,
+                    "state": c.state,
+                    "pid": by_process[c.process]["pid"],
+                    "uptime": by_process[c.process]["uptime"],
+                    "restarts": by_process[c.process]["restarts"],
+                    "last_error": by_process[c.process]["last_error"],
+                }
+                for c in self.components()
+            ],
+            "not_built": [{"name": n, "kind": k} for n, k in self.plan.not_built],
+        }
+
+    def write_state(self) -> None:
+        """Rewrite the state file."""
+        self._last_state_write = time.monotonic()
+        state.write_state(self.document())
+
+    # ------------------------------------------------------------------ stop
+    def shutdown(self) -> None:
+        """Stop every process (router last), close the session, mark the state stopped."""
+        self._stop = True
+        router = self.supervisor.processes.pop(ROUTER_PROCESS, None)
+        if self.watch is not None:
+            self.watch.close()
+        if self._node is not None:
+            self._node.close()
+        self.supervisor.shutdown()
+        if router is not None:
+            self.supervisor.processes[ROUTER_PROCESS] = router
+            self.supervisor.shutdown()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        self.write_state()

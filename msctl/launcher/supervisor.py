@@ -1,0 +1,374 @@
+"""The supervisor: owns this computer's component processes.
+
+Each process runs in its own process group (so nothing it starts is orphaned), its output
+is pumped into a per-process log file with rotation (and the last lines kept for error
+messages), and it is restarted with exponential backoff when it dies, up to a maximum in a
+window, after which it is FAILED with the reason. Shutdown is SIGINT, then SIGTERM, then
+SIGKILL to the whole group, with short timeouts: never a 19-second hang.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any, TextIO
+
+
+class ProcessState(StrEnum):
+    """Lifecycle of a supervised process (and of the components in it)."""
+
+    STARTING = "starting"
+    RUNNING = "running"
+    RESTARTING = "restarting"
+    FAILED = "failed"
+    STOPPED = "stopped"
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """When and how often a dead process is started again.
+
+    Attributes:
+        max_restarts: Restarts allowed within ``window`` seconds before giving up (FAILED).
+        window: Seconds over which restarts are counted.
+        backoff_initial: Delay before the first restart; doubled for each further one.
+        backoff_max: Largest delay.
+        stable_after: A process alive this long resets its backoff.
+    """
+
+    max_restarts: int = 5
+    window: float = 60.0
+    backoff_initial: float = 0.25
+    backoff_max: float = 8.0
+    stable_after: float = 10.0
+
+
+@dataclass(frozen=True)
+class ShutdownPolicy:
+    """Seconds to wait after SIGINT, then after SIGTERM, before SIGKILL."""
+
+    after_sigint: float = 2.0
+    after_sigterm: float = 1.0
+
+
+class RotatingLog:
+    """A log file that rotates to ``.1`` .. ``.N`` past a size, keeping the last lines in memory."""
+
+    def __init__(self, path: Path, max_bytes: int = 5_000_000, backups: int = 3, tail: int = 50):
+        self.path = path
+        self.max_bytes = max_bytes
+        self.backups = backups
+        self.tail: deque[str] = deque(maxlen=tail)
+        self._lock = threading.Lock()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: TextIO = path.open("a", encoding="utf-8")
+
+    def write_line(self, line: str) -> None:
+        """Append one line (thread-safe), rotating first if the file is too big."""
+        with self._lock:
+            self.tail.append(line.rstrip("\n"))
+            if self._file.tell() > self.max_bytes:
+                self._rotate()
+            self._file.write(line if line.endswith("\n") else line + "\n")
+            self._file.flush()
+
+    def _rotate(self) -> None:
+        self._file.close()
+        for index in range(self.backups - 1, 0, -1):
+            older = self.path.with_name(f"{self.path.name}.{index}")
+            if older.exists():
+                older.replace(self.path.with_name(f"{self.path.name}.{index + 1}"))
+        self.path.replace(self.path.with_name(f"{self.path.name}.1"))
+        self._file = self.path.open("a", encoding="utf-8")
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        with self._lock:
+            if not self._file.closed:
+                self._file.close()
+
+
+@dataclass
+class ManagedProcess:
+    """One supervised process and its history."""
+
+    name: str
+    argv: list[str]
+    env: dict[str, str]
+    log: RotatingLog
+    components: tuple[str, ...] = ()
+    state: ProcessState = ProcessState.STOPPED
+    popen: subprocess.Popen | None = None
+    started_at: float = 0.0
+    restarts: int = 0
+    last_error: str = ""
+    next_start: float | None = None
+    restart_times: deque[float] = field(default_factory=lambda: deque(maxlen=64))
+    backoff: float = 0.0
+    wanted: bool = True
+    pump: threading.Thread | None = None
+
+    @property
+    def pid(self) -> int | None:
+        """The live pid, if running."""
+        return self.popen.pid if self.popen is not None and self.popen.poll() is None else None
+
+    def uptime(self, now: float) -> float:
+        """Seconds since the current incarnation started (0 when not running)."""
+        return now - self.started_at if self.pid is not None else 0.0
+
+
+class Supervisor:
+    """Starts, watches, restarts and stops this computer's processes.
+
+    Not thread-safe by itself: call :meth:`poll`, :meth:`restart`, :meth:`stop` from one
+    thread (the launcher's loop); output pumping runs on its own threads.
+    """
+
+    def __init__(
+        self,
+        log_dir: Path,
+        policy: RestartPolicy | None = None,
+        shutdown: ShutdownPolicy | None = None,
+    ) -> None:
+        self.log_dir = log_dir
+        self.policy = policy or RestartPolicy()
+        self.shutdown_policy = shutdown or ShutdownPolicy()
+        self.processes: dict[str, ManagedProcess] = {}
+
+    def add(
+        self,
+        name: str,
+        argv: Sequence[str],
+        env: dict[str, str] | None = None,
+        components: Sequence[str] = (),
+    ) -> ManagedProcess:
+        """Register a process (not started yet)."""
+        process = ManagedProcess(
+            name=name,
+            argv=list(argv),
+            env={**os.environ, **(env or {})},
+            log=RotatingLog(self.log_dir / f"{name.replace('/', '_')}.log"),
+            components=tuple(components),
+        )
+        self.processes[name] = process
+        return process
+
+    # ------------------------------------------------------------------ starting
+    def start(self, name: str) -> None:
+        """Start one process now (it becomes STARTING)."""
+        process = self.processes[name]
+        process.wanted = True
+        process.next_start = None
+        self._spawn(process)
+
+    def start_all(self) -> None:
+        """Start every registered process."""
+        for name in self.processes:
+            self.start(name)
+
+    def _spawn(self, process: ManagedProcess) -> None:
+        process.log.write_line(f"--- msctl: starting {process.name}: {' '.join(process.argv)}")
+        try:
+            popen = subprocess.Popen(
+                process.argv,
+                env=process.env,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                bufsize=1,
+                start_new_session=True,  # its own process group: nothing outlives a kill
+            )
+        except OSError as exc:
+            process.state = ProcessState.FAILED
+            process.last_error = f"cannot start: {exc}"
+            process.log.write_line(f"--- msctl: {process.last_error}")
+            return
+        process.popen = popen
+        process.started_at = time.monotonic()
+        process.state = ProcessState.STARTING
+        process.pump = threading.Thread(
+            target=self._pump, args=(process, popen), name=f"log-{process.name}", daemon=True
+        )
+        process.pump.start()
+
+    @staticmethod
+    def _pump(process: ManagedProcess, popen: subprocess.Popen) -> None:
+        assert popen.stdout is not None
+        for line in popen.stdout:
+            process.log.write_line(line)
+        popen.stdout.close()
+
+    # ------------------------------------------------------------------ watching
+    def poll(self, now: float | None = None) -> list[str]:
+        """Notice dead processes and (re)start what is due. Returns human-readable events."""
+        now = time.monotonic() if now is None else now
+        events = []
+        for process in self.processes.values():
+            popen = process.popen
+            if popen is not None and popen.poll() is not None:
+                events.append(self._on_exit(process, popen.returncode, now))
+            elif popen is not None and process.state is ProcessState.STARTING:
+                pass  # the launcher marks it RUNNING once its components are healthy
+            if (
+                process.next_start is not None
+                and now >= process.next_start
+                and process.wanted
+                and process.state is ProcessState.RESTARTING
+            ):
+                process.next_start = None
+                process.restarts += 1
+                self._spawn(process)
+                events.append(f"{process.name}: restarted (restart #{process.restarts})")
+            if (
+                process.state is ProcessState.RUNNING
+                and process.uptime(now) > self.policy.stable_after
+            ):
+                process.backoff = 0.0
+        return events
+
+    def _on_exit(self, process: ManagedProcess, code: int, now: float) -> str:
+        if process.pump is not None:
+            process.pump.join(timeout=1.0)  # the last lines carry the reason
+        process.popen = None
+        reason = _describe_exit(code)
+        tail = _last_meaningful(process.log.tail)
+        process.last_error = f"{reason}: {tail}" if tail else reason
+        process.log.write_line(f"--- msctl: {process.name} {reason}")
+        if not process.wanted:
+            process.state = ProcessState.STOPPED
+            return f"{process.name}: stopped"
+        while process.restart_times and now - process.restart_times[0] > self.policy.window:
+            process.restart_times.popleft()
+        if len(process.restart_times) >= self.policy.max_restarts:
+            process.state = ProcessState.FAILED
+            process.last_error = (
+                f"{process.last_error} (gave up after {len(process.restart_times)} restarts "
+                f"in {self.policy.window:g} s)"
+            )
+            return f"{process.name}: FAILED ({process.last_error})"
+        process.restart_times.append(now)
+        process.backoff = min(
+            self.policy.backoff_max,
+            max(self.policy.backoff_initial, process.backoff * 2),
+        )
+        process.state = ProcessState.RESTARTING
+        process.next_start = now + process.backoff
+        return f"{process.name}: {reason}; restarting in {process.backoff:.2f} s"
+
+    def mark_running(self, name: str) -> None:
+        """The launcher saw every component of ``name`` healthy."""
+        process = self.processes[name]
+        if process.state is ProcessState.STARTING:
+            process.state = ProcessState.RUNNING
+
+    # ------------------------------------------------------------------ controlling
+    def restart(self, name: str) -> None:
+        """Stop then start one process at once (no backoff, restarts counted)."""
+        process = self.processes[name]
+        self._terminate([process])
+        process.popen = None
+        process.restarts += 1
+        process.restart_times.clear()
+        process.backoff = 0.0
+        self.start(name)
+
+    def stop(self, name: str) -> None:
+        """Stop one process and keep it stopped."""
+        process = self.processes[name]
+        process.wanted = False
+        process.next_start = None
+        self._terminate([process])
+        process.popen = None
+        process.state = ProcessState.STOPPED
+
+    def shutdown(self) -> None:
+        """Stop everything: SIGINT, SIGTERM, SIGKILL to each process group."""
+        for process in self.processes.values():
+            process.wanted = False
+            process.next_start = None
+        self._terminate(list(self.processes.values()))
+        for process in self.processes.values():
+            process.popen = None
+            process.state = ProcessState.STOPPED
+            process.log.close()
+
+    def _terminate(self, processes: list[ManagedProcess]) -> None:
+        live = [p for p in processes if p.popen is not None and p.popen.poll() is None]
+        for signum, wait in (
+            (signal.SIGINT, self.shutdown_policy.after_sigint),
+            (signal.SIGTERM, self.shutdown_policy.after_sigterm),
+            (signal.SIGKILL, 2.0),
+        ):
+            for process in live:
+                _signal_group(process.popen, signum)
+            deadline = time.monotonic() + wait
+            while live and time.monotonic() < deadline:
+                live = [p for p in live if p.popen.poll() is None]
+                time.sleep(0.02)
+            if not live:
+                break
+        for process in processes:
+            if process.popen is not None:
+                # Whatever the leader left behind in its group goes too.
+                _signal_group(process.popen, signal.SIGKILL)
+                with contextlib.suppress(Exception):
+                    process.popen.wait(timeout=1.0)
+            if process.pump is not None:
+                process.pump.join(timeout=1.0)
+
+    # ------------------------------------------------------------------ reporting
+    def snapshot(self, now: float | None = None) -> list[dict[str, Any]]:
+        """Every process's state, for ``ps`` and the state file."""
+        now = time.monotonic() if now is None else now
+        return [
+            {
+                "name": p.name,
+                "state": p.state.value,
+                "pid": p.pid,
+                "pgid": p.pid,
+                "uptime": round(p.uptime(now), 1),
+                "restarts": p.restarts,
+                "last_error": p.last_error,
+                "log": str(p.log.path),
+                "components": list(p.components),
+            }
+            for p in self.processes.values()
+        ]
+
+
+def _signal_group(popen: subprocess.Popen, signum: int) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(popen.pid, signum)
+
+
+def _describe_exit(code: int) -> str:
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def _last_meaningful(lines: deque[str]) -> str:
+    for line in reversed(lines):
+        text = line.strip()
+        meaningful = text and not text.startswith("--- msctl:")
+        if meaningful and ("error" in text.lower() or "Traceback" in text):
+            return text[-300:]
+    for line in reversed(lines):
+        text = line.strip()
+        if text and not text.startswith("--- msctl:"):
+            return text[-300:]
+    return ""
