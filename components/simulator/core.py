@@ -213,6 +213,7 @@ class SimulatorCore(Core):
                 continue
             world.command(sample.name, *values)
             self._commanded.add(world.joint(sample.name).module)
+        self._react(now)
 
     def on_halt(self, slot: str, request: Any, now: float) -> Any:
         """``/<slot>/motors/halt``: hold the module's motors where they are."""
@@ -231,6 +232,12 @@ class SimulatorCore(Core):
         if self._last is None:
             self.start(now)
             return
+        steps = self._catch_up(now)
+        self._publish_due(now, force=False, stepped=steps > 0)
+
+    def _catch_up(self, now: float) -> int:
+        """Step the physics up to ``now``; returns the number of steps taken."""
+        assert self._last is not None
         elapsed = max(now - self._last, 0.0)
         self._last = now
         cfg = self.config
@@ -242,16 +249,34 @@ class SimulatorCore(Core):
         # A hair of tolerance so float error on exact multiples does not lose a step.
         steps = int(self._debt / dt + 1e-6)
         if steps > 0:
-            self._debt -= steps * dt
-            started = self._timer() if self._timer else 0.0
-            self.world.step(steps)
-            if self._timer:
-                self._window_busy += self._timer() - started
-            self.steps += steps
-            self._window_steps += steps
-            self._window_sim += steps * dt
-            self.world.sync_viewer(now)
-        self._publish_due(now, force=False, stepped=steps > 0)
+            self._step(steps, now)
+        return steps
+
+    def _step(self, steps: int, now: float) -> None:
+        dt = self.world.timestep
+        self._debt -= steps * dt
+        started = self._timer() if self._timer else 0.0
+        self.world.step(steps)
+        if self._timer:
+            self._window_busy += self._timer() - started
+        self.steps += steps
+        self._window_steps += steps
+        self._window_sim += steps * dt
+        self.world.sync_viewer(now)
+
+    def _react(self, now: float) -> None:
+        """Show a command's effect now: catch up, take one step ahead, publish the modules.
+
+        Waiting for the next tick would add up to a tick period to every command-to-state
+        latency. The simulated clock may lead the (scaled) wall clock by at most one step
+        for this; the following ticks simply wait until the wall clock has caught up.
+        """
+        if self._last is None or not self._commanded:
+            return
+        self._catch_up(now)
+        if self._debt > -0.5 * self.world.timestep:
+            self._step(1, now)
+        self._publish_due(now, force=False, stepped=True)
 
     # ------------------------------------------------------------------ publishing
     def _publish_due(self, now: float, force: bool, stepped: bool = True) -> None:
