@@ -347,7 +347,8 @@ def test_graph_snapshot_and_live_view(open_sessions: Callable[[], Any]) -> None:
             lambda g: "/limb1/halt" in g.services() and "/other/halt" in g.services(), 5.0
         )
         assert graph.wait_for(lambda g: "/limb1/joint_set" in g.topics(), 5.0)
-        shot = snapshot(observer)
+        # A query right after the tokens appear can miss them (routes settle a moment later).
+        shot = wait_until(lambda: (s := snapshot(observer)) and len(s.entities()) >= 5 and s)
         for view in (graph, shot):
             assert "/limb1/probe" in view.node_names()
             topics = view.topics()
