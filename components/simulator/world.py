@@ -154,6 +154,7 @@ class SimWorld:
         self.target = np.zeros(n)
         self.setpoint = np.zeros(n)
         self.resets = 0
+        self._dirty = True
         self._viewer: Any = None
         self._viewer_synced = 0.0
 
@@ -294,6 +295,7 @@ class SimWorld:
         """
         i = self._index[name]
         cal = self.joints[i].calibration
+        self._dirty = True
         if position is not None and math.isfinite(position):
             self._enter(i, POSITION)
             target = cal.to_calibrated(position)
@@ -310,6 +312,7 @@ class SimWorld:
     def hold(self, names: Iterable[str] | None = None) -> None:
         """Hold motors where they are (all of them by default): position mode, no ramp."""
         indices = range(len(self.joints)) if names is None else [self._index[n] for n in names]
+        self._dirty = True
         for i in indices:
             self._set_mode(i, POSITION)
             here = float(self.data.qpos[self._qpos[i]])
@@ -342,15 +345,22 @@ class SimWorld:
         self.mode[i] = mode
 
     def _apply_controls(self, dt: float) -> None:
+        # Controls only change after a command or while a profile moves: skip the rest of
+        # the time (it costs about as much as a small model's physics step).
+        if not self._dirty:
+            return
         position = self.mode == POSITION
         ctrl = self.target.copy()
+        moving = False
         if position.any():
             step = self._max_velocity * dt
-            delta = np.clip(self.target - self.setpoint, -step, step)
-            self.setpoint = np.where(position, self.setpoint + delta, self.setpoint)
+            delta = np.where(position, np.clip(self.target - self.setpoint, -step, step), 0.0)
+            self.setpoint = self.setpoint + delta
             speed = delta / dt if dt > 0 else np.zeros_like(delta)
             ctrl = np.where(position, self.setpoint + self._feedforward * speed, ctrl)
+            moving = bool(delta.any())
         self.data.ctrl[self._act] = ctrl
+        self._dirty = moving
 
     # ------------------------------------------------------------------ stepping
     def step(self, steps: int = 1) -> None:
