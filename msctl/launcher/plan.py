@@ -5,6 +5,10 @@ here and every motor interface is replaced by one MuJoCo simulator; on a robot c
 its own part runs. Components are grouped into executor processes: one per module, one for
 the simulator, one per ground-control station, so start-up is a handful of interpreters, not
 sixty.
+
+Simulating on robot computers (``msctl up --all --sim``), the assembly still gets one world,
+not one per computer: the computer of the first module runs the simulator (it serves every
+module's motor interface) and the others only drop their motor interfaces.
 """
 
 from __future__ import annotations
@@ -103,6 +107,8 @@ def plan_host(
     off_robot = host not in robot_hosts
     simulated = off_robot if sim is None else sim
     planned = list(assembly.components) if off_robot else assembly.components_on(host)
+    # One simulated world per assembly: two would both answer every module's motor topics.
+    runs_simulator = simulated and (off_robot or host == assembly.modules[0].host)
     plan = HostPlan(host=host, simulated=simulated, off_robot=off_robot)
     groups: dict[str, list[ComponentRun]] = {}
     for component in planned:
@@ -115,7 +121,7 @@ def plan_host(
         groups.setdefault(group, []).append(
             _run(component.name, component.kind, component.namespace)
         )
-    if simulated:
+    if runs_simulator:
         if buildable("simulator"):
             groups = {"sim": [_run(SIMULATOR_COMPONENT, "simulator", "/sim")], **groups}
         else:

@@ -71,6 +71,8 @@ class Launch:
         settings: Session settings components will use (from the environment).
         speed: Simulation speed factor.
         policy: Restart policy.
+        serve_control: Serve ``/msctl/<host>/request`` itself; an agent, which serves it for
+            its whole life and forwards requests to :meth:`_do`, turns this off.
     """
 
     assembly: ResolvedAssembly
@@ -80,6 +82,7 @@ class Launch:
     policy: RestartPolicy = field(default_factory=RestartPolicy)
     events: list[str] = field(default_factory=list)
     started_router: bool = False
+    serve_control: bool = True
 
     def __post_init__(self) -> None:
         self.supervisor = Supervisor(state.log_dir(), self.policy)
@@ -121,7 +124,8 @@ class Launch:
             self.supervisor.mark_running(ROUTER_PROCESS)
         self.session = open_session(replace(self.settings, mode="peer"))
         self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
-        self._serve_control()
+        if self.serve_control:
+            self._serve_control()
         lock = self.assembly.lock_path
         for process in self.plan.processes:
             argv = [sys.executable, "-m", "components.executor.worker", "--lock", str(lock)]
