@@ -59,7 +59,7 @@ def rig() -> Iterator[tuple[EmulatedCia402Bus, CanopenBackend]]:
             backend.close()
 
 
-def settle_at(backend: CanopenBackend, joint: str, position: float, tol: float = 1e-3) -> Any:
+def settle_at(backend: CanopenBackend, joint: str, position: float, tol: float = 1e-4) -> Any:
     """Command ``position`` and wait until read() reports it, at rest."""
 
     def arrived() -> Any:
@@ -90,12 +90,17 @@ def test_open_enables_every_drive_in_profile_position(rig):
 def test_position_command_moves_the_joint_and_reads_back_in_radians(rig):
     emulator, backend = rig
     state = settle_at(backend, "limb1_joint1", 0.5)
-    assert emulator.drive(1).position == pytest.approx(0.5 * COUNTS_PER_RAD, abs=1.0)
+    # Settled within 1e-4 rad as read back, so the drive is within as many counts (plus one).
+    assert emulator.drive(1).position == pytest.approx(
+        0.5 * COUNTS_PER_RAD, abs=1e-4 * COUNTS_PER_RAD + 1
+    )
     assert state.position == pytest.approx(0.5, abs=1e-4)
     assert emulator.drive(2).position == 0.0  # the other joint did not move
     # A stream of new targets is taken one after another (set-point handshake).
     state = settle_at(backend, "limb1_joint1", -0.25)
-    assert emulator.drive(1).position == pytest.approx(-0.25 * COUNTS_PER_RAD, abs=1.0)
+    assert emulator.drive(1).position == pytest.approx(
+        -0.25 * COUNTS_PER_RAD, abs=1e-4 * COUNTS_PER_RAD + 1
+    )
 
 
 def test_velocity_command_then_back_to_position(rig):
@@ -265,7 +270,5 @@ def test_bus_that_goes_away_is_an_error_and_is_reopened(rig):
     assert backend.channel in entry.message
     backend.write([MotorCommand("limb1_joint1", position=0.3)])  # never raises
     backend.read()
-    wait_until(
-        lambda: all(d.level == 0 for d in backend.diagnostics()), 4.0, "all OK after reopen"
-    )
+    wait_until(lambda: all(d.level == 0 for d in backend.diagnostics()), 4.0, "all OK after reopen")
     settle_at(backend, "limb1_joint1", 0.3)
