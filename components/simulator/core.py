@@ -8,9 +8,10 @@ simulator knows: the ground-truth pose of each robot's root link and its own dia
 (real-time factor, step rate, simulated time) under ``/sim``.
 
 Time is passed in, as for every core: :meth:`SimulatorCore.tick` advances the physics by the
-wall time elapsed since the previous tick times the speed factor. A late tick catches up, but
-by at most ``max_catch_up`` seconds of wall time: a world that cannot keep up falls behind
-(the real-time factor in diagnostics says so) instead of spending ever longer catching up.
+wall time elapsed since the previous tick times the speed factor. A late world catches up a
+few steps per tick, and by at most ``max_catch_up`` seconds of wall time in all: a world that
+cannot keep up falls behind (the real-time factor in diagnostics says so) and keeps publishing,
+instead of spending ever longer catching up.
 
 Rates (states, diagnostics) are in wall time, because the joint managers and everything above
 run on wall time; at speed 1 wall time and simulated time advance together.
@@ -60,7 +61,11 @@ class SimulatorConfig:
             effect of a command is seen one physics step later, not one period later.
         pose_period: Seconds between two ground-truth poses.
         diagnostics_period: Seconds between two diagnostics (and the real-time factor window).
-        max_catch_up: Largest wall time one tick simulates after a stall.
+        max_catch_up: Largest wall time the world catches up after a stall; beyond it the
+            simulated time is given up (counted as dropped).
+        catch_up_rate: A tick takes at most this many times its nominal number of steps,
+            so a late world catches up over several short ticks and keeps publishing states,
+            rather than stalling everything in one long tick.
         frame_id: Frame of the ground-truth poses.
     """
 
@@ -70,6 +75,7 @@ class SimulatorConfig:
     pose_period: float = 0.01
     diagnostics_period: float = 1.0
     max_catch_up: float = 0.1
+    catch_up_rate: float = 4.0
     frame_id: str = "world"
 
     def __post_init__(self) -> None:
@@ -80,6 +86,7 @@ class SimulatorConfig:
             "pose_period",
             "diagnostics_period",
             "max_catch_up",
+            "catch_up_rate",
         ):
             value = getattr(self, name)
             if not (value > 0 and math.isfinite(value)):
@@ -166,6 +173,15 @@ class SimulatorCore(Core):
         self.refused_nan = 0
         self._last: float | None = None
         self._debt = 0.0
+        self._max_steps = max(
+            1,
+            math.ceil(
+                self.config.catch_up_rate
+                * self.config.tick_period
+                * self.config.speed
+                / world.timestep
+            ),
+        )
         self._next_state = dict.fromkeys(self.slots, -math.inf)
         self._commanded: set[str] = set()
         self._next_pose = -math.inf
@@ -241,13 +257,14 @@ class SimulatorCore(Core):
         elapsed = max(now - self._last, 0.0)
         self._last = now
         cfg = self.config
-        if elapsed > cfg.max_catch_up:
-            self.dropped += (elapsed - cfg.max_catch_up) * cfg.speed
-            elapsed = cfg.max_catch_up
         self._debt += elapsed * cfg.speed
+        limit = cfg.max_catch_up * cfg.speed
+        if self._debt > limit:
+            self.dropped += self._debt - limit
+            self._debt = limit
         dt = self.world.timestep
         # A hair of tolerance so float error on exact multiples does not lose a step.
-        steps = int(self._debt / dt + 1e-6)
+        steps = min(int(self._debt / dt + 1e-6), self._max_steps)
         if steps > 0:
             self._step(steps, now)
         return steps
