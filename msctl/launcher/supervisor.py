@@ -238,6 +238,10 @@ class Supervisor:
         return events
 
     def _on_exit(self, process: ManagedProcess, code: int, now: float) -> str:
+        assert process.popen is not None
+        # The leader is gone; whatever it started in its group goes too (no orphans), and
+        # before the pump is joined, since an orphan holding the pipe would stall it.
+        _signal_group(process.popen, signal.SIGKILL)
         if process.pump is not None:
             process.pump.join(timeout=1.0)  # the last lines carry the reason
         process.popen = None
