@@ -123,7 +123,14 @@ def parse_values(text: str | None) -> dict[str, Any]:
     try:
         value = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise InputError(f"VALUES is not valid YAML: {exc}") from exc
+        # PyYAML's own text spans several lines with a caret drawing; keep the one-line rule.
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        mark = getattr(exc, "problem_mark", None)
+        where = ""
+        if mark is not None:
+            line = f"line {mark.line + 1}, " if mark.line else ""
+            where = f" at {line}column {mark.column + 1}"
+        raise InputError(f"VALUES is not valid YAML: {problem}{where}: {text!r}") from exc
     if value is None:
         return {}
     if not isinstance(value, dict):
