@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
+from pathlib import Path
 
 import typer
 
@@ -21,6 +23,19 @@ def _group_alive(pgid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # a zombie waiting for its parent to reap it has exited
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 def command(
@@ -48,14 +63,12 @@ def command(
     pid = document["supervisor_pid"]
     os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and state.supervisor_alive(state.read_state()):
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            break
+    # Until the supervisor itself has exited, not only marked its state stopped: "down"
+    # promises nothing is left.
+    while time.monotonic() < deadline and _pid_alive(pid):
         time.sleep(0.05)
-    else:
-        if state.supervisor_alive(state.read_state()):
+    if _pid_alive(pid):
+        with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
     _kill_leftovers(document.get("processes", []))
     still = [
