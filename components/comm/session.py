@@ -228,6 +228,11 @@ def open_session(settings: SessionSettings | None = None) -> Any:
 def router_settings(
     listen: tuple[str, ...] = DEFAULT_ROUTER_LISTEN, **overrides: Any
 ) -> SessionSettings:
-    """Settings for a router like rmw_zenoh's ``rmw_zenohd``: listens, connects to nobody."""
+    """Settings for a router like rmw_zenoh's ``rmw_zenohd``: listens, connects to nobody.
+
+    It opens at once: Zenoh's ``scouting/delay`` (0.5 s of waiting in ``open`` for first
+    links) buys a router nothing, and a restarted router must carry data again quickly.
+    """
     base = SessionSettings.from_env(mode="router")
-    return replace(base, mode="router", listen=tuple(listen), connect=(), **overrides)
+    extra = {"scouting/delay": 0, **base.extra, **overrides.pop("extra", {})}
+    return replace(base, mode="router", listen=tuple(listen), connect=(), extra=extra, **overrides)
