@@ -27,7 +27,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -114,15 +114,31 @@ class EmulatedCia402Drive:
         temperature_limit: Drive temperature (°C) above which it faults with 0x4210.
     """
 
-    # Plausible torque model, per-mille of rated torque: inertia and viscous friction.
+    # Plausible torque model, per-mille of rated torque: inertia and viscous friction, for a
+    # 4096-count encoder; scaled per drive to its encoder (see ``counts_per_rev``).
     TORQUE_PER_ACCELERATION = 1e-4  # per-mille per count/s²
     TORQUE_PER_VELOCITY = 1e-3  # per-mille per count/s
+    REFERENCE_COUNTS_PER_REV = 4096
 
-    def __init__(self, bus: EmulatedCia402Bus, node_id: int, eds: str | Path = EDS_PATH):
+    def __init__(
+        self,
+        bus: EmulatedCia402Bus,
+        node_id: int,
+        eds: str | Path = EDS_PATH,
+        counts_per_rev: int = REFERENCE_COUNTS_PER_REV,
+    ):
         if not 1 <= node_id <= 127:
             raise ValueError(f"CANopen node id must be 1..127, not {node_id}")
+        if not counts_per_rev > 0:
+            raise ValueError(f"counts_per_rev must be > 0, not {counts_per_rev}")
         self._bus = bus
         self.node_id = node_id
+        # Friction and inertia belong to the motor shaft, not to the encoder: per count they
+        # shrink as the resolution grows, or a 19-bit encoder would saturate the drive's
+        # torque at a few motor revolutions per second.
+        scale = self.REFERENCE_COUNTS_PER_REV / counts_per_rev
+        self.torque_per_acceleration = self.TORQUE_PER_ACCELERATION * scale
+        self.torque_per_velocity = self.TORQUE_PER_VELOCITY * scale
         self.od = canopen.import_od(str(eds), node_id)
         self.temperature_limit = 80.0
         self._values: dict[tuple[int, int], Any] = {}
@@ -603,9 +619,9 @@ class EmulatedCia402Drive:
         # Max torque (0x6072) caps what is left for accelerating once friction and load
         # are paid for: an effort limit really limits the motion.
         max_torque = float(self._values[(0x6072, 0)])
-        spare = max_torque - abs(self.TORQUE_PER_VELOCITY * v) - abs(self._load)
+        spare = max_torque - abs(self.torque_per_velocity * v) - abs(self._load)
         if self._state == OPERATION_ENABLED:
-            limit = min(limit, max(spare, 0.0) / self.TORQUE_PER_ACCELERATION)
+            limit = min(limit, max(spare, 0.0) / self.torque_per_acceleration)
         change = max(-limit * dt, min(limit * dt, wanted - v))
         new_v = v + change
         before = self._pp_target - self._position
@@ -624,8 +640,8 @@ class EmulatedCia402Drive:
         torque = 0.0
         if self._state == OPERATION_ENABLED or self._state == QUICK_STOP_ACTIVE:
             torque = (
-                self.TORQUE_PER_ACCELERATION * self._acceleration
-                + self.TORQUE_PER_VELOCITY * new_v
+                self.torque_per_acceleration * self._acceleration
+                + self.torque_per_velocity * new_v
                 + self._load
             )
             torque = max(-max_torque, min(max_torque, torque))
@@ -649,6 +665,8 @@ class EmulatedCia402Bus:
             adapter to put the emulation on.
         tick: Physics and scheduling period in seconds.
         eds: Object dictionary the drives serve.
+        counts_per_rev: Encoder counts per motor revolution, for every drive (an int) or per
+            node id (a mapping; absent ids get 4096): scales the torque model to the motor.
         **bus_kwargs: Passed to :class:`can.Bus` (e.g. ``bitrate``).
     """
 
@@ -660,6 +678,7 @@ class EmulatedCia402Bus:
         interface: str = "virtual",
         tick: float = 0.002,
         eds: str | Path = EDS_PATH,
+        counts_per_rev: int | Mapping[int, int] = EmulatedCia402Drive.REFERENCE_COUNTS_PER_REV,
         **bus_kwargs: Any,
     ):
         self.channel = channel
@@ -674,7 +693,12 @@ class EmulatedCia402Bus:
         for node_id in node_ids:
             if node_id in self.drives:
                 raise ValueError(f"node id {node_id} appears twice on channel {channel!r}")
-            self.drives[node_id] = EmulatedCia402Drive(self, node_id, eds)
+            counts = (
+                counts_per_rev.get(node_id, EmulatedCia402Drive.REFERENCE_COUNTS_PER_REV)
+                if isinstance(counts_per_rev, Mapping)
+                else counts_per_rev
+            )
+            self.drives[node_id] = EmulatedCia402Drive(self, node_id, eds, counts)
 
     def drive(self, node_id: int) -> EmulatedCia402Drive:
         """The emulated drive with this node id."""
