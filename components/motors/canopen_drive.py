@@ -139,7 +139,9 @@ class _Conversion:
     ``gear_ratio`` motor revolutions per joint revolution). Velocity units are counts/s unless
     ``velocity_units`` says ``rpm`` or ``0.1rpm`` (motor shaft). Torque and current are
     per-mille of the motor's rated torque (``rated_torque``, N·m at the motor); the joint sees
-    it multiplied by the gear ratio.
+    it multiplied by the gear ratio. A linear joint driven through a rack and pinion or a
+    screw (``meters_per_rad``: metres of travel per output radian) is in metres, m/s and
+    newtons instead of radians, rad/s and N·m; the method names keep saying "rad".
     """
 
     counts_per_rad: float
@@ -158,8 +160,11 @@ class _Conversion:
         gear_ratio = _positive(spec, "gear_ratio", params.get("gear_ratio", 1.0))
         rated_torque = _positive(spec, "rated_torque", params.get("rated_torque", 1.0))
         units = str(params.get("velocity_units", "counts/s"))
-        counts_per_rad = counts_per_rev * gear_ratio / (2 * math.pi)
-        motor_rpm_per_rad_s = gear_ratio * 60.0 / (2 * math.pi)
+        # Output radians per joint unit: 1 for a revolute joint, 1/meters_per_rad for a
+        # linear one (a finger), so its positions are metres as in the URDF.
+        rad_per_unit = 1.0 / _positive(spec, "meters_per_rad", params.get("meters_per_rad", 1.0))
+        counts_per_rad = counts_per_rev * gear_ratio / (2 * math.pi) * rad_per_unit
+        motor_rpm_per_rad_s = gear_ratio * 60.0 / (2 * math.pi) * rad_per_unit
         per_rad_s = {
             "counts/s": counts_per_rad,
             "rpm": motor_rpm_per_rad_s,
@@ -170,7 +175,8 @@ class _Conversion:
                 f"{spec.joint}: motor_params.velocity_units={units!r} is not one of "
                 f"{', '.join(per_rad_s)}; fix the joint's motor_params in the module data"
             )
-        return cls(counts_per_rad, per_rad_s[units], 1000.0 / (rated_torque * gear_ratio))
+        per_nm = 1000.0 / (rated_torque * gear_ratio)
+        return cls(counts_per_rad, per_rad_s[units], per_nm / rad_per_unit)
 
     def position(self, counts: int) -> float:
         """Position actual (counts) to joint radians."""
