@@ -96,6 +96,7 @@ class System:
     sim: BuiltComponent
     send: Callable[..., None]
     reading: Reading
+    observer: Node
 
 
 @pytest.fixture
@@ -137,7 +138,7 @@ def system(
     try:
         # Up when the joint manager reports the simulated joints (the first keep-alive).
         wait_until(lambda: reading.at("limb1_joint3") is not None, timeout=10)
-        yield System(minimal, manager, sim, send, reading)
+        yield System(minimal, manager, sim, send, reading, observer)
     finally:
         publisher.close()
         peer.close()
@@ -229,3 +230,25 @@ def test_stopping_the_velocity_stream_triggers_the_watchdog(system: System) -> N
     time.sleep(0.3)
     assert system.reading.at(joint) == pytest.approx(here, abs=0.01)
     assert system.sim.core.world.mode_of(joint) == "position"  # held, as the manager asked
+
+
+def test_states_rate_motor_services_and_sim_diagnostics_on_the_data_plane(system: System) -> None:
+    from components.messages import TRIGGER, diagnostic_values, msg
+
+    states: list[float] = []
+    diagnostics: list[Any] = []
+    system.observer.subscription(
+        "/limb1/joint_states", JOINT_STATE, lambda _: states.append(time.monotonic())
+    )
+    system.observer.subscription(
+        "/sim/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics.append
+    )
+    wait_until(lambda: len(diagnostics) >= 2, timeout=5)
+    values = diagnostic_values(diagnostics[-1].status[0])
+    assert float(values["real_time_factor"]) == pytest.approx(1.0, abs=0.1)
+    window = [t for t in states if t >= states[-1] - 1.0]
+    assert len(window) >= 100  # joint_states at 100 Hz or more, as received
+    # The motor services a hardware motor interface serves, served by the simulator.
+    client = system.observer.client("/limb1/motors/halt", TRIGGER)
+    response = client.call(msg("std_srvs/srv/Trigger_Request"), timeout=5)
+    assert response.success and "halted" in response.message

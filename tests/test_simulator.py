@@ -312,3 +312,20 @@ def test_a_model_missing_a_joint_is_named(assembly, tmp_path: Path) -> None:
 
 def test_max_real_time_factor_is_well_above_real_time(assembly) -> None:
     assert max_real_time_factor(assembly("dragon"), seconds=0.5, settle=0.1) > 2.0
+
+
+@pytest.mark.parametrize("name", ["minimal", "dragon", "dragon_x4", "tricycle", "two_dragons"])
+def test_every_template_simulates_and_each_robot_has_a_pose(assembly, name: str) -> None:
+    a = assembly(name)
+    core = make(a)
+    run(core, 0.0, 0.5)
+    assert core.world.finite() and core.world.resets == 0
+    assert sorted(core.world.modules) == sorted(m.slot for m in a.modules if m.actuated_joints)
+    topics = {p.topic for p in simulator_interface(a).publish}
+    assert "/sim/base_pose" in topics
+    if len(a.root_links) > 1:
+        for root in a.root_links:
+            assert f"/sim/{root}/pose" in topics
+            assert core.outbox.on(f"/sim/{root}/pose")
+    for root in a.root_links:
+        assert core.world.root_pose(root)[0][2] > 0.0  # above the ground
