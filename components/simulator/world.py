@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -478,8 +478,3 @@ def max_real_time_factor(
     finally:
         world.close()
     return steps * world.timestep / best if best > 0 else math.inf
-
-
-def module_joint_names(world: SimWorld) -> Mapping[str, tuple[str, ...]]:
-    """Slot -> the joint names the world drives for that module, in module order."""
-    return {slot: tuple(world.joints[i].name for i in idx) for slot, idx in world.modules.items()}
