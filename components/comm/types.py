@@ -135,7 +135,17 @@ class TypeRegistry:
                 types = get_types_from_msg(text, name)
             except Exception as exc:
                 raise ValueError(f"cannot parse the definition of {name}: {exc}") from exc
-            self._store.register(_fix_srv_names(types))
+            types = _fix_srv_names(types)
+            for _, fields in types.values():
+                for field_name, desc in fields:
+                    nested = _nested_name(desc)
+                    if nested and nested not in types and nested not in self._store.fielddefs:
+                        # Caught here, not later as a bare KeyError when the type is hashed.
+                        raise ValueError(
+                            f"the definition of {name} uses unknown type {nested} "
+                            f"(field {field_name!r}); register that type first"
+                        )
+            self._store.register(types)
             self._hashes.clear()
 
     def register_srv(self, name: str, text: str) -> None:
@@ -352,6 +362,13 @@ def _field_type(desc: Any) -> dict[str, Any]:
         return _plain(_BASE_IDS[base_name])
     except KeyError:
         raise UnknownTypeError(f"unsupported primitive type {base_name!r}") from None
+
+
+def _nested_name(desc: Any) -> str | None:
+    node, detail = desc
+    if node in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return _nested_name(detail[0])
+    return detail if node == Nodetype.NAME else None
 
 
 def _has_fields(text: str) -> bool:
