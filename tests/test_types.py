@@ -236,6 +236,14 @@ def test_bad_definitions_are_refused(reg: TypeRegistry) -> None:
     with pytest.raises(ValueError, match="not a service name"):
         reg.register_srv("msctl_test/msg/Wrong", "int32 a\n---\n")
     assert not reg.known("msctl_test/msg/Broken")
+    with pytest.raises(
+        ValueError, match=r"unknown type geometry_msgs/msg/Pointt \(field 'where'\)"
+    ):
+        reg.register_msg("msctl_test/msg/Typo", "geometry_msgs/Pointt where\n")
+    with pytest.raises(ValueError, match="msctl_test/msg/Missing"):
+        reg.register_msg("msctl_test/msg/Typo2", "Missing[3] items\n")
+    assert not reg.known("msctl_test/msg/Typo")
+    assert not reg.known("msctl_test/msg/Typo2")
 
 
 def test_empty_message_gets_the_rosidl_placeholder(reg: TypeRegistry) -> None:
