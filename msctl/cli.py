@@ -30,6 +30,7 @@ _GROUPS: dict[str, str] = {
     "node": "msctl.commands.node",
     "service": "msctl.commands.service",
     "assemble": "msctl.commands.assemble",
+    "agent": "msctl.commands.agent",
 }
 _COMMANDS: dict[str, str] = {
     "up": "msctl.commands.up",

@@ -51,64 +51,123 @@ def control_component(verb: str, component: str) -> None:
 
 
 def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> None:
-    """Start every host's part through its agent; name the unreachable ones."""
+    """Start every host's part through its agent, with one progress view for all of them.
+
+    Every host is asked even when one does not answer; the unreachable ones and the ones
+    that refused are named at the end, after the others have come up.
+
+    Raises:
+        NetworkError: If some host's agent did not answer (named).
+        MsctlError: If some host's agent refused (named, with its reason).
+        OperationTimeout: If a started host's components are not all healthy in ``timeout``.
+    """
     import json
     import time
 
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from components.comm.services import ServiceTimeout
+    from components.comm.services import ServiceError
     from msctl.console import err
+    from msctl.errors import OperationTimeout
     from msctl.launcher.control import call_supervisor
     from msctl.plane import connected
 
     document = json.loads(assembly.lock_path.read_text()) if assembly.lock_path else {}
     hosts = list(dict.fromkeys(assembly.hosts))
-    started: list[str] = []
+    started: dict[str, dict[str, Any]] = {}
     unreachable: list[tuple[str, str]] = []
+    refused: list[tuple[str, str]] = []
+    status: dict[str, dict[str, Any]] = {}
+
+    def healthy(d: dict[str, Any]) -> bool:
+        # A host whose part is only kinds not built yet runs nothing, and is done at once.
+        return "error" not in d and all(c["state"] == "running" for c in d.get("components", []))
+
     with connected("up_all") as node:
         for host in hosts:
+            err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
             try:
-                call_supervisor(
-                    node,
-                    host,
-                    "up",
-                    {"assembly": document, "sim": sim, "speed": speed},
-                    timeout=10.0,
+                started[host] = call_supervisor(
+                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 10.0
                 )
-                started.append(host)
-            except (ServiceTimeout, RequestError) as exc:
+            except ServiceError as exc:
                 unreachable.append((host, str(exc)))
+            except RequestError as exc:
+                refused.append((host, str(exc)))
+        total = sum(len(answer.get("components", [])) for answer in started.values())
         deadline = time.monotonic() + timeout
-        status: dict[str, dict[str, Any]] = {}
-        while started and time.monotonic() < deadline:
-            status = {}
-            for host in started:
-                try:
-                    status[host] = call_supervisor(node, host, "ps", timeout=2.0)
-                except (ServiceTimeout, RequestError) as exc:
-                    status[host] = {"error": str(exc)}
-            done = all(
-                d.get("components") and all(c["state"] == "running" for c in d["components"])
-                for d in status.values()
-            )
-            if done:
-                break
-            time.sleep(0.2)
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} healthy"),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        ) as progress:
+            task = progress.add_task("starting", total=total)
+            while started:
+                status = {}
+                for host in started:
+                    try:
+                        status[host] = call_supervisor(node, host, "ps", timeout=2.0)
+                    except (ServiceError, RequestError) as exc:
+                        status[host] = {"error": str(exc)}
+                waiting = [
+                    f"{host}: {c['name']}"
+                    for host, d in status.items()
+                    for c in d.get("components", [])
+                    if c["state"] != "running"
+                ]
+                progress.update(
+                    task,
+                    completed=sum(
+                        c["state"] == "running"
+                        for d in status.values()
+                        for c in d.get("components", [])
+                    ),
+                    description="waiting for " + ", ".join(waiting[:3]) if waiting else "healthy",
+                )
+                if all(healthy(d) for d in status.values()) or time.monotonic() > deadline:
+                    break
+                time.sleep(0.2)
     table = Table(title=f"{assembly.template}: every host", title_justify="left")
     for column in ("host", "components", "healthy", "note"):
         table.add_column(column)
-    for host in started:
+    for host, answer in started.items():
         d = status.get(host, {})
         components = d.get("components", [])
-        healthy = sum(c["state"] == "running" for c in components)
-        table.add_row(host, str(len(components)), str(healthy), d.get("error", ""))
+        note = d.get("error", "")
+        if not components and not note:
+            kinds = sorted({n["kind"] for n in answer.get("not_built", [])})
+            note = "nothing to run" + (
+                f" (not implemented yet: {', '.join(kinds)})" if kinds else ""
+            )
+        healthy_count = sum(c["state"] == "running" for c in components)
+        table.add_row(host, str(len(components)), str(healthy_count), note)
     for host, why in unreachable:
-        table.add_row(host, "-", "-", f"[red]unreachable: {why}[/]")
+        table.add_row(host, "-", "-", f"[red]unreachable: {escape(why)}[/]")
+    for host, why in refused:
+        table.add_row(host, "-", "-", f"[red]{escape(why)}[/]")
     err.print(table)
+    also = f"; refused: {'; '.join(why for _, why in refused)}" if refused else ""
     if unreachable:
         names = ", ".join(h for h, _ in unreachable)
         raise NetworkError(
-            f"no agent answered for {names}",
+            f"no agent answered for {names}{also} (the other hosts were started)",
             hint="start `msctl agent` there (or `msctl agent install`), check its network",
+        )
+    if refused:
+        raise MsctlError("; ".join(why for _, why in refused) + " (the other hosts were started)")
+    late = [
+        f"{h}: {c['name']}"
+        for h, d in status.items()
+        for c in d.get("components", [])
+        if c["state"] != "running"
+    ] + [f"{h}: {d['error']}" for h, d in status.items() if "error" in d]
+    if late:
+        raise OperationTimeout(
+            f"not healthy after {timeout:g} s: {', '.join(late[:6])}",
+            hint="see `msctl ps` and `msctl logs <component>`",
         )

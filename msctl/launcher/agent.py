@@ -1,0 +1,451 @@
+"""The agent of one robot computer (``msctl agent``): runs that computer's part on request.
+
+An agent serves the same control service as a foreground ``msctl up``
+(``/msctl/<host>/request``, ``msctl_msgs/srv/AgentRequest``), so ``msctl ps``, ``logs``,
+``restart``, ``stop``, ``down --all`` and ``up --all`` from any computer of the network work
+against it unchanged. Its node, ``/msctl/<host>/supervisor``, is on the graph from the moment
+it starts: that is how it announces itself.
+
+It is idle until an ``up`` carrying a resolved assembly document arrives. What it will run is
+decided by data only, twice over:
+
+1. the document must read as a resolved assembly, every name in it must be a plain name
+   (:data:`~msctl.launcher.plan.SAFE_NAME`, no ``..``), and this computer must have a part in it;
+2. this computer resolves the same template with the same units from its own data, and the
+   result must equal the document (apart from ``sources``, the data files' local paths).
+
+So a request can name an assembly this computer already knows how to build, and nothing else:
+no command line, path or shell fragment reaches a process, and the URDF and MuJoCo model the
+components read are generated here. The resolution is written atomically under
+``$MSCTL_HOME/agent/assembly``, planned with :func:`plan_part` and run by a
+:class:`~msctl.launcher.run.Launch` that does not serve control itself: the agent forwards
+``ps / logs / restart / stop / start`` to it and handles ``up`` and ``down``. ``down`` stops
+the run (every process group gone before the answer) and the agent stays, idle.
+
+Everything runs on the agent's one loop thread (the Zenoh thread only queues requests), like
+:class:`~msctl.launcher.run.Launch`, so the supervisor is never touched from two threads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import sys
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from components.assembly import (
+    COMPONENT_KINDS,
+    LOCK_NAME,
+    MJCF_NAME,
+    URDF_NAME,
+    ResolvedAssembly,
+    from_document,
+    load_assembly,
+    state_dir,
+)
+from components.build import SIMULATOR_COMPONENT
+from components.comm.session import SessionSettings, open_session
+from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request
+from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
+from msctl.launcher.run import ROUTER_PROCESS, Launch, listen_endpoint_for, router_reachable
+from msctl.launcher.supervisor import ProcessState, Supervisor
+
+#: Verbs forwarded to the running :class:`Launch` as they are.
+_FORWARDED = ("logs", "restart", "stop", "start")
+
+
+def agent_dir() -> Path:
+    """``$MSCTL_HOME/agent``: the agent's resolution and its router's log."""
+    return state_dir() / "agent"
+
+
+def agent_assembly_dir() -> Path:
+    """Where the agent writes the resolution it was sent (lock, URDF, MJCF)."""
+    return agent_dir() / "assembly"
+
+
+# --------------------------------------------------------------------------- validation
+def _check_name(value: Any, where: str, *, file_stem: bool = False) -> None:
+    """Refuse anything but a plain name (``file_stem``: also no ``/``, it names a data file)."""
+    if (
+        not isinstance(value, str)
+        or not SAFE_NAME.match(value)
+        or ".." in value
+        or "//" in value
+        or (file_stem and "/" in value)
+    ):
+        raise RequestError(
+            f"the assembly sent is refused: {where} {value!r} is not a plain name "
+            "(letters, digits, _ . - and / only, no '..')"
+        )
+
+
+def _check_names(assembly: ResolvedAssembly) -> None:
+    _check_name(assembly.template, "template", file_stem=True)
+    for slot, unit in assembly.units.items():
+        _check_name(slot, "slot", file_stem=True)
+        _check_name(unit, f"unit of slot {slot}", file_stem=True)
+    for host in assembly.hosts:
+        _check_name(host, "host")
+    for module in assembly.modules:
+        _check_name(module.slot, "module slot", file_stem=True)
+        _check_name(module.host, f"host of module {module.slot}")
+        _check_name(module.unit, f"unit of module {module.slot}", file_stem=True)
+        _check_name(module.module_type, f"module type of {module.slot}", file_stem=True)
+    for component in assembly.components:
+        _check_name(component.name, "component name")
+        _check_name(component.host, f"host of component {component.name}")
+        if component.kind not in COMPONENT_KINDS:
+            raise RequestError(
+                f"the assembly sent is refused: component {component.name} has kind "
+                f"{component.kind!r}; known kinds: {', '.join(COMPONENT_KINDS)}"
+            )
+        if component.module is not None:
+            _check_name(component.module, f"module of component {component.name}")
+        if not (isinstance(component.namespace, str) and component.namespace.startswith("/")):
+            raise RequestError(
+                f"the assembly sent is refused: namespace of {component.name} must start with /"
+            )
+        _check_name(component.namespace[1:], f"namespace of component {component.name}")
+
+
+def check_assembly(document: Mapping[str, Any], host: str) -> ResolvedAssembly:
+    """Read an ``up`` request's assembly document, refusing anything that is not plain data.
+
+    Args:
+        document: The lock document as sent.
+        host: This computer.
+
+    Returns:
+        The assembly (not yet bound to a lock path).
+
+    Raises:
+        RequestError: If it does not read as a resolved assembly, holds a name that is not
+            plain, a component of unknown kind, or gives this computer nothing to run.
+    """
+    try:
+        assembly = from_document(document)
+    except Exception as exc:  # any shape of bad JSON object: a refusal, never a crash
+        raise RequestError(f"the assembly sent is not a resolved assembly: {exc}") from None
+    _check_names(assembly)
+    if not assembly.components_on(host):
+        raise RequestError(
+            f"{host} has no part in {assembly.template} (its computers: "
+            f"{', '.join(assembly.hosts)}); start this agent with MSCTL_HOST set to one of them"
+        )
+    return assembly
+
+
+def _same_resolution(sent: Mapping[str, Any], local: Mapping[str, Any]) -> list[str]:
+    """Top-level fields where the two documents differ (``sources`` holds local paths)."""
+    local = json.loads(json.dumps(local))  # tuples -> lists, as the sent one went through JSON
+    return sorted(k for k in {*sent, *local} if k != "sources" and sent.get(k) != local.get(k))
+
+
+def plan_part(assembly: ResolvedAssembly, host: str, sim: bool | None) -> HostPlan:
+    """What ``host``'s agent runs: its own part of the assembly, never more.
+
+    A robot computer's part is :func:`~msctl.launcher.plan.plan_host`'s (one simulator for
+    the whole assembly, on the first module's computer). A ground-control station is not a
+    robot computer, where ``plan_host`` would run the whole assembly (right for a lone
+    ``msctl up`` on a laptop, wrong for one agent among several): its agent runs only the
+    station's own components, which have no motors to simulate.
+    """
+    if host in {m.host for m in assembly.modules}:
+        return plan_host(assembly, host, sim)
+    whole = plan_host(assembly, host, sim=False)
+    own = {c.name for c in assembly.components_on(host)}
+    processes = [
+        ProcessPlan(p.name, tuple(c for c in p.components if c.name in own))
+        for p in whole.processes
+    ]
+    return HostPlan(
+        host=host,
+        simulated=False,
+        off_robot=True,
+        processes=[p for p in processes if p.components],
+        not_built=[(n, k) for n, k in whole.not_built if n in own],
+    )
+
+
+# --------------------------------------------------------------------------- the agent
+class Agent:
+    """One computer's agent: idle, or running one assembly's part.
+
+    Args:
+        host: This computer's identity (default :func:`~msctl.launcher.plan.this_host`).
+        settings: Session settings (default: from the environment); components use them too.
+        log: Where to say what the agent does (one line per call).
+    """
+
+    def __init__(
+        self,
+        host: str | None = None,
+        settings: SessionSettings | None = None,
+        log: Callable[[str], None] | None = None,
+    ) -> None:
+        self.host = host or this_host()
+        _check_name(self.host, "this computer's name (MSCTL_HOST)")
+        self.settings = settings or SessionSettings.from_env()
+        self.endpoint = self.settings.connect[0] if self.settings.connect else ""
+        self.launch: Launch | None = None
+        self.router = Supervisor(agent_dir() / "logs")
+        self._log = log or (lambda line: print(line, file=sys.stderr, flush=True))
+        self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._stop = False
+        self._printed_events = 0
+        self.session: Any = None
+        self.node: Any = None
+
+    def log(self, line: str) -> None:
+        """One line about what the agent does, prefixed with its host."""
+        self._log(f"msctl agent {self.host}: {line}")
+
+    # ------------------------------------------------------------------ life
+    def start(self) -> None:
+        """Reach (or start) the router, then serve ``/msctl/<host>/request``.
+
+        Raises:
+            RuntimeError: If no router is reachable and none could be started.
+        """
+        from components.comm.node import Node
+
+        if self.endpoint and not router_reachable(self.endpoint):
+            self._start_router()
+        self.session = open_session(replace(self.settings, mode="peer"))
+        self.node = Node(
+            self.session, "supervisor", host_namespace(self.host), self.settings.domain
+        )
+        self.node.service("request", AGENT_SRV, self._requests.put, deferred=True)
+        self.log(
+            f"serving {self.node.fqn.rsplit('/', 1)[0]}/request via {self.endpoint or 'peers'}; "
+            "idle until `msctl up --all`"
+        )
+
+    def _start_router(self) -> None:
+        # A robot computer is where the field's router runs: the agent brings one up, as
+        # `msctl up` would, so the ground station can reach this computer over the radio.
+        router = self.router.add(
+            ROUTER_PROCESS,
+            [
+                sys.executable,
+                "-m",
+                "msctl",
+                "router",
+                "--listen",
+                listen_endpoint_for(self.endpoint),
+            ],
+        )
+        self.router.start(router.name)
+        deadline = time.monotonic() + 10.0
+        while not router_reachable(self.endpoint):
+            self.router.poll()
+            if router.state is ProcessState.FAILED or time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"no router at {self.endpoint} and the agent's own could not listen there: "
+                    f"{router.last_error or 'no answer'}"
+                )
+            time.sleep(0.05)
+        self.router.mark_running(ROUTER_PROCESS)
+        self.log(f"started a router listening on {listen_endpoint_for(self.endpoint)}")
+
+    def step(self) -> None:
+        """One turn: answer queued requests, then let the run (if any) watch its processes."""
+        while True:
+            try:
+                pending = self._requests.get_nowait()
+            except queue.Empty:
+                break
+            self._answer(pending)
+        for event in self.router.poll():
+            self.log(f"router: {event}")
+        if self.launch is not None:
+            self.launch.step()
+            for event in self.launch.events[self._printed_events :]:
+                self.log(event)
+            self._printed_events = len(self.launch.events)
+
+    def run(self) -> None:
+        """Loop until :meth:`request_stop`."""
+        while not self._stop:
+            self.step()
+            time.sleep(0.05)
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to return (signal-safe)."""
+        self._stop = True
+
+    def shutdown(self) -> None:
+        """Stop the run (every process group gone), stop serving, close the session."""
+        self._stop = True
+        self._stop_run()
+        if self.node is not None:
+            self.node.close()
+            self.node = None
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        self.router.shutdown()
+        self.log("stopped")
+
+    # ------------------------------------------------------------------ requests
+    def _answer(self, pending: Any) -> None:
+        from components.messages import msg
+
+        def reply(success: bool, message: str, payload: Any = None) -> None:
+            pending.reply(
+                msg(
+                    "msctl_msgs/srv/AgentRequest_Response",
+                    success=success,
+                    message=message,
+                    payload=json.dumps(payload) if payload is not None else "",
+                )
+            )
+
+        verb = getattr(pending.request, "verb", "?")
+        try:
+            request = parse_request(pending.request.verb, pending.request.args)
+            payload, message = self.handle(request.verb, request.args)
+        except RequestError as exc:
+            self.log(f"refused {verb!r}: {exc}")
+            reply(False, str(exc))
+            return
+        except Exception as exc:  # a request must never take the agent down
+            self.log(f"{verb} failed: {type(exc).__name__}: {exc}")
+            reply(False, f"{self.host} could not {verb}: {type(exc).__name__}: {exc}")
+            return
+        reply(True, message, payload)
+
+    def handle(self, verb: str, args: dict[str, Any]) -> tuple[Any, str]:
+        """Carry out a validated request; returns ``(payload, message)``.
+
+        Raises:
+            RequestError: If the request cannot be carried out in the agent's state.
+        """
+        if verb == "ps":
+            return self.document(), "ok"
+        if verb == "up":
+            return self._up(args)
+        if verb == "down":
+            return self._down()
+        if self.launch is None:
+            raise RequestError(
+                f"nothing runs on {self.host} (its agent is idle); start with `msctl up --all`"
+            )
+        if verb in _FORWARDED:
+            if verb != "logs":
+                self.log(f"{verb} {args.get('component')}")
+            return self.launch._do(verb, args), "ok"
+        raise RequestError(f"{verb} is not something an agent does")  # pragma: no cover
+
+    def document(self) -> dict[str, Any]:
+        """What ``ps`` returns: the run's document, or an idle host with no components."""
+        if self.launch is not None:
+            return {**self.launch.document(), "agent": True}
+        return {
+            "host": self.host,
+            "agent": True,
+            "template": None,
+            "state": "idle",
+            "supervisor_pid": os.getpid(),
+            "router": self.endpoint,
+            "processes": [],
+            "components": [],
+            "not_built": [],
+        }
+
+    def _up(self, args: dict[str, Any]) -> tuple[Any, str]:
+        if self.launch is not None:
+            running = [c.name for c in self.launch.plan.components]
+            raise RequestError(
+                f"{self.host} already runs {self.launch.assembly.template} ({len(running)} "
+                f"components: {', '.join(running[:4])}{', ...' if len(running) > 4 else ''}); "
+                "stop it first with `msctl down --all`"
+            )
+        if "assembly" not in args:
+            raise RequestError("up needs the resolved assembly (argument 'assembly')")
+        sim = args.get("sim")
+        speed = float(args.get("speed", 1.0))
+        assembly, plan = self._prepare(args["assembly"], sim)
+        not_built = sorted({k for _, k in plan.not_built})
+        if not plan.processes:
+            note = f"nothing to start on {self.host}" + (
+                f" (kinds not implemented yet: {', '.join(not_built)})" if not_built else ""
+            )
+            self.log(f"up {assembly.template}: {note}")
+            return self._up_payload(assembly, plan), note
+        self.log(
+            f"up {assembly.template} ({'simulation' if plan.simulated else 'hardware'}): "
+            f"{len(plan.components)} components in {len(plan.processes)} processes"
+            + (f"; not started (not implemented yet): {', '.join(not_built)}" if not_built else "")
+        )
+        launch = Launch(assembly, plan, settings=self.settings, speed=speed, serve_control=False)
+        try:
+            launch.start()
+        except Exception as exc:
+            launch.shutdown()
+            raise RequestError(f"{self.host} could not start {assembly.template}: {exc}") from exc
+        self.launch = launch
+        self._printed_events = 0
+        return self._up_payload(assembly, plan), "starting"
+
+    def _up_payload(self, assembly: ResolvedAssembly, plan: HostPlan) -> dict[str, Any]:
+        return {
+            "host": self.host,
+            "template": assembly.template,
+            "simulated": plan.simulated,
+            "processes": [p.name for p in plan.processes],
+            "components": [c.name for c in plan.components],
+            "not_built": [{"name": n, "kind": k} for n, k in plan.not_built],
+        }
+
+    def _prepare(self, document: Mapping[str, Any], sim: bool | None) -> tuple[Any, HostPlan]:
+        """Check the document, resolve it from this computer's data, write it, plan it."""
+        from msctl.assembler import resolve
+        from msctl.assembler.store import lock_text, write_assembly
+        from msctl.errors import MsctlError
+
+        sent = check_assembly(document, self.host)
+        try:
+            resolution = resolve(sent.template, dict(sent.units))
+        except MsctlError as exc:
+            raise RequestError(
+                f"{self.host} cannot resolve {sent.template} with units "
+                f"{', '.join(f'{s}={u}' for s, u in sent.units.items())} from its own data: {exc}"
+            ) from None
+        differ = _same_resolution(document, resolution.document)
+        if differ:
+            raise RequestError(
+                f"the {sent.template} assembly sent differs from {self.host}'s own resolution "
+                f"of the same units in {', '.join(differ)}: bring the two computers' msctl data "
+                "(templates, modules, calibration) to the same version, then `msctl assemble` "
+                "and `msctl up --all` again"
+            )
+        plan = plan_part(sent, self.host, sim)
+        files = {URDF_NAME: resolution.urdf, LOCK_NAME: lock_text(resolution.document)}
+        if any(c.name == SIMULATOR_COMPONENT for c in plan.components):
+            files[MJCF_NAME] = resolution.mjcf()  # ~0.5 s of MuJoCo: only where the world runs
+        target = write_assembly(agent_assembly_dir(), files)
+        return load_assembly(target / LOCK_NAME), plan
+
+    def _down(self) -> tuple[Any, str]:
+        if self.launch is None:
+            return {"host": self.host, "stopped": []}, f"nothing was running on {self.host}"
+        template = self.launch.assembly.template
+        stopped = self._stop_run()
+        self.log(f"down {template}: stopped {', '.join(stopped) or 'nothing'}; idle")
+        return {"host": self.host, "template": template, "stopped": stopped}, "stopped"
+
+    def _stop_run(self) -> list[str]:
+        """Stop the run and wait until its processes are gone; returns their names."""
+        if self.launch is None:
+            return []
+        launch, self.launch = self.launch, None
+        names = list(launch.supervisor.processes)
+        launch.shutdown()
+        return names
