@@ -25,6 +25,8 @@ BUILDERS: dict[str, str] = {
     "motor_interface": "components.motor_interface.build:build",
     "simulator": "components.simulator.build:build",
     "health_monitor": "components.health.build:build",
+    "kinematics_manager": "components.kinematics.build:build",
+    "location_publisher": "components.location.build:build",
 }
 
 
@@ -48,6 +50,11 @@ KINDS: dict[str, KindInfo] = {
     "motor_interface": KindInfo("motor_interface", "joint_states"),
     "simulator": KindInfo("simulator", "/sim/diagnostics"),
     "health_monitor": KindInfo("health_monitor", "health"),
+    # Diagnostics go out at start, before any joint_read; tip_pose needs joint angles first.
+    "kinematics_manager": KindInfo("kinematics_manager", "diagnostics"),
+    # Every location publisher writes tf (the root-link one at start, from static edges).
+    # Both publishers of a module share the node name: KindInfo has one name per kind.
+    "location_publisher": KindInfo("location_publisher", "tf"),
 }
 
 #: The one simulated world that replaces every motor interface off-robot.
