@@ -1,0 +1,321 @@
+"""Inverse kinematics of one limb chain: damped least squares with joint limits.
+
+Pure numpy and Pinocchio: no clock, no I/O. The compute budget is a number of iterations
+passed in, so a solve takes the same path on every machine and in every test.
+
+How one solve goes (:meth:`IkSolver.solve`):
+
+1. Descend from the current joint angles (warm start). Each iteration takes a damped
+   least-squares step, caps its size, and clamps the angles into the limits, so the solver
+   never proposes an angle the joint manager would clamp differently.
+2. While the budget lasts, restart from random angles within the limits; each result is
+   unwrapped toward the current angles (a revolute joint with more than a turn of range can
+   reach the same pose at ``q`` and ``q + 2*pi``; the nearer one avoids a needless swing).
+3. The first converged solution whose largest joint jump (from the current angles) is under
+   ``jump_bound`` wins; else the converged one with the smallest jump.
+4. If nothing converged the target is unreachable: descend once more from the current angles
+   inside a box of ``jump_bound`` around them, and return the closest pose found within the
+   bound. An unreachable target therefore moves the limb toward it, never makes it jump.
+
+Chains with fewer than 6 joints cannot hold an arbitrary orientation, so they solve for the
+tip position alone and ignore the target's orientation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from components.kinematics.model import ChainModel
+
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class IkSettings:
+    """Tuning of the solver. Angles in rad, lengths in m.
+
+    Attributes:
+        position_tolerance: A solution is converged when the tip is this close to the target.
+        orientation_tolerance: ...and, for chains of 6+ joints, its orientation this close
+            (angle of the rotation between them).
+        damping: Damping of the least-squares step (added to J Jᵀ); larger is steadier near
+            singularities and slower to converge.
+        max_step: Largest change of any joint in one iteration (larger steps are scaled down).
+        reach_step: Largest tip translation (m) one iteration aims for: a farther target
+            is approached in steps of this size (keeps damped least squares steady on far
+            and unreachable targets).
+        turn_step: Largest tip rotation (rad) one iteration aims for.
+        orientation_weight: Meters one radian of orientation error counts for when poses
+            are compared (which of two unreachable solutions is closer).
+        iterations: Iteration cap of one descent.
+        budget: Iterations shared by the warm start and the random restarts.
+        jump_bound: A solution whose largest joint change exceeds this is a "jump": taken only
+            when no converged solution within the bound exists, and never for an unreachable
+            target.
+        limit_margin: Distance kept from every joint limit (match the joint manager's
+            ``position_margin`` so what IK proposes is what the joints do).
+    """
+
+    position_tolerance: float = 1e-4
+    orientation_tolerance: float = 1e-3
+    damping: float = 1e-6
+    max_step: float = 0.6
+    reach_step: float = 0.1
+    turn_step: float = 0.5
+    orientation_weight: float = 0.1
+    iterations: int = 40
+    budget: int = 400
+    jump_bound: float = 1.0
+    limit_margin: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in (
+            "position_tolerance",
+            "orientation_tolerance",
+            "max_step",
+            "reach_step",
+            "turn_step",
+            "jump_bound",
+        ):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"IkSettings.{name} must be > 0, not {getattr(self, name)}")
+        for name in ("damping", "limit_margin", "orientation_weight"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"IkSettings.{name} must be >= 0, not {getattr(self, name)}")
+        if self.iterations < 1 or self.budget < 1:
+            raise ValueError("IkSettings.iterations and budget must be >= 1")
+
+
+@dataclass(frozen=True)
+class IkResult:
+    """What a solve found.
+
+    Attributes:
+        q: Joint angles in the chain's configuration order, within the limits (minus margin).
+        pose: The tip pose those angles give, in the chain's base frame.
+        position_error: Distance from the tip to the target (m).
+        orientation_error: Angle between the tip's and the target's orientation (rad); 0 for
+            position-only chains.
+        reachable: Whether the solution is within tolerance (False: closest pose found).
+        jump: Largest joint change from the current angles (rad or m).
+        attempts: Descents run (warm start, restarts, the bounded one).
+        iterations: Iterations spent in all.
+    """
+
+    q: np.ndarray
+    pose: pin.SE3
+    position_error: float
+    orientation_error: float
+    reachable: bool
+    jump: float
+    attempts: int
+    iterations: int
+
+
+@dataclass
+class _Descent:
+    q: np.ndarray
+    position_error: float
+    orientation_error: float
+    converged: bool
+    iterations: int
+    cost: float
+
+
+class IkSolver:
+    """Damped least-squares IK with limits, restarts and a jump bound, for one chain.
+
+    Args:
+        chain: The chain's model (its data is used as scratch: one solver per chain model).
+        settings: Solver tuning.
+        seed: Seed of the restart generator (restarts are reproducible).
+    """
+
+    def __init__(self, chain: ChainModel, settings: IkSettings | None = None, seed: int = 0):
+        self.chain = chain
+        self.settings = settings or IkSettings()
+        self.position_only = chain.nq < 6
+        margin = self.settings.limit_margin
+        self.lower = chain.lower + margin
+        self.upper = chain.upper - margin
+        if np.any(self.lower > self.upper):
+            bad = [
+                n
+                for n, lo, hi in zip(chain.joint_names, self.lower, self.upper, strict=True)
+                if lo > hi
+            ]
+            raise ValueError(f"joints {bad}: range narrower than twice the limit margin {margin}")
+        self._rng = np.random.default_rng(seed)
+        self._identity = np.eye(3 if self.position_only else 6)
+
+    def clamp(self, q: np.ndarray) -> np.ndarray:
+        """``q`` clamped into the limits (minus margin)."""
+        return np.clip(q, self.lower, self.upper)
+
+    def solve(self, target: pin.SE3, current: np.ndarray, budget: int | None = None) -> IkResult:
+        """Joint angles putting the tip at ``target`` (in the base frame), near ``current``.
+
+        Args:
+            target: Desired tip pose in the chain's base frame (orientation ignored for
+                chains of fewer than 6 joints).
+            current: The joints' current angles (warm start and reference for jumps).
+            budget: Iterations for warm start plus restarts (default: settings.budget).
+
+        Returns:
+            The chosen solution (see the module docstring for how it is chosen).
+        """
+        s = self.settings
+        budget = s.budget if budget is None else budget
+        current = np.asarray(current, dtype=float)
+        start = self.clamp(current)
+        attempts, spent = 1, 0
+        first = self._descend(start, target, self.lower, self.upper, min(s.iterations, budget))
+        spent += first.iterations
+        candidates = [first]
+        if first.converged and self._jump(first.q, current) <= s.jump_bound:
+            return self._result(first, target, current, attempts, spent)
+        while spent < budget:
+            attempts += 1
+            seed = self._random_start(current)
+            found = self._descend(
+                seed, target, self.lower, self.upper, min(s.iterations, budget - spent)
+            )
+            spent += found.iterations
+            found.q = self._unwrap(found.q, current)
+            if found.converged and self._jump(found.q, current) <= s.jump_bound:
+                return self._result(found, target, current, attempts, spent)
+            candidates.append(found)
+        converged = [c for c in candidates if c.converged]
+        if converged:
+            best = min(converged, key=lambda c: self._jump(c.q, current))
+            return self._result(best, target, current, attempts, spent)
+        # Unreachable: the closest pose the limb reaches without jumping.
+        lo = np.maximum(self.lower, current - s.jump_bound)
+        hi = np.minimum(self.upper, current + s.jump_bound)
+        lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)
+        attempts += 1
+        bounded = self._descend(np.clip(start, lo, hi), target, lo, hi, 2 * s.iterations)
+        spent += bounded.iterations
+        near = [c for c in candidates if self._jump(c.q, current) <= s.jump_bound]
+        best = min([bounded, *near], key=lambda c: c.cost)
+        return self._result(best, target, current, attempts, spent)
+
+    # ------------------------------------------------------------------ internals
+    def _descend(
+        self, q: np.ndarray, target: pin.SE3, lo: np.ndarray, hi: np.ndarray, iterations: int
+    ) -> _Descent:
+        """Damped least squares from ``q``, clamped to ``[lo, hi]`` every iteration.
+
+        Levenberg-Marquardt style: a step that leaves the tip farther from the target is
+        taken back and retried with more damping (near a singular configuration the
+        linearisation lies, and an undamped step flings the joints); a step that helps lowers
+        the damping again toward ``settings.damping``.
+        """
+        s = self.settings
+        model, data, frame = self.chain.model, self.chain.data, self.chain.tip_frame
+        position_only = self.position_only
+        pos_tol, rot_tol, max_step = s.position_tolerance, s.orientation_tolerance, s.max_step
+        reach_step, turn_step = s.reach_step, s.turn_step
+        identity = self._identity
+        weight = s.orientation_weight
+        least = s.damping
+        damping = least
+        goal = target.translation
+        q = q.copy()
+        base_q, base_cost, base_pos, base_rot = q, math.inf, math.inf, math.inf
+        jacobian = error = None
+        done = 0
+        for done in range(1, iterations + 1):
+            pin.computeJointJacobians(model, data, q)
+            tip = pin.updateFramePlacement(model, data, frame)
+            offset = goal - tip.translation
+            pos_err = math.sqrt(offset @ offset)
+            if position_only:
+                rot_err = 0.0
+                gap = None
+            else:
+                gap = tip.actInv(target)
+                twist = pin.log6(gap).vector
+                rot_err = math.sqrt(twist[3:] @ twist[3:])
+            cost = pos_err + weight * rot_err
+            if cost >= base_cost:
+                # Worse: back to the last good configuration, damp more, try a shorter step.
+                damping = min(damping * 10.0, 1.0)
+                q = base_q
+            else:
+                damping = max(damping * 0.3, least)
+                base_q, base_cost, base_pos, base_rot = q, cost, pos_err, rot_err
+                if pos_err < pos_tol and rot_err < rot_tol:
+                    return _Descent(q, pos_err, rot_err, True, done, cost)
+                if position_only:
+                    error = offset
+                    jacobian = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)[:3]
+                else:
+                    error = twist
+                    jacobian = pin.Jlog6(gap.inverse()) @ pin.getFrameJacobian(
+                        model, data, frame, pin.LOCAL
+                    )
+                # Far (or unreachable) targets: aim at most reach_step / turn_step away per
+                # iteration, where the linearisation still holds.
+                lin = pos_err if position_only else math.sqrt(error[:3] @ error[:3])
+                scale = 1.0
+                if lin > reach_step:
+                    scale = reach_step / lin
+                if rot_err > turn_step:
+                    scale = min(scale, turn_step / rot_err)
+                if scale < 1.0:
+                    error = error * scale
+            step = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + damping * identity, error)
+            # A joint pressed against a limit and asked to go further would waste the step
+            # (clamping undoes it): solve again without it, so the others make up for it.
+            blocked = ((q >= hi) & (step > 0)) | ((q <= lo) & (step < 0))
+            if blocked.any():
+                free = jacobian.copy()
+                free[:, blocked] = 0.0
+                step = free.T @ np.linalg.solve(free @ free.T + damping * identity, error)
+            largest = np.max(np.abs(step))
+            if largest > max_step:
+                step *= max_step / largest
+            moved = np.clip(q + step, lo, hi)
+            if np.max(np.abs(moved - q)) < 1e-9:
+                break  # stuck against the limits or at a local minimum
+            q = moved
+        return _Descent(base_q, base_pos, base_rot, False, done, base_cost)
+
+    def _random_start(self, current: np.ndarray) -> np.ndarray:
+        # Unbounded joints restart within half a turn of where they are.
+        lo = np.where(np.isfinite(self.lower), self.lower, current - math.pi)
+        hi = np.where(np.isfinite(self.upper), self.upper, current + math.pi)
+        return self._rng.uniform(lo, hi)
+
+    def _unwrap(self, q: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """Each revolute angle moved by whole turns toward ``current``, staying in limits."""
+        turns = np.round((current - q) / _TWO_PI)
+        shifted = q + turns * _TWO_PI
+        ok = self.chain.revolute & (shifted >= self.lower) & (shifted <= self.upper)
+        return np.where(ok, shifted, q)
+
+    @staticmethod
+    def _jump(q: np.ndarray, current: np.ndarray) -> float:
+        return float(np.max(np.abs(q - current))) if q.size else 0.0
+
+    def _result(
+        self, found: _Descent, target: pin.SE3, current: np.ndarray, attempts: int, spent: int
+    ) -> IkResult:
+        pose = self.chain.tip(found.q)
+        return IkResult(
+            q=found.q,
+            pose=pose,
+            position_error=float(np.linalg.norm(pose.translation - target.translation)),
+            orientation_error=0.0
+            if self.position_only
+            else float(np.linalg.norm(pin.log3(pose.rotation.T @ target.rotation))),
+            reachable=found.converged,
+            jump=self._jump(found.q, current),
+            attempts=attempts,
+            iterations=spent,
+        )
