@@ -230,10 +230,10 @@ class Supervisor:
                 process.restarts += 1
                 self._spawn(process)
                 events.append(f"{process.name}: restarted (restart #{process.restarts})")
-            if (
-                process.state is ProcessState.RUNNING
-                and process.uptime(now) > self.policy.stable_after
-            ):
+            # Alive long enough, whatever its health says: a process with no components to
+            # judge it by (the embedded router) never turns RUNNING after a restart, and its
+            # backoff must not keep doubling over a long run.
+            if process.pid is not None and process.uptime(now) > self.policy.stable_after:
                 process.backoff = 0.0
         return events
 
