@@ -121,7 +121,15 @@ class Launch:
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
-        """Reach or start the router, then start every process of the plan."""
+        """Reach or start the router, and start every process of the plan.
+
+        When the router has to be started, the component processes start at the same time:
+        they are peers that keep retrying the router, and their imports take longer than
+        the router's start-up, so waiting for it first only added its start-up time. The
+        launcher's own session (and so the health watch) opens once the router answers,
+        still before any component has been built.
+        """
+        router = None
         if self.endpoint and not router_reachable(self.endpoint):
             router = self.supervisor.add(
                 ROUTER_PROCESS,
@@ -136,6 +144,7 @@ class Launch:
             )
             self.supervisor.start(router.name)
             self.started_router = True
+            self._start_processes()
             deadline = time.monotonic() + 10.0
             while not router_reachable(self.endpoint):
                 self.supervisor.poll()
@@ -144,12 +153,17 @@ class Launch:
                         f"the embedded router could not listen on {self.endpoint}: "
                         f"{router.last_error or 'no answer'}"
                     )
-                time.sleep(0.05)
+                time.sleep(0.02)
             self.supervisor.mark_running(ROUTER_PROCESS)
         self.session = open_session(replace(self.settings, mode="peer"))
         self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
         if self.serve_control:
             self._serve_control()
+        if router is None:
+            self._start_processes()
+        self.write_state()
+
+    def _start_processes(self) -> None:
         lock = self.assembly.lock_path
         for process in self.plan.processes:
             argv = [sys.executable, "-m", "components.executor.worker", "--lock", str(lock)]
@@ -159,7 +173,6 @@ class Launch:
                 argv += ["--speed", repr(self.speed)]
             self.supervisor.add(process.name, argv, components=[c.name for c in process.components])
             self.supervisor.start(process.name)
-        self.write_state()
 
     def _serve_control(self) -> None:
         from components.comm.node import Node
