@@ -8,7 +8,8 @@ How one solve goes (:meth:`IkSolver.solve`):
 1. Descend from the current joint angles (warm start). Each iteration takes a damped
    least-squares step, caps its size, and clamps the angles into the limits, so the solver
    never proposes an angle the joint manager would clamp differently.
-2. While the budget lasts, restart from random angles within the limits; each result is
+2. While the budget lasts (and fewer than ``far_solutions`` converged solutions beyond the
+   jump bound were found), restart from random angles within the limits; each result is
    unwrapped toward the current angles (a revolute joint with more than a turn of range can
    reach the same pose at ``q`` and ``q + 2*pi``; the nearer one avoids a needless swing).
 3. The first converged solution whose largest joint jump (from the current angles) is under
@@ -56,6 +57,9 @@ class IkSettings:
         jump_bound: A solution whose largest joint change exceeds this is a "jump": taken only
             when no converged solution within the bound exists, and never for an unreachable
             target.
+        far_solutions: Stop restarting after this many converged solutions beyond the jump
+            bound (the target is far in joint space: more restarts rarely find a near one,
+            and each costs a descent), and take the one with the smallest jump.
         limit_margin: Distance kept from every joint limit (match the joint manager's
             ``position_margin`` so what IK proposes is what the joints do).
     """
@@ -70,6 +74,7 @@ class IkSettings:
     iterations: int = 40
     budget: int = 400
     jump_bound: float = 1.0
+    far_solutions: int = 3
     limit_margin: float = 0.02
 
     def __post_init__(self) -> None:
@@ -86,8 +91,8 @@ class IkSettings:
         for name in ("damping", "limit_margin", "orientation_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"IkSettings.{name} must be >= 0, not {getattr(self, name)}")
-        if self.iterations < 1 or self.budget < 1:
-            raise ValueError("IkSettings.iterations and budget must be >= 1")
+        if self.iterations < 1 or self.budget < 1 or self.far_solutions < 1:
+            raise ValueError("IkSettings.iterations, budget and far_solutions must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -119,6 +124,7 @@ class IkResult:
 @dataclass
 class _Descent:
     q: np.ndarray
+    pose: pin.SE3
     position_error: float
     orientation_error: float
     converged: bool
@@ -189,6 +195,8 @@ class IkSolver:
             if found.converged and self._jump(found.q, current) <= s.jump_bound:
                 return self._result(found, target, current, attempts, spent)
             candidates.append(found)
+            if sum(c.converged for c in candidates) >= s.far_solutions:
+                break
         converged = [c for c in candidates if c.converged]
         if converged:
             best = min(converged, key=lambda c: self._jump(c.q, current))
@@ -224,9 +232,11 @@ class IkSolver:
         weight = s.orientation_weight
         least = s.damping
         damping = least
+        regular = least * identity  # rebuilt only when the damping changes
         goal = target.translation
         q = q.copy()
         base_q, base_cost, base_pos, base_rot = q, math.inf, math.inf, math.inf
+        base_tip = None
         jacobian = error = None
         done = 0
         for done in range(1, iterations + 1):
@@ -245,12 +255,16 @@ class IkSolver:
             if cost >= base_cost:
                 # Worse: back to the last good configuration, damp more, try a shorter step.
                 damping = min(damping * 10.0, 1.0)
+                regular = damping * identity
                 q = base_q
             else:
-                damping = max(damping * 0.3, least)
+                if damping > least:
+                    damping = max(damping * 0.3, least)
+                    regular = damping * identity
                 base_q, base_cost, base_pos, base_rot = q, cost, pos_err, rot_err
+                base_tip = tip
                 if pos_err < pos_tol and rot_err < rot_tol:
-                    return _Descent(q, pos_err, rot_err, True, done, cost)
+                    return _Descent(q, tip.copy(), pos_err, rot_err, True, done, cost)
                 if position_only:
                     error = offset
                     jacobian = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)[:3]
@@ -269,22 +283,31 @@ class IkSolver:
                     scale = min(scale, turn_step / rot_err)
                 if scale < 1.0:
                     error = error * scale
-            step = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + damping * identity, error)
-            # A joint pressed against a limit and asked to go further would waste the step
-            # (clamping undoes it): solve again without it, so the others make up for it.
-            blocked = ((q >= hi) & (step > 0)) | ((q <= lo) & (step < 0))
-            if blocked.any():
-                free = jacobian.copy()
-                free[:, blocked] = 0.0
-                step = free.T @ np.linalg.solve(free @ free.T + damping * identity, error)
-            largest = np.max(np.abs(step))
+            step = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + regular, error)
+            largest = np.abs(step).max()
             if largest > max_step:
                 step *= max_step / largest
-            moved = np.clip(q + step, lo, hi)
-            if np.max(np.abs(moved - q)) < 1e-9:
-                break  # stuck against the limits or at a local minimum
+            moved = q + step
+            if (moved > hi).any() or (moved < lo).any():
+                # A joint pressed against a limit and asked to go further would waste the
+                # step (clamping undoes it): solve again without it, so the others make up.
+                blocked = ((q >= hi) & (step > 0)) | ((q <= lo) & (step < 0))
+                if blocked.any():
+                    free = jacobian.copy()
+                    free[:, blocked] = 0.0
+                    step = free.T @ np.linalg.solve(free @ free.T + regular, error)
+                    largest = np.abs(step).max()
+                    if largest > max_step:
+                        step *= max_step / largest
+                moved = np.clip(q + step, lo, hi)
+                if np.abs(moved - q).max() < 1e-9:
+                    break  # stuck against the limits
             q = moved
-        return _Descent(base_q, base_pos, base_rot, False, done, base_cost)
+        if base_tip is None:
+            return _Descent(q, self.chain.tip(q), math.inf, math.inf, False, done, math.inf)
+        # base_tip is Pinocchio's frame placement, overwritten by later iterations: recompute.
+        pose = self.chain.tip(base_q)
+        return _Descent(base_q, pose, base_pos, base_rot, False, done, base_cost)
 
     def _random_start(self, current: np.ndarray) -> np.ndarray:
         # Unbounded joints restart within half a turn of where they are.
@@ -301,19 +324,16 @@ class IkSolver:
 
     @staticmethod
     def _jump(q: np.ndarray, current: np.ndarray) -> float:
-        return float(np.max(np.abs(q - current))) if q.size else 0.0
+        return float(np.abs(q - current).max()) if q.size else 0.0
 
     def _result(
         self, found: _Descent, target: pin.SE3, current: np.ndarray, attempts: int, spent: int
     ) -> IkResult:
-        pose = self.chain.tip(found.q)
         return IkResult(
             q=found.q,
-            pose=pose,
-            position_error=float(np.linalg.norm(pose.translation - target.translation)),
-            orientation_error=0.0
-            if self.position_only
-            else float(np.linalg.norm(pin.log3(pose.rotation.T @ target.rotation))),
+            pose=found.pose,
+            position_error=found.position_error,
+            orientation_error=found.orientation_error,
             reachable=found.converged,
             jump=self._jump(found.q, current),
             attempts=attempts,
