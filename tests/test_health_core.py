@@ -77,6 +77,14 @@ def level(core: HealthMonitorCore, name: str) -> int:
     return items(core)[f"limb1/{name}"].level
 
 
+def items_now(core: HealthMonitorCore, now: float) -> dict[str, Any]:
+    """Every item at ``now`` as a DiagnosticStatus, by name."""
+    return {
+        i.name: diagnostic_status(i.name, i.level, i.message, i.hardware_id, i.values)
+        for i in core.evaluate(now)
+    }
+
+
 def level_now(core: HealthMonitorCore, name: str, now: float) -> int:
     """An item's level at ``now`` (improvements are only published at the 1 Hz slot)."""
     return {i.name: i.level for i in core.evaluate(now)}[f"limb1/{name}"]
@@ -143,6 +151,55 @@ def test_component_never_seen_becomes_error_after_grace() -> None:
     assert status.level == ERROR and "has not appeared" in status.message
 
 
+def test_shared_node_name_expects_every_instance() -> None:
+    """Two location publishers share /limb1/location_publisher: one dying is an ERROR."""
+    node = "/limb1/location_publisher"
+    core = HealthMonitorCore("h", "limb1", [ExpectedComponent("location_publisher", node, 2)])
+    core.start(0.0)
+    core.on_component_instances(node, 1, 0.1)
+    assert level_now(core, "components/location_publisher", 0.2) == STALE  # still starting
+    core.on_component_instances(node, 2, 0.3)
+    assert level_now(core, "components/location_publisher", 1.5) == OK
+    core.on_component_instances(node, 1, 2.0)
+    status = items(core)["limb1/components/location_publisher"]
+    assert status.level == ERROR and "only 1 of 2" in status.message
+    assert diagnostic_values(status)["instances"] == "1/2"
+
+
+def test_simulator_stands_in_for_the_motor_interface() -> None:
+    expected = ExpectedComponent("motor_interface", MI, alternatives=("/sim/simulator",))
+    core = HealthMonitorCore("h", "limb1", [expected])
+    core.start(0.0)
+    core.on_component_seen("/sim/simulator", True, 0.5)
+    status = {i.name: i for i in core.evaluate(0.5)}["limb1/components/motor_interface"]
+    assert status.level == OK and "/sim/simulator running" in status.message
+    core.on_component_seen("/sim/simulator", False, 1.0)
+    assert level(core, "components/motor_interface") == ERROR
+
+
+def test_graph_feed_counts_node_tokens_and_posts_changes_only() -> None:
+    from components.build import BuiltComponent
+    from components.comm.liveliness import Entity, EntityKind
+    from components.executor.interface import InterfaceSpec
+    from components.health.build import GraphFeed
+
+    posted: list[tuple[str, int]] = []
+    feed = GraphFeed(BuiltComponent(None, InterfaceSpec(), "/limb1", "h"), {JM})  # type: ignore[arg-type]
+    feed._post = lambda node, count: posted.append((node, count))
+
+    def node(zid: str, kind: EntityKind = EntityKind.NODE, ns: str = "/limb1") -> Entity:
+        return Entity(0, zid, 0, 0, kind, ns, "joint_manager")
+
+    feed._on_change(node("a"), True)
+    feed._on_change(node("a", EntityKind.PUBLISHER), True)  # not a node token
+    feed._on_change(node("b", ns="/limb2"), True)  # not followed
+    feed._on_change(node("c"), True)  # a restart overlapping its predecessor
+    feed._on_change(node("a"), False)
+    feed._on_change(node("a"), False)  # repeated vanish: no change
+    feed._on_change(node("c"), False)
+    assert posted == [(JM, 1), (JM, 2), (JM, 1), (JM, 0)]
+
+
 def test_other_nodes_are_ignored() -> None:
     core = make()
     core.on_component_seen("/limb2/joint_manager", True, 0.1)
@@ -168,6 +225,13 @@ def test_topic_rate_ok_then_stale_when_silent() -> None:
     assert len(core.outbox.on("health")) == before + 1  # worse: published at once
     status = items(core)["limb1/topics/joint_states"]
     assert status.level == STALE and "silent" in status.message
+
+
+def test_rate_is_measured_over_what_was_seen_before_a_full_window() -> None:
+    core = make()
+    t = feed_joint_states(core, 0.0, 0.5, 100.0)
+    rate = float(diagnostic_values(items_now(core, t)["limb1/topics/joint_states"])["rate_hz"])
+    assert 90.0 <= rate <= 110.0
 
 
 def test_topic_below_min_rate_warns_only_after_a_full_window() -> None:
@@ -382,6 +446,11 @@ def test_builder_reads_module_health_and_expects_the_module_components() -> None
     sim = build_component(plan, assembly, {"sim": True, "launched": ["limb1/motor_interface"]})
     assert [s.expected.node for s in sim.core._components.values()] == ["/sim/simulator"]
     assert built.on_bound is not None
+    # Without a launch list: every kind the launcher starts; shared node names counted.
+    default = build_component(plan, assembly, {})
+    counts = {s.expected.label: s.expected.count for s in default.core._components.values()}
+    assert counts["joint_manager"] == 1 and counts["location_publisher"] == 2
+    default.close()
     built.close()
     sim.close()
 

@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterable, Mapping
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import BuildError, BuiltComponent, buildable
+from components.build import KINDS, BuildError, BuiltComponent, buildable
 from components.comm.liveliness import Entity, EntityKind
 from components.health.core import (
     ExpectedComponent,
@@ -39,9 +40,11 @@ SIMULATOR_NODE = "/sim/simulator"
 
 
 def node_name(plan: ComponentPlan) -> str:
-    """The node name a planned component runs as: its name within its module or station
-    (``limb1/joint_manager`` -> ``joint_manager``, ``limb1/location_tip`` -> ``location_tip``)."""
-    return plan.name.rsplit("/", 1)[-1]
+    """The node name a planned component runs as: its kind's (``KINDS``, as its builder
+    names it; both location publishers of a module are ``location_publisher``), else its
+    name within its module (``limb1/joint_manager`` -> ``joint_manager``)."""
+    info = KINDS.get(plan.kind)
+    return info.node_name if info is not None else plan.name.rsplit("/", 1)[-1]
 
 
 def expected_components(
@@ -50,38 +53,49 @@ def expected_components(
     """The components of ``plan.module`` the monitor should see on the graph.
 
     With ``options["launched"]`` (names of the components the launcher started), exactly
-    those of the module; otherwise every component of the module whose kind can be built
-    (kinds without a builder are never started, so expecting them would be a false alarm).
-    With ``options["sim"]``, the motor interface is satisfied by the simulator node.
+    those of the module; otherwise every component of the module whose kind the launcher
+    starts (a builder and a ``KINDS`` entry: other kinds are never started, so expecting
+    them would be a false alarm). Components sharing a node name make one item expecting
+    that many instances.
+
+    The motor interface is satisfied by the simulator node: only by it with
+    ``options["sim"]``; by either otherwise, because the launcher runs the simulator in
+    another process than the module's components, whose ``sim`` option cannot tell.
     """
     launched = options.get("launched")
     launched_names = None if launched is None else set(launched)
     sim = bool(options.get("sim"))
-    expected = []
+    by_node: dict[str, ExpectedComponent] = {}
     for other in assembly.components:
         if other.module != plan.module or other.name == plan.name:
             continue
-        runs_as = "simulator" if sim and other.kind == "motor_interface" else other.kind
         if launched_names is not None:
             if other.name not in launched_names:
                 continue
-        elif not buildable(runs_as):
+        elif other.kind not in KINDS or not buildable(other.kind):
             continue
-        if runs_as == "simulator":
-            node = SIMULATOR_NODE
+        node = f"{other.namespace.rstrip('/')}/{node_name(other)}"
+        alternatives: tuple[str, ...] = ()
+        if other.kind == "motor_interface":
+            if sim:
+                node = SIMULATOR_NODE
+            else:
+                alternatives = (SIMULATOR_NODE,)
+        known = by_node.get(node)
+        if known is not None:
+            by_node[node] = replace(known, count=known.count + 1)
         else:
-            node = f"{other.namespace.rstrip('/')}/{node_name(other)}"
-        expected.append(ExpectedComponent(node_name(other), node))
-    return expected
+            by_node[node] = ExpectedComponent(node_name(other), node, 1, alternatives)
+    return list(by_node.values())
 
 
 class GraphFeed:
     """Forwards graph changes of the expected nodes to the health core (an ``on_bound`` hook).
 
     Zenoh delivers liveliness changes on its own threads; this keeps, per node name, the set
-    of live node tokens (a restarted process briefly overlaps its predecessor) and posts
-    ``on_component_seen(node, alive)`` into the executor thread when a node's presence
-    changes.
+    of live node tokens (a restarted process briefly overlaps its predecessor; two location
+    publishers share a name) and posts ``on_component_instances(node, count)`` into the
+    executor thread when that number changes.
 
     Args:
         built: The built health monitor; the graph is added to its resources.
@@ -100,8 +114,8 @@ class GraphFeed:
         """Start following the graph on ``executor``'s session (called once, before run)."""
         from components.comm.graph import Graph
 
-        def post(node: str, alive: bool) -> None:
-            executor.call_soon(component, "on_component_seen", node, alive)
+        def post(node: str, count: int) -> None:
+            executor.call_soon(component, "on_component_instances", node, count)
 
         self._post = post
         # history=True in Graph replays the nodes already up, so a component that started
@@ -115,14 +129,14 @@ class GraphFeed:
         node = entity.node_fqn
         with self._lock:
             live = self._live.setdefault(node, set())
-            before = bool(live)
+            before = len(live)
             if alive:
                 live.add(entity.node_key)
             else:
                 live.discard(entity.node_key)
-            if bool(live) != before and self._post is not None:
+            if len(live) != before and self._post is not None:
                 # Posted under the lock so that appear/vanish reach the core in order.
-                self._post(node, bool(live))
+                self._post(node, len(live))
 
 
 def build(
@@ -155,5 +169,5 @@ def build(
         host=module.host,
     )
     built = BuiltComponent(core, HEALTH_MONITOR, module.namespace, node_name(plan), [reader])
-    built.on_bound = GraphFeed(built, [c.node for c in expected])
+    built.on_bound = GraphFeed(built, {n for c in expected for n in c.nodes})
     return built

@@ -19,7 +19,8 @@ It publishes one DiagnosticArray on ``health`` once per ``publish_period`` and a
 any item gets worse, preceded by a summary item named after the module.
 
 Everything here is pure: graph changes arrive as :meth:`HealthMonitorCore.on_component_seen`
-calls, host metrics through the ``read_host_metrics`` callable, time as ``now``.
+(or ``on_component_instances``) calls, host metrics through the ``read_host_metrics``
+callable, time as ``now``.
 """
 
 from __future__ import annotations
@@ -192,16 +193,26 @@ def _number(value: Any, where: str) -> float:
 
 @dataclass(frozen=True)
 class ExpectedComponent:
-    """A component of the module the monitor expects on the graph.
+    """A component (or several of one kind) of the module the monitor expects on the graph.
 
     Attributes:
         label: Item label (``joint_manager``).
-        node: Fully qualified node that satisfies it (``/limb1/joint_manager``, or
-            ``/sim/simulator`` for the motor interface in simulation).
+        node: Fully qualified node that runs it (``/limb1/joint_manager``).
+        count: How many live instances of ``node`` are expected (two location publishers
+            of a module share one node name).
+        alternatives: Other nodes that satisfy it as well (the simulator
+            ``/sim/simulator`` standing in for the motor interface).
     """
 
     label: str
     node: str
+    count: int = 1
+    alternatives: tuple[str, ...] = ()
+
+    @property
+    def nodes(self) -> tuple[str, ...]:
+        """Every node that counts towards this component."""
+        return (self.node, *self.alternatives)
 
 
 @dataclass(frozen=True)
@@ -228,11 +239,13 @@ class Item(NamedTuple):
 
 
 class _ComponentState:
-    __slots__ = ("alive", "appearances", "changed_at", "expected")
+    __slots__ = ("alive", "appearances", "changed_at", "expected", "live", "live_node")
 
     def __init__(self, expected: ExpectedComponent) -> None:
         self.expected = expected
         self.alive = False
+        self.live = 0
+        self.live_node = expected.node
         self.appearances = 0
         self.changed_at: float | None = None
 
@@ -289,6 +302,7 @@ class HealthMonitorCore(Core):
         self.host = host
         self._read_host_metrics = read_host_metrics
         self._components = {c.label: _ComponentState(c) for c in components}
+        self._instances: dict[str, int] = {}
         self._topics = {w.topic: _TopicState(w) for w in self.thresholds.topic_watches()}
         self._motors = list(motors)
         self._motor_names: dict[str, str] = {}
@@ -316,21 +330,40 @@ class HealthMonitorCore(Core):
 
     # ------------------------------------------------------------------ inputs
     def on_component_seen(self, node: str, alive: bool, now: float) -> None:
-        """A node of the graph appeared (``alive``) or vanished.
+        """A node of the graph appeared (``alive``) or vanished (one instance of it).
 
         Args:
             node: Fully qualified node name (``/limb1/joint_manager``).
             alive: Whether the node is on the graph now.
             now: Monotonic seconds.
         """
+        self.on_component_instances(node, 1 if alive else 0, now)
+
+    def on_component_instances(self, node: str, count: int, now: float) -> None:
+        """How many live instances of ``node`` the graph holds now (0: it is gone).
+
+        Args:
+            node: Fully qualified node name (``/limb1/location_publisher``).
+            count: Live instances (distinct node tokens) with that name.
+            now: Monotonic seconds.
+        """
+        self._instances[node] = count
         changed = False
         for state in self._components.values():
-            if state.expected.node != node or state.alive == alive:
+            expected = state.expected
+            if node not in expected.nodes:
                 continue
-            state.alive = alive
-            state.changed_at = now
-            if alive:
-                state.appearances += 1
+            live = {n: self._instances.get(n, 0) for n in expected.nodes}
+            total = sum(live.values())
+            alive = total >= expected.count
+            if total == state.live and alive == state.alive:
+                continue
+            if alive != state.alive:
+                state.changed_at = now
+                if alive:
+                    state.appearances += 1
+            state.alive, state.live = alive, total
+            state.live_node = max(expected.nodes, key=lambda n: live[n])
             changed = True
         if changed:
             self._check(now)
@@ -428,12 +461,28 @@ class HealthMonitorCore(Core):
         self.publish("health", diagnostic_array(statuses, self.stamp(now)))
 
     def _component_item(self, state: _ComponentState, now: float) -> Item:
-        node = state.expected.node
-        name = f"{self.module}/components/{state.expected.label}"
+        expected = state.expected
+        node = state.live_node if state.live else expected.node
+        name = f"{self.module}/components/{expected.label}"
         values: dict[str, Any] = {"node": node, "appearances": state.appearances}
+        if expected.count != 1:
+            values["instances"] = f"{state.live}/{expected.count}"
         if state.alive:
             values["up_for"] = f"{now - (state.changed_at or now):.1f}"
             return Item(name, OK, f"{node} running", self.unit, values)
+        waited = now - (self._started if self._started is not None else now)
+        if not state.appearances and waited < self.thresholds.component_grace:
+            # Processes start in any order: not an error yet.
+            return Item(name, STALE, f"waiting for {node} to start", self.unit, values)
+        if state.live:
+            return Item(
+                name,
+                ERROR,
+                f"only {state.live} of {expected.count} instances of {node} running: "
+                "see `msctl ps`",
+                self.unit,
+                values,
+            )
         if state.appearances:
             gone = now - (state.changed_at or now)
             values["gone_for"] = f"{gone:.1f}"
@@ -444,9 +493,6 @@ class HealthMonitorCore(Core):
                 self.unit,
                 values,
             )
-        waited = now - (self._started if self._started is not None else now)
-        if waited < self.thresholds.component_grace:
-            return Item(name, STALE, f"waiting for {node} to start", self.unit, values)
         return Item(
             name,
             ERROR,
@@ -474,7 +520,9 @@ class HealthMonitorCore(Core):
         name = f"{self.module}/topics/{watch.topic}"
         self._forget_old(state, now)
         window = self.thresholds.rate_window
-        rate = len(state.arrivals) / window
+        # Until a full window has passed since the first sample, measure over what was seen.
+        span = min(window, now - state.first) if state.first is not None else 0.0
+        rate = len(state.arrivals) / span if span > 0 else 0.0
         values: dict[str, Any] = {
             "topic": f"/{self.module}/{watch.topic}",
             "rate_hz": f"{rate:.1f}",
