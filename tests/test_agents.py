@@ -270,6 +270,16 @@ def test_agents_announce_themselves_idle(
     names = {n["name"] for n in nodes}
     assert {f"{host_namespace(h)}/supervisor" for h in hosts} <= names
     assert "serving /msctl/gl_pi_01/request" in (agents.root / "gl-pi-01.log").read_text()
+    # A second computer claiming the same name is refused, not a second answer to every request.
+    twin = subprocess.run(
+        [sys.executable, "-m", "msctl", "agent"],
+        env={**agents.env, "MSCTL_HOST": "hl-wheel-01", "MSCTL_HOME": str(agents.root / "twin")},
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert twin.returncode == 1, twin.stderr
+    assert "/msctl/hl_wheel_01/request is already served" in twin.stderr
 
 
 def test_malformed_requests_are_refused_and_start_nothing(

@@ -217,6 +217,7 @@ class Agent:
 
         if self.endpoint and not router_reachable(self.endpoint):
             self._start_router()
+        self._refuse_a_second_supervisor()
         self.session = open_session(replace(self.settings, mode="peer"))
         self.node = Node(
             self.session, "supervisor", host_namespace(self.host), self.settings.domain
@@ -226,6 +227,36 @@ class Agent:
             f"serving {self.node.fqn.rsplit('/', 1)[0]}/request via {self.endpoint or 'peers'}; "
             "idle until `msctl up --all`"
         )
+
+    def _refuse_a_second_supervisor(self) -> None:
+        """Stop here if this host's service is already served (another agent, or a foreground
+        `msctl up`, with the same MSCTL_HOST): both would answer every request.
+
+        Asked as a client of the router, which answers graph queries from everything it knows
+        at once, where a peer that has just joined would first have to learn the routes.
+
+        Raises:
+            MsctlError: Naming the service and what to check.
+        """
+        from components.comm.node import Node
+        from msctl.errors import MsctlError
+        from msctl.launcher.fleet import supervisors
+
+        if not self.endpoint:
+            return  # peers only, no router to ask
+        service = f"{host_namespace(self.host)}/request"
+        session = open_session(replace(self.settings, mode="client", listen=()))
+        try:
+            with Node(session, f"msctl_agent_{os.getpid()}", "/", self.settings.domain) as node:
+                taken = service in supervisors(node).values()
+        finally:
+            session.close()
+        if taken:
+            raise MsctlError(
+                f"{service} is already served on this network: another agent (or `msctl up`) "
+                f"runs as {self.host}",
+                hint="give each computer its own MSCTL_HOST, or stop the other one",
+            )
 
     def _start_router(self) -> None:
         # A robot computer is where the field's router runs: the agent brings one up, as

@@ -68,10 +68,10 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from components.comm.services import ServiceError
+    from components.comm.services import ServiceError, ServiceTimeout
     from msctl.console import err
     from msctl.errors import OperationTimeout
-    from msctl.launcher.control import call_supervisor
+    from msctl.launcher.control import call_supervisor, host_namespace
     from msctl.plane import connected
 
     document = json.loads(assembly.lock_path.read_text()) if assembly.lock_path else {}
@@ -92,6 +92,8 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
                 started[host] = call_supervisor(
                     node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 10.0
                 )
+            except ServiceTimeout:
+                unreachable.append((host, f"no agent serves {host_namespace(host)}/request"))
             except ServiceError as exc:
                 unreachable.append((host, str(exc)))
             except RequestError as exc:
