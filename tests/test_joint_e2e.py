@@ -5,6 +5,7 @@ built through the component registry and run by one Executor, commanded by an in
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -104,6 +105,7 @@ def system(
     minimal: ResolvedAssembly,
     session_settings: SessionSettings,
     open_sessions: Callable[[], Any],
+    request: pytest.FixtureRequest,
 ) -> Iterator[System]:
     """Joint manager + simulator in a background Executor; a pyzeros ``joint_set`` publisher;
     our ``joint_read`` subscription. Everything is stopped and closed at teardown."""
@@ -122,6 +124,11 @@ def system(
     observer.subscription("/limb1/joint_read", JOINT_STATE, reading.on_message)
 
     # The independent peer: pyzeros on its own Zenoh session (joined to the test router).
+    # Its synchronous publisher wants a current event loop in this thread; an earlier test's
+    # asyncio.run() leaves none, so this fixture brings (and later closes) its own.
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
+    request.addfinalizer(lambda: (asyncio.set_event_loop(None), loop.close()))
     peer = pyzeros.Session(node="pyzeros_operator", zenoh_session=open_sessions())
     publisher = pyzeros.Pub(all_msgs.JointState, "/limb1/joint_set", session=peer)
 
