@@ -251,6 +251,11 @@ def test_router_killed_is_restarted_and_data_flows_through_it_without_component_
         assert reads.wait_for(1, timeout=5.0), "no joint_read through the restarted router"
     finally:
         reads.close()
+    # The supervisor sees the new router healthy again (not "starting" for ever).
+    wait_until(
+        lambda: {p["name"]: p for p in run.state()["processes"]}["router"]["state"] == "running",
+        timeout=5.0,
+    )
     after = {p["name"]: p for p in run.state()["processes"]}
     assert after["router"]["restarts"] == restarts["router"] + 1
     assert after["router"]["pid"] != router["pid"]

@@ -201,6 +201,15 @@ class Launch:
                     and all(all(status[c]) for c in process.components)
                 ):
                     self.supervisor.mark_running(process.name)
+        router = self.supervisor.processes.get(ROUTER_PROCESS)
+        if (
+            router is not None
+            and router.state is ProcessState.STARTING
+            and self.session is not None
+            and list(self.session.info.routers_zid())
+        ):
+            # A restarted router is healthy once our own session is linked to it again.
+            self.supervisor.mark_running(ROUTER_PROCESS)
         while True:
             try:
                 pending = self._requests.get_nowait()
