@@ -1,0 +1,58 @@
+"""The beginner-friendly Python API: move a running assembly in a few lines.
+
+Connect (the running assembly is found on the data plane), then move modules with syncers::
+
+    import asyncio
+    from components.api import connect
+
+    async def main():
+        async with await connect() as robot:
+            limb = robot.syncer("limb1")
+            await limb.lerp({"joint2": 0.5, "joint4": -0.8})
+
+    asyncio.run(main())
+
+Or synchronously, for short scripts::
+
+    from components.api import connect_sync
+
+    with connect_sync() as robot:
+        robot.syncer("limb1").lerp({"joint2": 0.5}).wait()
+
+Public names: :func:`connect`, :func:`connect_sync`, :class:`Robot`, :class:`JointHandler`,
+:class:`JointSyncer`, :class:`IkSyncer`, :class:`WheelDrive`, :class:`SyncSettings`,
+:class:`IkSyncSettings`, :class:`Motion` and the errors. See ``docs/api.md``.
+"""
+
+from components.api.connect import Robot, connect
+from components.api.errors import (
+    ApiError,
+    JointNotReadyError,
+    RobotClosedError,
+    RobotNotFoundError,
+    UnknownJointError,
+)
+from components.api.joints import JointHandler, JointInfo, JointState
+from components.api.motion import Motion
+from components.api.planner import SyncPlanner, SyncSettings
+from components.api.sync import SyncRobot, connect_sync
+from components.api.syncer import JointSyncer
+
+__all__ = [
+    "ApiError",
+    "JointHandler",
+    "JointInfo",
+    "JointNotReadyError",
+    "JointState",
+    "JointSyncer",
+    "Motion",
+    "Robot",
+    "RobotClosedError",
+    "RobotNotFoundError",
+    "SyncPlanner",
+    "SyncRobot",
+    "SyncSettings",
+    "UnknownJointError",
+    "connect",
+    "connect_sync",
+]

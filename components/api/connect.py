@@ -1,0 +1,371 @@
+"""Connecting to the running assembly: :func:`connect` finds it and returns a :class:`Robot`.
+
+Finding the robot needs nothing but the data plane (the same Zenoh settings every msctl
+process reads, ``MSCTL_ZENOH_CONNECT`` and friends):
+
+1. the ROS graph names the modules: every namespace with a joint manager's ``joints``
+   service (``/<slot>/joints``, ``msctl_msgs/srv/ListJoints``) is a module;
+2. each joint manager lists its joints and limits over that service;
+3. when an assembly name is given, the launchers' supervisors (``/msctl/<host>/request``,
+   verb ``ps``) say which template runs, and a different one is refused.
+
+The resolved assembly's lock file, when this computer has one for the running template, adds
+what the graph does not carry: each module's kind (limb or wheel), each joint's control mode,
+and the URDF the IK syncer and the wheel helper compute with.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import fields
+from typing import Any
+
+from components.api.errors import ApiError, RobotNotFoundError
+from components.api.joints import LIST_JOINTS, JointHandler
+from components.api.planner import SyncSettings
+from components.api.syncer import Commander, JointSyncer
+
+log = logging.getLogger(__name__)
+
+AGENT_SRV = "msctl_msgs/srv/AgentRequest"
+_JOINTS_SERVICE = re.compile(r"^/([A-Za-z][A-Za-z0-9_]*)/joints$")
+
+
+class Robot:
+    """A running assembly, connected: its modules and the syncers that move them.
+
+    Made by :func:`connect`; use it as ``async with await connect() as robot:`` or call
+    :meth:`close`. Every syncer made here is stopped and closed with the robot.
+
+    Attributes:
+        template: The running template (``dragon``), when known.
+        assembly: The resolved assembly from the lock file, when it matches (else None).
+        modules: Slot -> :class:`JointHandler`, in assembly order.
+        kinds: Slot -> ``limb`` or ``wheel``.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        node: Any,
+        modules: Sequence[JointHandler],
+        kinds: dict[str, str],
+        template: str | None = None,
+        assembly: Any = None,
+    ) -> None:
+        self.session = session
+        self.node = node
+        self.modules: dict[str, JointHandler] = {h.slot: h for h in modules}
+        self.kinds = kinds
+        self.template = template
+        self.assembly = assembly
+        self._commanders: list[Commander] = []
+        self._closed = False
+
+    def __repr__(self) -> str:
+        parts = ", ".join(f"{s} ({self.kinds.get(s, '?')})" for s in self.modules)
+        return f"<Robot {self.template or '?'}: {parts}>"
+
+    # ------------------------------------------------------------------ what there is
+    @property
+    def limbs(self) -> list[str]:
+        """Slots of the limb modules."""
+        return [s for s in self.modules if self.kinds.get(s) == "limb"]
+
+    @property
+    def wheels(self) -> list[str]:
+        """Slots of the wheel modules."""
+        return [s for s in self.modules if self.kinds.get(s) == "wheel"]
+
+    def handler(self, slot: str) -> JointHandler:
+        """The joints of one module.
+
+        Raises:
+            KeyError: If the robot has no such module (the message lists them).
+        """
+        try:
+            return self.modules[slot]
+        except KeyError:
+            raise KeyError(f"no module {slot!r}; modules: {', '.join(self.modules)}") from None
+
+    def positions(self) -> dict[str, float]:
+        """Every joint's latest measured position."""
+        out: dict[str, float] = {}
+        for handler in self.modules.values():
+            out.update(handler.positions())
+        return out
+
+    def _adopt(self, commander: Commander) -> Any:
+        self._commanders.append(commander)
+        return commander
+
+    # ------------------------------------------------------------------ syncers
+    def syncer(self, *slots: str, settings: SyncSettings | None = None, **tuning: Any) -> Any:
+        """A :class:`~components.api.syncer.JointSyncer` over ``slots`` (default: every limb).
+
+        Args:
+            slots: Modules to drive together.
+            settings: Full settings; or give some of their fields as keywords
+                (``delta=0.05, speed=0.3``).
+        """
+        settings = _settings(SyncSettings, settings, tuning)
+        handlers = [self.handler(s) for s in (slots or self.limbs or tuple(self.modules))]
+        return self._adopt(JointSyncer(handlers, settings))
+
+    def ik(self, *slots: str, **tuning: Any) -> Any:
+        """An :class:`~components.api.ik_syncer.IkSyncer` over limbs ``slots`` (default:
+        every limb). Keywords are :class:`~components.api.ik_syncer.IkSyncSettings` fields.
+
+        Raises:
+            ApiError: Without the resolved assembly (the URDF is needed).
+        """
+        from components.api.ik_syncer import IkSyncer, IkSyncSettings
+
+        settings = _settings(IkSyncSettings, tuning.pop("settings", None), tuning)
+        urdf = self._urdf("the IK syncer")
+        limbs = slots or tuple(self.limbs)
+        chains = []
+        for slot in limbs:
+            module = self.assembly.module(slot)
+            if not module.chains:
+                raise ApiError(f"module {slot} has no kinematic chain (it is a {module.kind})")
+            chains.append((self.handler(slot), module.chains[0]))
+        return self._adopt(IkSyncer(chains, urdf, settings))
+
+    def drive(self, *slots: str, **tuning: Any) -> Any:
+        """A :class:`~components.api.wheels.WheelDrive` over wheel modules ``slots``
+        (default: every wheel module), geometry from the resolved assembly's URDF."""
+        from components.api.wheels import WheelDrive, WheelGeometry
+
+        urdf = self._urdf("the wheel helper")
+        wheels = slots or tuple(self.wheels)
+        if not wheels:
+            raise ApiError(f"{self.template or 'this robot'} has no wheel module")
+        handlers = [self.handler(s) for s in wheels]
+        names = [n for h in handlers for n in h.joints]
+        geometry = WheelGeometry.from_urdf(
+            urdf, self.assembly.root_links[0], names, self.positions()
+        )
+        return self._adopt(WheelDrive(handlers, geometry, **tuning))
+
+    def _urdf(self, what: str) -> str:
+        if self.assembly is None:
+            raise ApiError(
+                f"{what} needs the resolved assembly (its URDF), and this computer has no lock "
+                f"file for {self.template or 'the running assembly'}: run `msctl assemble "
+                f"{self.template or '<template>'}` here (or set MSCTL_HOME) first"
+            )
+        return self.assembly.urdf_path.read_text(encoding="utf-8")
+
+    # ------------------------------------------------------------------ stopping
+    async def stop(self) -> None:
+        """Cancel every motion and hold every joint where it is measured (velocity 0 for
+        wheels). Not a halt: the robot stays ready for the next command."""
+        await asyncio.gather(*(c.stop() for c in self._commanders), return_exceptions=True)
+        for handler in self.modules.values():
+            handler.hold()
+
+    async def close(self) -> None:
+        """Stop, then close every syncer, handler, the node and the Zenoh session
+        (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            await self.stop()
+            # Let the hold commands leave before the session goes away.
+            await asyncio.sleep(0.05)
+        finally:
+            for commander in self._commanders:
+                commander.close()
+            for handler in self.modules.values():
+                handler.close()
+            self.node.close()
+            await asyncio.to_thread(self.session.close)
+
+    async def __aenter__(self) -> Robot:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+def _settings(cls: type, settings: Any, tuning: dict[str, Any]) -> Any:
+    if settings is not None and tuning:
+        raise TypeError("give either settings or keyword fields, not both")
+    if settings is not None:
+        return settings
+    known = {f.name for f in fields(cls)}
+    unknown = set(tuning) - known
+    if unknown:
+        raise TypeError(f"unknown {cls.__name__} fields {sorted(unknown)}; known: {sorted(known)}")
+    return cls(**tuning)
+
+
+async def connect(
+    assembly: str | None = None,
+    *,
+    settings: Any = None,
+    timeout: float = 10.0,
+    slots: Sequence[str] | None = None,
+) -> Robot:
+    """Connect to the running assembly.
+
+    Args:
+        assembly: The template expected to run (``dragon``); None takes whatever runs.
+        settings: Zenoh :class:`~components.comm.session.SessionSettings` (default: from the
+            environment, as every msctl process).
+        timeout: Seconds to find the modules and hear from every joint.
+        slots: Only these modules (default: every module found).
+
+    Raises:
+        RobotNotFoundError: If no module is found, or another assembly runs than the one named.
+        JointNotReadyError: If a module's joints stay silent.
+    """
+    from components.comm import Node, SessionSettings, open_session
+
+    settings = settings or SessionSettings.from_env()
+    session = await asyncio.to_thread(open_session, settings)
+    node = None
+    handlers: list[JointHandler] = []
+    try:
+        node = Node(session, f"api_{os.getpid()}", "/", domain=settings.domain)
+        found, template = await _discover(node, assembly, timeout)
+        resolved = _lock_for(template)
+        if template is None and resolved is not None and set(found) <= set(resolved.units):
+            template = resolved.template
+        if slots:
+            absent = [s for s in slots if s not in found]
+            if absent:
+                raise RobotNotFoundError(
+                    f"no module {', '.join(absent)} on the data plane; found {', '.join(found)}"
+                )
+            found = [s for s in found if s in slots]
+        if resolved is not None:
+            order = {s: i for i, s in enumerate(resolved.units)}
+            found.sort(key=lambda s: order.get(s, len(order)))
+        handlers = list(
+            await asyncio.gather(
+                *(JointHandler.create(node, slot, _controls(resolved, slot)) for slot in found)
+            )
+        )
+        deadline = time.monotonic() + timeout
+        for handler in handlers:
+            await handler.wait_ready(max(deadline - time.monotonic(), 0.5))
+        kinds = {h.slot: _kind(resolved, h) for h in handlers}
+        return Robot(session, node, handlers, kinds, template, resolved)
+    except BaseException:
+        for handler in handlers:
+            handler.close()
+        if node is not None:
+            node.close()
+        await asyncio.to_thread(session.close)
+        raise
+
+
+async def _discover(
+    node: Any, assembly: str | None, timeout: float
+) -> tuple[list[str], str | None]:
+    """Module slots on the graph, and the running template when the supervisors say it."""
+    from components.comm.graph import snapshot
+
+    deadline = time.monotonic() + timeout
+    while True:
+        graph = await asyncio.to_thread(snapshot, node.session, node.domain, 1.0)
+        services = graph.services()
+        topics = graph.topics()
+        found = []
+        for name, info in services.items():
+            match = _JOINTS_SERVICE.match(name)
+            if match and LIST_JOINTS in info.types and info.servers:
+                slot = match.group(1)
+                read = topics.get(f"/{slot}/joint_read")
+                if read is not None and read.publishers:
+                    found.append(slot)
+        supervisors = [
+            n for n, i in services.items() if n.startswith("/msctl/") and AGENT_SRV in i.types
+        ]
+        if found or time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.2)
+    if not found:
+        raise RobotNotFoundError(
+            f"no running assembly found on the data plane within {timeout:g} s (looked for "
+            "joint managers' /<slot>/joints services); start one with `msctl up <template>`, "
+            "and check MSCTL_ZENOH_CONNECT points at its router"
+        )
+    templates = await asyncio.to_thread(_running_templates, node, supervisors)
+    template = templates[0] if len(templates) == 1 else None
+    if assembly is not None:
+        if templates and assembly not in templates:
+            raise RobotNotFoundError(
+                f"assembly {assembly!r} is not running; running: {', '.join(templates)}"
+            )
+        template = assembly
+    return found, template
+
+
+def _running_templates(node: Any, services: Sequence[str]) -> list[str]:
+    """Templates the supervisors report (``ps``), deduplicated; silent ones are skipped."""
+    from components.comm.services import ServiceError
+    from components.comm.types import registry
+
+    templates: list[str] = []
+    for service in services:
+        client = node.client(service, AGENT_SRV)
+        try:
+            request = registry().msg_class(client.parts.request)(verb="ps", args="{}")
+            response = client.call(request, timeout=2.0)
+            if response.success and response.payload:
+                template = json.loads(response.payload).get("template")
+                if template and template not in templates:
+                    templates.append(template)
+        except (ServiceError, ValueError) as exc:
+            log.debug("supervisor %s did not say its template: %s", service, exc)
+        finally:
+            client.close()
+    return templates
+
+
+def _lock_for(template: str | None) -> Any:
+    """This computer's resolved assembly, when it is the running one (or nothing says)."""
+    from components.assembly import AssemblyError, load_assembly
+
+    try:
+        resolved = load_assembly()
+    except AssemblyError:
+        return None
+    if template is not None and resolved.template != template:
+        log.info(
+            "the lock file here is for %s, not the running %s: ignored",
+            resolved.template,
+            template,
+        )
+        return None
+    return resolved
+
+
+def _controls(resolved: Any, slot: str) -> dict[str, str] | None:
+    if resolved is None:
+        return None
+    try:
+        module = resolved.module(slot)
+    except KeyError:
+        return None
+    return {j.name: j.control for j in module.joints}
+
+
+def _kind(resolved: Any, handler: JointHandler) -> str:
+    if resolved is not None:
+        try:
+            return resolved.module(handler.slot).kind
+        except KeyError:
+            pass
+    controls = {i.control for i in handler.joints.values()}
+    return "wheel" if controls == {"velocity"} else "limb"
