@@ -35,27 +35,35 @@ class KindInfo:
     """How a running component of a kind shows itself on the data plane.
 
     Attributes:
-        node_name: Its node's name in its namespace (``/limb1/joint_manager``).
         first_output: A topic it publishes soon after starting (relative to its namespace,
             or absolute), which the launcher waits for to call it healthy.
     """
 
-    node_name: str
     first_output: str
 
 
 #: The launcher's view of each kind, so it can judge health without building anything.
 KINDS: dict[str, KindInfo] = {
-    "joint_manager": KindInfo("joint_manager", "diagnostics"),
-    "motor_interface": KindInfo("motor_interface", "joint_states"),
-    "simulator": KindInfo("simulator", "/sim/diagnostics"),
-    "health_monitor": KindInfo("health_monitor", "health"),
+    "joint_manager": KindInfo("diagnostics"),
+    "motor_interface": KindInfo("joint_states"),
+    "simulator": KindInfo("/sim/diagnostics"),
+    "health_monitor": KindInfo("health"),
     # Diagnostics go out at start, before any joint_read; tip_pose needs joint angles first.
-    "kinematics_manager": KindInfo("kinematics_manager", "diagnostics"),
+    "kinematics_manager": KindInfo("diagnostics"),
     # Every location publisher writes tf (the root-link one at start, from static edges).
-    # Both publishers of a module share the node name: KindInfo has one name per kind.
-    "location_publisher": KindInfo("location_publisher", "tf"),
+    "location_publisher": KindInfo("tf"),
 }
+
+
+def node_name(component: str) -> str:
+    """The node a component runs as, in its module's namespace: the last part of its name.
+
+    ``limb1/joint_manager`` runs as ``/limb1/joint_manager``, ``limb1/location_tip`` as
+    ``/limb1/location_tip``: one rule, so the launcher and the health monitor know every
+    node's name from the plan alone, and two components of one kind never share a node.
+    """
+    return component.rsplit("/", 1)[-1].replace("-", "_")
+
 
 #: The one simulated world that replaces every motor interface off-robot.
 SIMULATOR_COMPONENT = "sim/simulator"

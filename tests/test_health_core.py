@@ -446,10 +446,17 @@ def test_builder_reads_module_health_and_expects_the_module_components() -> None
     sim = build_component(plan, assembly, {"sim": True, "launched": ["limb1/motor_interface"]})
     assert [s.expected.node for s in sim.core._components.values()] == ["/sim/simulator"]
     assert built.on_bound is not None
-    # Without a launch list: every kind the launcher starts; shared node names counted.
+    # Without a launch list: every kind the launcher starts, each under its own node name
+    # (the module's two location publishers are two nodes, two items).
     default = build_component(plan, assembly, {})
     counts = {s.expected.label: s.expected.count for s in default.core._components.values()}
-    assert counts["joint_manager"] == 1 and counts["location_publisher"] == 2
+    locations = sorted(
+        c.name
+        for c in assembly.components_on(assembly.module("limb1").host)
+        if c.module == "limb1" and c.kind == "location_publisher"
+    )
+    assert counts["joint_manager"] == 1
+    assert {f"{n.rsplit('/', 1)[-1]}": 1 for n in locations}.items() <= counts.items()
     default.close()
     built.close()
     sim.close()

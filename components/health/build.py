@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import KINDS, BuildError, BuiltComponent, buildable
+from components.build import node_name as component_node_name
 from components.comm.liveliness import Entity, EntityKind
 from components.health.core import (
     ExpectedComponent,
@@ -40,11 +41,9 @@ SIMULATOR_NODE = "/sim/simulator"
 
 
 def node_name(plan: ComponentPlan) -> str:
-    """The node name a planned component runs as: its kind's (``KINDS``, as its builder
-    names it; both location publishers of a module are ``location_publisher``), else its
-    name within its module (``limb1/joint_manager`` -> ``joint_manager``)."""
-    info = KINDS.get(plan.kind)
-    return info.node_name if info is not None else plan.name.rsplit("/", 1)[-1]
+    """The node name a planned component runs as (``limb1/joint_manager`` ->
+    ``joint_manager``; see :func:`components.build.node_name`)."""
+    return component_node_name(plan.name)
 
 
 def expected_components(

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import BuildError, BuiltComponent
+from components.build import BuildError, BuiltComponent, node_name
 from components.kinematics.model import ModelError, module_model, mount_of
 from components.location.core import LocationConfig, LocationCore, StaticEdge
 from components.location.interface import location_interface
@@ -62,5 +62,6 @@ def build(
         core = LocationCore(plan.name, module.slot, model, links, edges, config)
     except (ModelError, KeyError, TypeError, ValueError) as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
-    node_name = "location_publisher"
-    return BuiltComponent(core, location_interface(core.topics), module.namespace, node_name)
+    return BuiltComponent(
+        core, location_interface(core.topics), module.namespace, node_name(plan.name)
+    )

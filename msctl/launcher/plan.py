@@ -19,7 +19,7 @@ import socket
 from dataclasses import dataclass, field
 
 from components.assembly import ResolvedAssembly
-from components.build import KINDS, SIMULATOR_COMPONENT, buildable
+from components.build import KINDS, SIMULATOR_COMPONENT, buildable, node_name
 
 #: What a process or component name may look like: it reaches an argument list, so nothing
 #: that could be read as an option, a path or a shell fragment.
@@ -87,7 +87,7 @@ def _run(name: str, kind: str, namespace: str) -> ComponentRun:
         name=name,
         kind=kind,
         namespace=namespace,
-        node_fqn=_qualify(namespace, info.node_name),
+        node_fqn=_qualify(namespace, node_name(name)),
         first_output=_qualify(namespace, info.first_output),
     )
 
