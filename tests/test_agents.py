@@ -375,9 +375,12 @@ def test_up_all_ps_restart_down(
             timeout=20.0,
         )
     )
-    # `logs` reaches the agent too (`msctl logs` itself reads this computer's files).
+    # `logs` reaches the agent too, directly and through `msctl logs` from the ground station.
     logs = raw_call(node, "gl-pi-01", "logs", json.dumps({"component": "limb2/joint_manager"}))
     assert logs.success, logs.message
+    remote_log = msctl(ground_home, net_env, "logs", "limb2/joint_manager", "-n", "20")
+    assert remote_log.returncode == 0, remote_log.stderr
+    assert "limb2/joint_manager" in remote_log.stdout
     assert any("limb2" in line for line in json.loads(logs.payload)["limb2"])
 
     down = msctl(ground_home, net_env, "down", "--all")

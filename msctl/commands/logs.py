@@ -47,6 +47,22 @@ def _log_file(component: str | None) -> list[Path]:
     )
 
 
+def _remote_lines(component: str, lines: int) -> list[str]:
+    from components.comm.services import ServiceTimeout
+    from msctl.errors import NetworkError
+    from msctl.launcher.control import RequestError, call_supervisor
+    from msctl.launcher.remote import host_of
+    from msctl.plane import connected
+
+    with connected("logs") as node:
+        host = host_of(component, node)
+        try:
+            answer = call_supervisor(node, host, "logs", {"component": component, "lines": lines})
+        except (ServiceTimeout, RequestError) as exc:
+            raise NetworkError(f"cannot get the log of {component} from {host}: {exc}") from exc
+    return [line for process_lines in answer.values() for line in process_lines]
+
+
 def command(
     component: str = typer.Argument(None, help="Component or process (default: all)."),
     follow: bool = typer.Option(False, "--follow", "-f", help="Keep printing new lines."),
@@ -59,7 +75,15 @@ def command(
     cutoff = None
     if since:
         cutoff = datetime.now() - timedelta(seconds=_since_seconds(since))
-    files = _log_file(component)
+    try:
+        files = _log_file(component)
+    except NotFoundError:
+        if component is None or follow:
+            raise
+        # Not on this computer: ask the supervisor (agent) of the host that runs it.
+        for line in _remote_lines(component, lines):
+            out.print(line, highlight=False, markup=False)
+        return
     if not files:
         raise NotFoundError("no logs on this computer yet", hint="start something with `msctl up`")
     for path in files:

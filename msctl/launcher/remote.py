@@ -8,7 +8,7 @@ from msctl.errors import MsctlError, NetworkError, NotFoundError
 from msctl.launcher.control import RequestError
 
 
-def _host_of(component: str, node: Any) -> str:
+def host_of(component: str, node: Any) -> str:
     from msctl.launcher import state
     from msctl.launcher.fleet import ask_all
 
@@ -37,7 +37,7 @@ def control_component(verb: str, component: str) -> None:
     from msctl.plane import connected
 
     with connected(verb) as node:
-        host = _host_of(component, node)
+        host = host_of(component, node)
         try:
             answer = call_supervisor(node, host, verb, {"component": component})
         except ServiceTimeout as exc:
