@@ -381,6 +381,17 @@ def test_up_all_ps_restart_down(
     remote_log = msctl(ground_home, net_env, "logs", "limb2/joint_manager", "-n", "20")
     assert remote_log.returncode == 0, remote_log.stderr
     assert "limb2/joint_manager" in remote_log.stdout
+
+    # A second supervisor for a host its agent serves is refused.
+    clash = msctl(ground_home, net_env, "up", "--host", "gl-pi-01", "--sim", "--for", "1")
+    assert clash.returncode != 0 and "already serves gl-pi-01" in clash.stderr, clash.stderr
+    # `msctl down` on the agent's own computer stops its run through the agent, which stays.
+    wheel_groups = {r["pid"] for r in by_host(ps(ground_home, net_env))["hl-wheel-01"].values()}
+    local_down = msctl(agents.home("hl-wheel-01"), net_env, "down")
+    assert local_down.returncode == 0, local_down.stderr
+    assert "stays up" in local_down.stderr
+    assert [p for p in wheel_groups if _group_alive(p)] == []
+    assert agents.procs["hl-wheel-01"].poll() is None, agents.logs()
     assert any("limb2" in line for line in json.loads(logs.payload)["limb2"])
 
     down = msctl(ground_home, net_env, "down", "--all")

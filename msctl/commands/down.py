@@ -60,6 +60,9 @@ def command(
         leftovers = [p for p in (document or {}).get("processes", []) if p.get("pgid")]
         _kill_leftovers(leftovers)
         return
+    if document.get("agent"):
+        _down_through_agent(document)
+        return
     pid = document["supervisor_pid"]
     os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
@@ -81,6 +84,32 @@ def command(
     err.print(
         f"[green]down[/]: {document.get('template')} stopped on {document.get('host')}, "
         "nothing left"
+    )
+
+
+def _down_through_agent(document: dict) -> None:
+    """This computer's run belongs to its agent: ask it (it stays up, idle, for the next run)."""
+    from components.comm.services import ServiceTimeout
+    from msctl.console import err
+    from msctl.errors import NetworkError
+    from msctl.launcher.control import RequestError, call_supervisor
+    from msctl.plane import connected
+
+    host = document["host"]
+    with connected("down") as node:
+        try:
+            call_supervisor(node, host, "down", timeout=20.0)
+        except (ServiceTimeout, RequestError) as exc:
+            raise NetworkError(f"the agent of {host} did not stop its run: {exc}") from exc
+    still = [
+        p["name"]
+        for p in document.get("processes", [])
+        if p.get("pgid") and _group_alive(p["pgid"])
+    ]
+    if still:
+        raise MsctlError(f"processes still alive after down: {', '.join(still)}")
+    err.print(
+        f"[green]down[/]: the agent of {host} stopped {document.get('template')}; it stays up"
     )
 
 

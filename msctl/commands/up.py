@@ -63,6 +63,8 @@ def command(
         )
     assembly = load_resolved(template, use or [])
     host = host or this_host()
+    if os.environ.get(_DAEMON_ENV) != "1":
+        _refuse_if_agent_serves(host)
     plan = plan_host(assembly, host, sim)
     if not plan.processes:
         raise InputError(
@@ -73,6 +75,27 @@ def command(
         _detach(plan, sim, duration, host, speed, timeout)
         return
     _run_foreground(assembly, plan, duration, speed, timeout)
+
+
+def _refuse_if_agent_serves(host: str) -> None:
+    """Two supervisors for one host would answer the same requests: refuse the second."""
+    from components.comm.session import SessionSettings
+    from msctl.launcher.control import host_namespace
+    from msctl.launcher.run import router_reachable
+
+    settings = SessionSettings.from_env()
+    if not settings.connect or not router_reachable(settings.connect[0]):
+        return  # no router yet: no agent can be serving through it
+    from msctl.launcher.fleet import supervisors
+    from msctl.plane import connected
+
+    with connected("up_check") as node:
+        serving = host_namespace(host) in supervisors(node)
+    if serving:
+        raise MsctlError(
+            f"a supervisor (an agent, or another `msctl up`) already serves {host}",
+            hint="start through it with `msctl up --all` from a ground station, or see `msctl ps`",
+        )
 
 
 def _run_foreground(

@@ -332,6 +332,8 @@ class Launch:
             "simulated": self.plan.simulated,
             "off_robot": self.plan.off_robot,
             "supervisor_pid": os.getpid(),
+            # An agent's run is stopped by asking the agent, never by signalling it.
+            "agent": not self.serve_control,
             "router": self.endpoint,
             "started_router": self.started_router,
             "started": self._started,
