@@ -11,18 +11,9 @@ from pathlib import Path
 import typer
 
 from msctl.errors import MsctlError
+from msctl.launcher import state
 
 COMMAND_SETTINGS = {"help": "Stop every component (verified gone); --all for every host."}
-
-
-def _group_alive(pgid: int) -> bool:
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _pid_alive(pid: int) -> bool:
@@ -44,7 +35,6 @@ def command(
 ) -> None:
     """Stop the run on this computer (and every host with --all), then check nothing is left."""
     from msctl.console import err
-    from msctl.launcher import state
 
     if all_hosts:
         from msctl.launcher.fleet import ask_all
@@ -74,11 +64,7 @@ def command(
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
     _kill_leftovers(document.get("processes", []))
-    still = [
-        p["name"]
-        for p in document.get("processes", [])
-        if p.get("pgid") and _group_alive(p["pgid"])
-    ]
+    still = state.groups_left(document)
     if still:
         raise MsctlError(f"processes still alive after down: {', '.join(still)}")
     err.print(
@@ -101,11 +87,7 @@ def _down_through_agent(document: dict) -> None:
             call_supervisor(node, host, "down", timeout=20.0)
         except (ServiceTimeout, RequestError) as exc:
             raise NetworkError(f"the agent of {host} did not stop its run: {exc}") from exc
-    still = [
-        p["name"]
-        for p in document.get("processes", [])
-        if p.get("pgid") and _group_alive(p["pgid"])
-    ]
+    still = state.groups_left(document)
     if still:
         raise MsctlError(f"processes still alive after down: {', '.join(still)}")
     err.print(
@@ -116,7 +98,7 @@ def _down_through_agent(document: dict) -> None:
 def _kill_leftovers(processes: list[dict]) -> None:
     for process in processes:
         pgid = process.get("pgid")
-        if pgid and _group_alive(pgid):
+        if pgid and state.group_alive(pgid):
             try:
                 os.killpg(pgid, signal.SIGKILL)
             except ProcessLookupError:

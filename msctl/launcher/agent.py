@@ -52,8 +52,14 @@ from components.build import SIMULATOR_COMPONENT
 from components.comm.session import SessionSettings, open_session
 from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request
 from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
-from msctl.launcher.run import ROUTER_PROCESS, Launch, listen_endpoint_for, router_reachable
-from msctl.launcher.supervisor import ProcessState, Supervisor
+from msctl.launcher.run import (
+    Launch,
+    listen_endpoint_for,
+    router_reachable,
+    start_router,
+    wait_for_router,
+)
+from msctl.launcher.supervisor import Supervisor
 
 #: Verbs forwarded to the running :class:`Launch` as they are.
 _FORWARDED = ("logs", "restart", "stop", "start")
@@ -261,28 +267,13 @@ class Agent:
     def _start_router(self) -> None:
         # A robot computer is where the field's router runs: the agent brings one up, as
         # `msctl up` would, so the ground station can reach this computer over the radio.
-        router = self.router.add(
-            ROUTER_PROCESS,
-            [
-                sys.executable,
-                "-m",
-                "msctl",
-                "router",
-                "--listen",
-                listen_endpoint_for(self.endpoint),
-            ],
-        )
-        self.router.start(router.name)
-        deadline = time.monotonic() + 10.0
-        while not router_reachable(self.endpoint):
-            self.router.poll()
-            if router.state is ProcessState.FAILED or time.monotonic() > deadline:
-                raise RuntimeError(
-                    f"no router at {self.endpoint} and the agent's own could not listen there: "
-                    f"{router.last_error or 'no answer'}"
-                )
-            time.sleep(0.05)
-        self.router.mark_running(ROUTER_PROCESS)
+        router = start_router(self.router, self.endpoint)
+        try:
+            wait_for_router(self.router, router, self.endpoint)
+        except RuntimeError as exc:
+            raise RuntimeError(
+                f"no router at {self.endpoint}, and the agent's own: {exc}"
+            ) from exc
         self.log(f"started a router listening on {listen_endpoint_for(self.endpoint)}")
 
     def step(self) -> None:

@@ -21,7 +21,7 @@ from components.comm.session import SessionSettings, open_session
 from msctl.launcher import state
 from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request
 from msctl.launcher.plan import HostPlan
-from msctl.launcher.supervisor import ProcessState, RestartPolicy, Supervisor
+from msctl.launcher.supervisor import ManagedProcess, ProcessState, RestartPolicy, Supervisor
 from msctl.launcher.watch import HealthWatch
 
 ROUTER_PROCESS = "router"
@@ -71,6 +71,36 @@ def listen_endpoint_for(connect_endpoint: str) -> str:
     if connect_endpoint.startswith("tcp/localhost:"):
         return "tcp/[::]:" + connect_endpoint.rsplit(":", 1)[1]
     return connect_endpoint
+
+
+def start_router(supervisor: Supervisor, endpoint: str) -> ManagedProcess:
+    """Start an embedded router (``msctl router``) as a supervised process for ``endpoint``."""
+    router = supervisor.add(
+        ROUTER_PROCESS,
+        [sys.executable, "-m", "msctl", "router", "--listen", listen_endpoint_for(endpoint)],
+    )
+    supervisor.start(router.name)
+    return router
+
+
+def wait_for_router(
+    supervisor: Supervisor, router: ManagedProcess, endpoint: str, timeout: float = 10.0
+) -> None:
+    """Wait until the embedded router answers on ``endpoint``; mark it running.
+
+    Raises:
+        RuntimeError: If it failed or did not answer within ``timeout`` (with its last error).
+    """
+    deadline = time.monotonic() + timeout
+    while not router_reachable(endpoint):
+        supervisor.poll()
+        if router.state is ProcessState.FAILED or time.monotonic() > deadline:
+            raise RuntimeError(
+                f"the embedded router could not listen on {endpoint}: "
+                f"{router.last_error or 'no answer'}"
+            )
+        time.sleep(0.02)
+    supervisor.mark_running(ROUTER_PROCESS)
 
 
 @dataclass
@@ -131,30 +161,10 @@ class Launch:
         """
         router = None
         if self.endpoint and not router_reachable(self.endpoint):
-            router = self.supervisor.add(
-                ROUTER_PROCESS,
-                [
-                    sys.executable,
-                    "-m",
-                    "msctl",
-                    "router",
-                    "--listen",
-                    listen_endpoint_for(self.endpoint),
-                ],
-            )
-            self.supervisor.start(router.name)
+            router = start_router(self.supervisor, self.endpoint)
             self.started_router = True
             self._start_processes()
-            deadline = time.monotonic() + 10.0
-            while not router_reachable(self.endpoint):
-                self.supervisor.poll()
-                if router.state is ProcessState.FAILED or time.monotonic() > deadline:
-                    raise RuntimeError(
-                        f"the embedded router could not listen on {self.endpoint}: "
-                        f"{router.last_error or 'no answer'}"
-                    )
-                time.sleep(0.02)
-            self.supervisor.mark_running(ROUTER_PROCESS)
+            wait_for_router(self.supervisor, router, self.endpoint)
         self.session = open_session(replace(self.settings, mode="peer"))
         self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
         if self.serve_control:

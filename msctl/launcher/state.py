@@ -58,12 +58,26 @@ def supervisor_alive(document: dict[str, Any] | None) -> bool:
     if not document or document.get("state") == "stopped":
         return False
     pid = document.get("supervisor_pid")
-    if not isinstance(pid, int):
-        return False
+    return isinstance(pid, int) and _signal_reaches(os.kill, pid)
+
+
+def group_alive(pgid: int) -> bool:
+    """Whether any process of the process group ``pgid`` is left."""
+    return _signal_reaches(os.killpg, pgid)
+
+
+def groups_left(document: dict[str, Any]) -> list[str]:
+    """Names of the processes of a run document whose process group still has a process."""
+    return [
+        p["name"] for p in document.get("processes", []) if p.get("pgid") and group_alive(p["pgid"])
+    ]
+
+
+def _signal_reaches(send: Any, target: int) -> bool:
     try:
-        os.kill(pid, 0)
+        send(target, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
+        return True  # it exists, owned by someone else
     return True
