@@ -40,6 +40,7 @@ _COMMANDS: dict[str, str] = {
     "restart": "msctl.commands.restart",
     "stop": "msctl.commands.stop",
     "router": "msctl.commands.router",
+    "run": "msctl.commands.run",
 }
 
 

@@ -364,11 +364,18 @@ class IkSyncer(Commander):
         lines = {}
         for slot in slots:
             limb = self.limbs[slot]
-            measured = limb.solver.chain.tip(self._measured_q(limb))  # or a clear error
-            start = limb.last_pose
-            # Continue from the last waypoint while the tip is there, else from the tip.
-            if start is None or pose_gap(start, measured)[0] > self.settings.delta_position:
-                start = measured
+            measured_q = self._measured_q(limb)  # every joint heard from, or a clear error
+            start = limb.solver.chain.tip(measured_q)
+            # Continue from the last joint command while the joints are near it: restarting
+            # from the measurement would drop a loaded limb by its tracking error.
+            sent = [limb.handler.last_command.get(n) for n in limb.names]
+            limb.last_q = None
+            if all(v is not None for v in sent):
+                q_sent = np.array(sent, dtype=float)
+                if np.abs(q_sent - measured_q).max() <= self.settings.delta:
+                    limb.last_q = q_sent
+                    start = limb.solver.chain.tip(q_sent)
+            self._planners[slot] = self._new_planner(limb)
             if slot in goals:
                 lines[slot] = Line(start, goals[slot])
         description = f"ik {mode} {'+'.join(slots)}"
@@ -444,16 +451,19 @@ class IkSyncer(Commander):
     def _planner(self, limb: _Limb) -> SyncPlanner:
         planner = self._planners.get(limb.slot)
         if planner is None:
-            infos = [limb.handler.joints[n] for n in limb.names]
-            planner = SyncPlanner(
-                limb.names,
-                [i.lower for i in infos],
-                [i.upper for i in infos],
-                [i.max_velocity for i in infos],
-                self.settings.joint_settings(),
-            )
-            self._planners[limb.slot] = planner
+            planner = self._planners[limb.slot] = self._new_planner(limb)
         return planner
+
+    def _new_planner(self, limb: _Limb) -> SyncPlanner:
+        infos = [limb.handler.joints[n] for n in limb.names]
+        return SyncPlanner(
+            limb.names,
+            [i.lower for i in infos],
+            [i.upper for i in infos],
+            [i.max_velocity for i in infos],
+            self.settings.joint_settings(),
+            limb.last_q,
+        )
 
     async def _drive(
         self,

@@ -91,6 +91,10 @@ class JointHandler:
         self._closed = False
         #: The syncer commanding this module now (one commander per module at a time).
         self.commander: Any = None
+        #: The last position sent to each joint (a new motion continues from it while the
+        #: joint is near it: restarting from the measurement would drop a loaded joint by
+        #: its tracking error).
+        self.last_command: dict[str, float] = {}
         self._publisher = node.publisher(f"{self.namespace}/joint_set", JOINT_STATE)
         self._subscription = node.subscription(
             f"{self.namespace}/joint_read", JOINT_STATE, self._on_joint_read
@@ -225,6 +229,10 @@ class JointHandler:
             if velocity is not None:
                 velocity = min(max(velocity, -info.max_velocity), info.max_velocity)
             sent.append(JointSample(name, position, velocity, row.effort))
+            if position is not None:
+                self.last_command[name] = position
+            else:
+                self.last_command.pop(name, None)
         if sent and not self._closed:
             for message in joint_state_batches(sent):
                 self._publisher.publish(message)

@@ -125,7 +125,6 @@ class JointSyncer(Commander):
             for name, info in handler.joints.items():
                 if not info.locked:
                     self._owner[name] = handler
-        self._last: dict[str, float] = {}
         self.resyncs = 0
 
     @property
@@ -216,9 +215,10 @@ class JointSyncer(Commander):
     def planner(self, names: Sequence[str]) -> SyncPlanner:
         """A planner for ``names``, continuing from the last commands sent to them."""
         infos = [self._owner[n].joints[n] for n in names]
+        sent = {n: self._owner[n].last_command.get(n) for n in names}
         last = None
-        if names and all(n in self._last for n in names):
-            last = [self._last[n] for n in names]
+        if names and all(v is not None for v in sent.values()):
+            last = [sent[n] for n in names]
         return SyncPlanner(
             names,
             [i.lower for i in infos],
@@ -233,7 +233,6 @@ class JointSyncer(Commander):
         per_module: dict[str, dict[str, float]] = {}
         for name, value in zip(names, command.tolist(), strict=True):
             per_module.setdefault(self._owner[name].slot, {})[name] = value
-            self._last[name] = value
         for slot, commands in per_module.items():
             self.handlers[slot].send(commands)
 

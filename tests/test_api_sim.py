@@ -1,0 +1,245 @@
+"""The Python API against the real simulator, launched by the real ``msctl up --detach``.
+
+``minimal`` (one limb on a stand) for the syncers: lerp arrival and synchronization, a cut
+command path, the IK syncer's straight line. ``dragon`` for the example scripts under
+``msctl run``. Each run has its own MSCTL_HOME and router port, and ``msctl down`` at the end.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import free_port
+
+from components.api import connect
+from components.api.ik_syncer import straightness
+from components.comm.session import SessionSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Up:
+    """One detached simulated assembly."""
+
+    def __init__(self, home: Path, template: str) -> None:
+        self.home = home
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.env = {
+            **os.environ,
+            "MSCTL_HOME": str(home),
+            "MSCTL_HOST": "api-test-laptop",  # none of the assembly's computers: simulated
+            "MSCTL_ZENOH_CONNECT": self.endpoint,
+            "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+            "MSCTL_ZENOH_MULTICAST": "0",
+            "PYTHONPATH": str(ROOT),
+        }
+        result = self.msctl("up", template, "--detach", "--speed", "1", timeout=90.0)
+        assert result.returncode == 0, result.stdout + result.stderr
+
+    def msctl(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env=self.env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            cwd=ROOT,
+        )
+
+    def settings(self) -> SessionSettings:
+        return SessionSettings(connect=(self.endpoint,), listen=("tcp/127.0.0.1:0",))
+
+    def down(self) -> None:
+        self.msctl("down", timeout=30.0)
+
+
+@pytest.fixture(scope="module")
+def minimal(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Up]:
+    up = Up(tmp_path_factory.mktemp("api_minimal"), "minimal")
+    try:
+        yield up
+    finally:
+        up.down()
+
+
+@pytest.fixture(scope="module")
+def dragon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Up]:
+    up = Up(tmp_path_factory.mktemp("api_dragon"), "dragon")
+    try:
+        yield up
+    finally:
+        up.down()
+
+
+def run(coro: Any) -> Any:
+    return asyncio.run(asyncio.wait_for(coro, 60.0))
+
+
+@pytest.fixture
+def lock_of(monkeypatch: pytest.MonkeyPatch) -> Any:
+    """Point the API at a run's lock file (connect reads it for kinds and the URDF)."""
+
+    def use(up: Up) -> None:
+        monkeypatch.setenv("MSCTL_HOME", str(up.home))
+
+    return use
+
+
+BENT = {"joint1": 0.0, "joint2": 0.3, "joint3": 0.0, "joint4": -0.9, "joint5": 0.0,
+        "joint6": 0.6, "joint7": 0.0}  # fmt: skip
+
+
+def test_lerp_joints_arrive_together_and_the_awaitable_completes(minimal: Up, lock_of) -> None:
+    lock_of(minimal)
+    delta = 0.1
+
+    async def scenario() -> tuple[float, float, bool]:
+        async with await connect("minimal", settings=minimal.settings()) as robot:
+            assert robot.limbs == ["limb1"]
+            limb = robot.syncer("limb1", delta=delta, speed=0.8)
+            assert await limb.lerp(BENT).wait(20.0)
+            await asyncio.sleep(0.5)
+            start = robot.handler("limb1").positions()
+            target = {"joint2": -0.3, "joint4": 0.1, "joint6": -0.2, "joint5": 0.5}
+            names = [f"limb1_{n}" for n in target]
+            travel = {n: target[n[6:]] - start[n] for n in names}
+            motion = limb.lerp(target)
+            spread = 0.0
+            while not motion.done():
+                now = robot.handler("limb1").positions()
+                progress = [(now[n] - start[n]) / travel[n] for n in names]
+                spread = max(spread, max(progress) - min(progress))
+                await asyncio.sleep(0.01)
+            arrived = await motion
+            end = robot.handler("limb1").positions()
+            assert all(abs(end[n] - target[n[6:]]) <= limb.settings.tolerance for n in names)
+            # The provable bound: each joint is within delta of a command on the common line.
+            bound = 2 * delta / min(abs(t) for t in travel.values())
+            return spread, bound, arrived
+
+    spread, bound, arrived = run(scenario())
+    print(f"\nlerp: largest normalized-progress spread {spread:.3f} (bound {bound:.3f})")
+    assert arrived
+    assert spread <= bound
+
+
+class LostLink:
+    """A publisher whose samples never arrive (a dropped radio link)."""
+
+    def publish(self, _message: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def test_cutting_the_command_path_leaves_the_limb_within_delta(minimal: Up, lock_of) -> None:
+    lock_of(minimal)
+    delta = 0.08
+
+    async def scenario() -> tuple[float, float]:
+        async with await connect("minimal", settings=minimal.settings()) as robot:
+            handler = robot.handler("limb1")
+            limb = robot.syncer("limb1", delta=delta, speed=1.0)
+            assert await limb.lerp(BENT).wait(20.0)
+            motion = limb.lerp({"joint2": -0.6, "joint4": 0.4, "joint6": -0.6})
+            await asyncio.sleep(0.6)  # well under way
+            # The link drops: nothing the syncer sends reaches the joint manager any more.
+            handler._publisher = LostLink()
+            cut = handler.positions()
+            await asyncio.sleep(1.5)  # past the joint manager's 0.5 s watchdog
+            after = handler.positions()
+            moved = max(abs(after[n] - cut[n]) for n in cut)
+            travelled = abs(cut["limb1_joint2"] - 0.3)
+            limb.cancel()
+            assert not motion.arrived
+            return moved, travelled
+
+    moved, travelled = run(scenario())
+    print(f"\ncut: moved {moved:.3f} rad after the cut (delta {delta}), {travelled:.2f} before")
+    assert travelled > 0.2  # the cut came mid-motion
+    assert moved <= delta + 0.02  # 0.02: tracking settle of the simulated servos
+
+
+def test_ik_syncer_moves_the_tip_along_a_straight_line(minimal: Up, lock_of) -> None:
+    lock_of(minimal)
+
+    async def scenario() -> tuple[float, float, bool]:
+        async with await connect(settings=minimal.settings()) as robot:
+            assert await robot.syncer("limb1").lerp(BENT).wait(20.0)
+            await asyncio.sleep(1.0)
+            ik = robot.ik("limb1")
+            start = ik.tip().translation.copy()
+            goal = start + np.array([-0.08, 0.06, 0.05])
+            motion = ik.lerp(goal)
+            points = []
+            while not motion.done():
+                points.append(ik.tip().translation.copy())
+                await asyncio.sleep(0.01)
+            arrived = await motion
+            points.append(ik.tip().translation.copy())
+            # Straightness of the path the tip took (its own ends: the servos' steady-state
+            # sag under gravity shifts the whole path alike), and where it ended.
+            off_line = straightness(points, points[0], points[-1])
+            return off_line, float(np.linalg.norm(points[-1] - goal)), arrived
+
+    off_line, miss, arrived = run(scenario())
+    print(f"\nik: {off_line * 1000:.1f} mm off the line, ended {miss * 1000:.1f} mm from goal")
+    assert arrived
+    assert off_line < 0.005
+    assert miss <= 0.015  # arrived within 1 cm; the servos settle a little after
+
+
+def test_connect_refuses_another_assembly(minimal: Up) -> None:
+    from components.api import RobotNotFoundError
+
+    with pytest.raises(RobotNotFoundError, match="'dragon' is not running; running: minimal"):
+        run(connect("dragon", settings=minimal.settings(), timeout=3.0))
+
+
+def _base_xy(up: Up) -> tuple[float, float]:
+    result = up.msctl("topic", "echo", "/sim/base_pose", "--once", "--json", "--timeout", "5")
+    assert result.returncode == 0, result.stderr
+    import json
+
+    position = json.loads(result.stdout.splitlines()[0])["pose"]["position"]
+    return position["x"], position["y"]
+
+
+def test_examples_run_to_completion_under_msctl_run(dragon: Up) -> None:
+    began = time.monotonic()
+    wave = dragon.msctl("run", "examples/limb_wave.py", "limb1", "1", timeout=60.0)
+    assert wave.returncode == 0, wave.stdout + wave.stderr
+    assert "done waving" in wave.stdout and "done: limb_wave.py" in wave.stderr
+    before = _base_xy(dragon)
+    square = dragon.msctl(
+        "run", "--assembly", "dragon", "examples/dragon_square.py", "0.3", "0.25", timeout=60.0
+    )
+    assert square.returncode == 0, square.stdout + square.stderr
+    assert "leg 4 done" in square.stdout
+    after = _base_xy(dragon)
+    print(f"\nexamples: {time.monotonic() - began:.1f} s; base {before} -> {after}")
+    assert math.dist(before, after) > 0.05  # it drove
+
+
+def test_a_failing_script_names_its_line_and_exits_non_zero(dragon: Up, tmp_path: Path) -> None:
+    script = tmp_path / "broken.py"
+    script.write_text(
+        "async def main(robot):\n"
+        "    limb = robot.syncer('limb1')\n"
+        "    await limb.lerp({'joint42': 0.1})\n"
+    )
+    result = dragon.msctl("run", str(script), timeout=30.0)
+    assert result.returncode == 1
+    message = " ".join(result.stderr.split())
+    assert f"{script}:3 (main)" in message and "joint42" in message, message
