@@ -374,7 +374,11 @@ class DynamixelBackend(MotorBackend):
         now = time.monotonic()
         try:
             for servo in self._servos:
-                self._probe(servo, now)
+                # A reply that comes late once (a busy computer, a long cable) must not leave
+                # the servo limp until the next re-probe: try again at once, a few times.
+                for _ in range(1 + max(self.retries, 0)):
+                    if self._probe(servo, now):
+                        break
         except Exception as exc:
             # The device opened but is not a working serial line (or vanished at once).
             self._opened = False
