@@ -21,8 +21,9 @@ Two scenarios:
 
 Targets: tracking rate of ours >= 0.7x the bare loop and > 2,000 solves/s (7-joint limb).
 
-The syncer step overhead (the IK syncer of ``components/api`` is written later) is not
-measured yet: :func:`bench_syncer_step` is the place to add it, and says so when run.
+Syncer step overhead (:func:`bench_syncer_step`): the per-call cost of the joint syncer's
+planner and of one joint / IK syncer tick (state, plan, IK, serialized ``joint_set``), against
+a bare numpy clip step in the same run.
 """
 
 from __future__ import annotations
@@ -166,16 +167,151 @@ def bench_ik(count: int, repeats: int) -> list[list[object]]:
     return rows
 
 
-def bench_syncer_step() -> list[list[object]] | None:
-    """Syncer step overhead per call: NOT MEASURED YET.
+class _Recorder:
+    """A publisher that serializes what it is given (the real CDR cost) and keeps nothing."""
 
-    The IK syncer (``components/api``) does not exist yet. Whoever writes it: time one
-    syncer step (read the latest joint state, solve one target with ``IkSolver``, build the
-    ``joint_set``) against :func:`bench_ik`'s tracking rate on the same targets, and return
-    rows ``[limb, "syncer step", per-call overhead in µs]`` for the table printed by
-    :func:`main`. Until then this returns None and the benchmark says so; no number is made up.
+    def __init__(self) -> None:
+        from components.comm.types import registry
+        from components.messages import JOINT_STATE
+
+        self._serialize = registry().serializer(JOINT_STATE)
+        self.bytes = 0
+
+    def publish(self, message: object) -> None:
+        self.bytes += len(self._serialize(message))
+
+    def close(self) -> None:
+        pass
+
+
+class _Node:
+    """Just enough of a comm Node for a JointHandler: publishers serialize, no Zenoh."""
+
+    def publisher(self, _topic: str, _type: str) -> _Recorder:
+        return _Recorder()
+
+    def subscription(self, _topic: str, _type: str, _callback: object) -> _Recorder:
+        return _Recorder()
+
+
+def _per_call(step: Callable[[int], object], calls: int, repeats: int) -> float:
+    """Best-of-``repeats`` microseconds per call of ``step(i)``."""
+    best = math.inf
+    for _ in range(repeats):
+        began = time.perf_counter()
+        for i in range(calls):
+            step(i)
+        best = min(best, time.perf_counter() - began)
+    return best / calls * 1e6
+
+
+def bench_syncer_step(calls: int = 2000, repeats: int = 5) -> list[list[object]]:
+    """Syncer step overhead per call, against a bare numpy step in the same run.
+
+    Per limb type, with no I/O (a handler whose publisher serializes the CDR and drops it):
+
+    * **bare numpy**: ``np.clip(target, measured - delta, measured + delta)``, the least a
+      bounded step can cost;
+    * **planner lerp**: :meth:`SyncPlanner.step` (ball, line, speed cap, limits, arrival);
+    * **joint tick**: one :class:`JointSyncer` tick as it runs: read the latest states from
+      the handler, plan, build and serialize ``joint_set``;
+    * **IK tick**: one :class:`IkSyncer` tick: FK of the measured joints, the waypoint on the
+      line, one warm-started IK solve, the joint step, ``joint_set``;
+    * **IK solve alone**: the same solve from the same start, for reference.
+
+    The target moves each call (a tracking motion), so nothing is solved twice.
     """
-    return None
+    rows: list[list[object]] = []
+    for label, unit in LIMBS.items():
+        rows.extend(_syncer_rows(label, unit, calls, repeats))
+    return rows
+
+
+def _syncer_rows(label: str, unit: str, calls: int, repeats: int) -> list[list[object]]:
+    """:func:`bench_syncer_step` for one limb type."""
+    from components.api.ik_syncer import IkSyncer, Line
+    from components.api.joints import JointHandler, JointInfo, JointState
+    from components.api.planner import LERP, SyncPlanner, SyncSettings
+    from components.api.syncer import JointSyncer
+    from components.assembly import from_document
+    from msctl.assembler import resolve
+
+    rows: list[list[object]] = []
+    resolved = resolve("minimal", {"limb1": unit})
+    module = from_document(resolved.document).module("limb1")
+    chain_plan = module.chains[0]
+    chain = chain_model(resolved.urdf, chain_plan.base_link, chain_plan.tip_link)
+    names = list(chain.joint_names)
+    infos = [
+        JointInfo(j.name, j.spec.type, j.spec.lower, j.spec.upper, j.spec.max_velocity,
+                  j.spec.max_effort)
+        for j in module.joints
+        if j.name in names
+    ]  # fmt: skip
+    handler = JointHandler(_Node(), "limb1", infos)
+    rng = np.random.default_rng(3)
+    lower = np.array([i.lower for i in infos]) + 0.1
+    upper = np.array([i.upper for i in infos]) - 0.1
+    home = rng.uniform(lower, upper) * 0.3
+    now = time.monotonic()
+    handler._states = {
+        n: JointState(float(q), 0.0, 0.0, now) for n, q in zip(names, home, strict=True)
+    }
+    settings = SyncSettings()
+    targets = [home + rng.normal(0.0, 0.3, home.size) for _ in range(64)]
+    measured = home.copy()
+    delta = settings.delta
+
+    def bare(i: int) -> object:
+        return np.clip(targets[i % 64], measured - delta, measured + delta)
+
+    planner = SyncPlanner(
+        names, [i.lower for i in infos], [i.upper for i in infos],
+        [i.max_velocity for i in infos], settings,
+    )  # fmt: skip
+
+    def plan(i: int) -> object:
+        return planner.step(LERP, measured, settings.period, target=targets[i % 64])
+
+    syncer = JointSyncer([handler], settings)
+    tick_planner = syncer.planner(names)
+
+    def joint_tick(i: int) -> None:
+        current = syncer.measured(names)
+        q = np.array([current[n] for n in names])
+        step = tick_planner.step(LERP, q, settings.period, target=targets[i % 64])
+        syncer.send(names, step.command)
+
+    ik = IkSyncer([(handler, chain_plan)], resolved.urdf)
+    limb = ik.limbs["limb1"]
+    tip = limb.solver.chain.tip(home)
+    goals = [pin.SE3(tip.rotation, tip.translation + rng.normal(0.0, 0.03, 3)) for _ in range(64)]
+
+    def ik_tick(i: int) -> None:
+        limb.last_q = None
+        ik.step("lerp", {"limb1": Line(tip, goals[i % 64])}, {}, settings.period)
+
+    # The waypoints a tick solves: one step of the line at the syncer's tip speed.
+    reach = ik.settings.speed * settings.period
+    waypoints = [
+        Line(tip, g).at(min(1.0, reach / float(np.linalg.norm(g.translation - tip.translation))))
+        for g in goals
+    ]
+
+    def ik_alone(i: int) -> object:
+        return limb.solver.solve(waypoints[i % 64], home, budget=ik.settings.ik_budget)
+
+    base = _per_call(bare, calls, repeats)
+    for what, step, count in (
+        ("bare numpy clip", bare, calls),
+        ("planner lerp step", plan, calls),
+        ("JointSyncer tick (state, plan, joint_set)", joint_tick, calls),
+        ("IkSyncer tick (FK, waypoint, IK, plan, joint_set)", ik_tick, calls // 4),
+        ("IK solve alone (same waypoint, same start)", ik_alone, calls // 4),
+    ):
+        micros = base if step is bare else _per_call(step, count, repeats)
+        rows.append([label, what, f"{micros:,.1f}", f"{micros / base:,.1f}x"])
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,11 +326,11 @@ def main(argv: list[str] | None = None) -> int:
         ["limb", "scenario", "bare DLS/s", "bare ok", "ours/s", "ours ok", "ours/bare"],
         rows,
     )
-    syncer = bench_syncer_step()
-    if syncer is None:
-        print("\nsyncer step overhead: not measured (no IK syncer yet; see bench_syncer_step)")
-    else:
-        print_table("Syncer step overhead", ["limb", "what", "µs per call"], syncer)
+    print_table(
+        "Syncer step overhead per call (no I/O; a 40 Hz syncer has 25,000 µs per tick)",
+        ["limb", "what", "µs per call", "vs bare"],
+        bench_syncer_step(repeats=args.repeats),
+    )
     return 0
 
 
