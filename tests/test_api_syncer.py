@@ -264,3 +264,52 @@ def test_syncer_stop_holds_at_the_measured_state() -> None:
         assert all(s.velocity is None for s in last)
 
     asyncio.run(scenario())
+
+
+# ---------------------------------------------------------------------- wheels and IK lines
+def test_wheel_geometry_comes_from_the_dragon_urdf() -> None:
+    from components.api.wheels import WheelGeometry
+    from components.assembly import from_document
+    from msctl.assembler import resolve
+
+    resolved = resolve("dragon", {})
+    assembly = from_document(resolved.document)
+    wheels = [j.name for slot in ("wheel1", "wheel2") for j in assembly.module(slot).joints]
+    geometry = WheelGeometry.from_urdf(resolved.urdf, assembly.root_links[0], wheels)
+    assert geometry.wheel_radius == pytest.approx(0.16)  # the wheel link's cylinder
+    assert geometry.track_width == pytest.approx(0.38, abs=1e-6)  # joint origins at +-0.19 m
+    straight = geometry.wheel_speeds(0.32, 0.0)
+    # Every wheel rolls the body forward at 0.32 m/s: |speed| = v / r, whatever its mounting.
+    assert all(abs(v) == pytest.approx(2.0) for v in straight.values())
+    # The two wheel modules face opposite ways (limb2 is turned by 180 degrees).
+    assert straight["wheel1_wheel_left"] == pytest.approx(-straight["wheel2_wheel_left"])
+    spin = geometry.wheel_speeds(0.0, 1.0)
+    left = [w for w in geometry.wheels if w.center[1] > 0]
+    right = [w for w in geometry.wheels if w.center[1] < 0]
+    # Turning left: the ground under the left wheels goes back, under the right ones forward.
+    for w in left:
+        assert spin[w.joint] * (w.rolling @ np.array([1.0, 0.0, 0.0])) < 0
+    for w in right:
+        assert spin[w.joint] * (w.rolling @ np.array([1.0, 0.0, 0.0])) > 0
+
+
+def test_cartesian_waypoints_stay_on_the_line_and_in_the_ball() -> None:
+    import pinocchio as pin
+
+    from components.api.ik_syncer import CartesianPlanner, IkSyncSettings, Line
+
+    planner = CartesianPlanner(IkSyncSettings(delta_position=0.02, speed=10.0))
+    start = pin.SE3(np.eye(3), np.zeros(3))
+    line = Line(start, pin.SE3(np.eye(3), np.array([0.1, 0.0, 0.0])))
+    # The measured tip lags 1 cm off the line: the waypoint is the farthest point of the
+    # line within 2 cm of it.
+    measured = pin.SE3(np.eye(3), np.array([0.0, 0.01, 0.0]))
+    progress, _ = planner.reach(line, measured, 0.025, False)
+    point = line.at(progress).translation
+    assert point[1] == 0.0 and point[2] == 0.0
+    assert np.linalg.norm(point - measured.translation) == pytest.approx(0.02)
+    # A tip pushed far off the line holds the progress where it was, never goes back.
+    line.progress = progress
+    far = pin.SE3(np.eye(3), np.array([0.0, 0.5, 0.0]))
+    assert planner.reach(line, far, 0.025, False)[0] == progress
+    assert planner.held == 1
