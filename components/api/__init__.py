@@ -38,8 +38,27 @@ from components.api.planner import SyncPlanner, SyncSettings
 from components.api.sync import SyncRobot, connect_sync
 from components.api.syncer import JointSyncer
 
+# Pinocchio is imported only when the IK syncer or the wheel helper is first used.
+_LAZY = {
+    "IkSyncer": "components.api.ik_syncer",
+    "IkSyncSettings": "components.api.ik_syncer",
+    "WheelDrive": "components.api.wheels",
+    "WheelGeometry": "components.api.wheels",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'components.api' has no attribute {name!r}")
+
+
 __all__ = [
     "ApiError",
+    "IkSyncSettings",
+    "IkSyncer",
     "JointHandler",
     "JointInfo",
     "JointNotReadyError",
@@ -53,6 +72,8 @@ __all__ = [
     "SyncRobot",
     "SyncSettings",
     "UnknownJointError",
+    "WheelDrive",
+    "WheelGeometry",
     "connect",
     "connect_sync",
 ]

@@ -236,8 +236,10 @@ async def connect(
     handlers: list[JointHandler] = []
     try:
         node = Node(session, f"api_{os.getpid()}", "/", domain=settings.domain)
-        found, template = await _discover(node, assembly, timeout)
-        resolved = _lock_for(template)
+        local = _lock_for(assembly)
+        expected = set(local.units) if local is not None else None
+        found, template = await _discover(node, assembly, timeout, expected)
+        resolved = local if local is not None and template in (None, local.template) else None
         if template is None and resolved is not None and set(found) <= set(resolved.units):
             template = resolved.template
         if slots:
@@ -270,12 +272,18 @@ async def connect(
 
 
 async def _discover(
-    node: Any, assembly: str | None, timeout: float
+    node: Any, assembly: str | None, timeout: float, expected: set[str] | None = None
 ) -> tuple[list[str], str | None]:
-    """Module slots on the graph, and the running template when the supervisors say it."""
+    """Module slots on the graph, and the running template when the supervisors say it.
+
+    The graph fills in as tokens arrive: wait for every module of the lock file
+    (``expected``) when there is one, else (or when modules outside it show up: another
+    assembly runs) for two snapshots in a row to agree.
+    """
     from components.comm.graph import snapshot
 
     deadline = time.monotonic() + timeout
+    previous: list[str] | None = None
     while True:
         graph = await asyncio.to_thread(snapshot, node.session, node.domain, 1.0)
         services = graph.services()
@@ -291,8 +299,14 @@ async def _discover(
         supervisors = [
             n for n, i in services.items() if n.startswith("/msctl/") and AGENT_SRV in i.types
         ]
-        if found or time.monotonic() > deadline:
+        if time.monotonic() > deadline:
             break
+        if expected is not None and expected <= set(found):
+            break
+        # Stable, and not a part of the lock file's assembly (no lock, or another one runs).
+        if found and found == previous and (expected is None or not set(found) <= expected):
+            break
+        previous = found
         await asyncio.sleep(0.2)
     if not found:
         raise RobotNotFoundError(
