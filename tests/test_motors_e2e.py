@@ -520,10 +520,10 @@ def test_over_temperature_is_an_error_naming_the_joint_until_recover(limb: Limb)
     assert limb.errors() == {c.name: 0 for c in limb.components}
 
 
+# Hardware error status is a Dynamixel register: this one runs on the G-line limb only.
+@pytest.mark.parametrize("limb", ["dynamixel"], indirect=True)
 def test_hardware_error_flag_then_recover(limb: Limb) -> None:
     """Dynamixel: a hardware-error flag (overload) shuts the servo down; recover reboots it."""
-    if limb.family != "dynamixel":
-        pytest.skip("hardware error status is a Dynamixel register")
     name = f"{SLOT}_joint1"
     limb.move(name, 0.2)
     hardware = limb.hardware
