@@ -157,10 +157,29 @@ class IkSolver:
             raise ValueError(f"joints {bad}: range narrower than twice the limit margin {margin}")
         self._rng = np.random.default_rng(seed)
         self._identity = np.eye(3 if self.position_only else 6)
+        self._least_regular = self.settings.damping * self._identity
+        s = self.settings
+        # Read once per descent as one tuple: a dozen attribute lookups per solve add up at
+        # tens of thousands of solves per second.
+        self._constants = (
+            chain.model,
+            chain.data,
+            chain.tip_frame,
+            self.position_only,
+            s.position_tolerance,
+            s.orientation_tolerance,
+            s.max_step,
+            s.reach_step,
+            s.turn_step,
+            self._identity,
+            s.orientation_weight,
+            s.damping,
+        )
 
     def clamp(self, q: np.ndarray) -> np.ndarray:
         """``q`` clamped into the limits (minus margin)."""
-        return np.clip(q, self.lower, self.upper)
+        # minimum/maximum: a third of np.clip's overhead on arrays of a few joints.
+        return np.minimum(np.maximum(q, self.lower), self.upper)
 
     def solve(self, target: pin.SE3, current: np.ndarray, budget: int | None = None) -> IkResult:
         """Joint angles putting the tip at ``target`` (in the base frame), near ``current``.
@@ -182,8 +201,9 @@ class IkSolver:
         first = self._descend(start, target, self.lower, self.upper, min(s.iterations, budget))
         spent += first.iterations
         candidates = [first]
-        if first.converged and self._jump(first.q, current) <= s.jump_bound:
-            return self._result(first, target, current, attempts, spent)
+        jump = self._jump(first.q, current)
+        if first.converged and jump <= s.jump_bound:
+            return self._result(first, target, current, attempts, spent, jump)
         while spent < budget:
             attempts += 1
             seed = self._random_start(current)
@@ -223,16 +243,12 @@ class IkSolver:
         linearisation lies, and an undamped step flings the joints); a step that helps lowers
         the damping again toward ``settings.damping``.
         """
-        s = self.settings
-        model, data, frame = self.chain.model, self.chain.data, self.chain.tip_frame
-        position_only = self.position_only
-        pos_tol, rot_tol, max_step = s.position_tolerance, s.orientation_tolerance, s.max_step
-        reach_step, turn_step = s.reach_step, s.turn_step
-        identity = self._identity
-        weight = s.orientation_weight
-        least = s.damping
+        (
+            model, data, frame, position_only, pos_tol, rot_tol, max_step,
+            reach_step, turn_step, identity, weight, least,
+        ) = self._constants  # fmt: skip
         damping = least
-        regular = least * identity  # rebuilt only when the damping changes
+        regular = self._least_regular  # rebuilt only when the damping changes
         goal = target.translation
         q = q.copy()
         base_q, base_cost, base_pos, base_rot = q, math.inf, math.inf, math.inf
@@ -240,7 +256,9 @@ class IkSolver:
         jacobian = error = None
         done = 0
         for done in range(1, iterations + 1):
-            pin.computeJointJacobians(model, data, q)
+            # Forward kinematics only: the Jacobian is needed only when this configuration
+            # is kept and stepped from (not for the final, converged one, nor a rejected one).
+            pin.forwardKinematics(model, data, q)
             tip = pin.updateFramePlacement(model, data, frame)
             offset = goal - tip.translation
             pos_err = math.sqrt(offset @ offset)
@@ -253,7 +271,8 @@ class IkSolver:
                 rot_err = math.sqrt(twist[3:] @ twist[3:])
             cost = pos_err + weight * rot_err
             if cost >= base_cost:
-                # Worse: back to the last good configuration, damp more, try a shorter step.
+                # Worse: back to the last good configuration, damp more, try a shorter step
+                # (its Jacobian and error, computed when it was kept, are still at hand).
                 damping = min(damping * 10.0, 1.0)
                 regular = damping * identity
                 q = base_q
@@ -265,6 +284,8 @@ class IkSolver:
                 base_tip = tip
                 if pos_err < pos_tol and rot_err < rot_tol:
                     return _Descent(q, tip.copy(), pos_err, rot_err, True, done, cost)
+                # Without q: reuses this iteration's forward kinematics instead of redoing it.
+                pin.computeJointJacobians(model, data)
                 if position_only:
                     error = offset
                     jacobian = pin.getFrameJacobian(model, data, frame, pin.LOCAL_WORLD_ALIGNED)[:3]
@@ -288,7 +309,8 @@ class IkSolver:
             if largest > max_step:
                 step *= max_step / largest
             moved = q + step
-            if (moved > hi).any() or (moved < lo).any():
+            inside = np.minimum(np.maximum(moved, lo), hi)
+            if (inside != moved).any():
                 # A joint pressed against a limit and asked to go further would waste the
                 # step (clamping undoes it): solve again without it, so the others make up.
                 blocked = ((q >= hi) & (step > 0)) | ((q <= lo) & (step < 0))
@@ -299,7 +321,7 @@ class IkSolver:
                     largest = np.abs(step).max()
                     if largest > max_step:
                         step *= max_step / largest
-                moved = np.clip(q + step, lo, hi)
+                moved = np.minimum(np.maximum(q + step, lo), hi)
                 if np.abs(moved - q).max() < 1e-9:
                     break  # stuck against the limits
             q = moved
@@ -327,7 +349,13 @@ class IkSolver:
         return float(np.abs(q - current).max()) if q.size else 0.0
 
     def _result(
-        self, found: _Descent, target: pin.SE3, current: np.ndarray, attempts: int, spent: int
+        self,
+        found: _Descent,
+        target: pin.SE3,
+        current: np.ndarray,
+        attempts: int,
+        spent: int,
+        jump: float | None = None,
     ) -> IkResult:
         return IkResult(
             q=found.q,
@@ -335,7 +363,7 @@ class IkSolver:
             position_error=found.position_error,
             orientation_error=found.orientation_error,
             reachable=found.converged,
-            jump=self._jump(found.q, current),
+            jump=self._jump(found.q, current) if jump is None else jump,
             attempts=attempts,
             iterations=spent,
         )
