@@ -243,3 +243,34 @@ def test_a_failing_script_names_its_line_and_exits_non_zero(dragon: Up, tmp_path
     assert result.returncode == 1
     message = " ".join(result.stderr.split())
     assert f"{script}:3 (main)" in message and "joint42" in message, message
+
+
+def test_ctrl_c_stops_the_script_cleanly(dragon: Up) -> None:
+    import signal
+
+    process = subprocess.Popen(
+        [sys.executable, "-m", "msctl", "run", "examples/dragon_square.py"],
+        env=dragon.env,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        time.sleep(5.0)  # connected and driving the first leg
+        process.send_signal(signal.SIGINT)
+        stopped = time.monotonic()
+        out, err = process.communicate(timeout=15.0)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, out + err
+    assert "interrupted: motions stopped" in err
+    assert time.monotonic() - stopped < 5.0
+    # The wheels were commanded to 0, not left at the drive's speed.
+    time.sleep(1.0)
+    result = dragon.msctl("topic", "echo", "/wheel1/joint_read", "--once", "--json")
+    import json
+
+    velocities = json.loads(result.stdout.splitlines()[0])["velocity"]
+    assert max(abs(v) for v in velocities) < 0.2, velocities
