@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -59,15 +60,41 @@ def main(argv: list[str] | None = None) -> int:
             item.close()
         print(f"error: cannot build {name}: {exc}", file=sys.stderr)
         return 3
-    from components.executor.runner import run_built
-
+    transport = os.environ.get("MSCTL_TRANSPORT", "zenoh")
     try:
-        run_built(built, duration=args.duration)
-    except SessionConfigError as exc:
+        if transport == "rclpy":
+            _run_on_rclpy(built, args.duration)
+        elif transport == "zenoh":
+            from components.executor.runner import run_built
+
+            run_built(built, duration=args.duration)
+        else:
+            print(f"error: MSCTL_TRANSPORT={transport!r}: use zenoh or rclpy", file=sys.stderr)
+            return 2
+    except (SessionConfigError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3
     log.info("stopped cleanly")
     return 0
+
+
+def _run_on_rclpy(built: list, duration: float | None) -> None:
+    """The optional ROS 2 path (``MSCTL_TRANSPORT=rclpy``): the same cores as rclpy nodes."""
+    import signal
+
+    from components.executor.rclpy_executor import RclpyExecutor
+
+    try:
+        executor = RclpyExecutor()
+        for item in built:
+            # on_bound hooks (the health monitor's graph view) need the Zenoh data plane.
+            executor.add(item.core, item.spec, item.namespace, item.node_name)
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, lambda *_: executor.stop())
+        executor.run(duration)
+    finally:
+        for item in built:
+            item.close()
 
 
 if __name__ == "__main__":
