@@ -19,15 +19,24 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def wait_until(predicate: Callable[[], Any], timeout: float = 5.0, interval: float = 0.02) -> Any:
-    """Poll ``predicate`` until it returns something truthy; fail the test on timeout."""
+def wait_until(
+    predicate: Callable[[], Any], timeout: float = 5.0, what: str = "", interval: float = 0.02
+) -> Any:
+    """Poll ``predicate`` until it returns something truthy; fail the test on timeout.
+
+    Args:
+        predicate: What to poll.
+        timeout: Seconds before failing.
+        what: Said in the failure (what was awaited).
+        interval: Seconds between polls.
+    """
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout} s")
+            raise AssertionError(f"not within {timeout} s: {what or 'condition'}")
         time.sleep(interval)
 
 

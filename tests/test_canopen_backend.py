@@ -10,10 +10,11 @@ from __future__ import annotations
 import math
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from conftest import wait_until
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
 from components.motors.canopen_drive import CanopenBackend, _Conversion, decode_state
@@ -26,18 +27,6 @@ COUNTS_PER_RAD = COUNTS_PER_REV * GEAR_RATIO / (2 * math.pi)
 PARAMS = {"counts_per_rev": COUNTS_PER_REV, "gear_ratio": GEAR_RATIO, "rated_torque": RATED_TORQUE}
 JOINTS = {1: "limb1_joint1", 2: "limb1_joint2"}
 OPTIONS = {"interface": "virtual", "heartbeat_timeout": 0.3, "temperature_object": "0x2100"}
-
-
-def wait_until(predicate: Callable[[], Any], timeout: float = 3.0, what: str = "") -> Any:
-    """Poll ``predicate`` until truthy; fail the test with ``what`` on timeout."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout} s: {what or predicate}")
-        time.sleep(0.01)
 
 
 def diag(backend: CanopenBackend, joint: str) -> Any:

@@ -6,10 +6,10 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
-from typing import Any
+from collections.abc import Iterator
 
 import pytest
+from conftest import wait_until
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
@@ -34,18 +34,6 @@ OPTIONS = {"latency_timer_ms": 40.0}
 
 def joint(dxl_id: int) -> str:
     return f"limb1_joint{dxl_id}"
-
-
-def poll(predicate: Callable[[], Any], timeout: float = 5.0, step: float = 0.01) -> Any:
-    """Call ``predicate`` until it returns something truthy; fail after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout} s")
-        time.sleep(step)
 
 
 def diag(backend: DynamixelBackend, name: str):
@@ -178,13 +166,13 @@ def test_position_goals_move_the_joints(
     goals = {joint(1): 0.5, joint(2): -0.3, joint(5): 1.2}
     backend.write([MotorCommand(name, position=value) for name, value in goals.items()])
     # SYNC_WRITE has no reply: the emulator applies it a moment later.
-    poll(lambda: chain.register(1, "goal_position") == 2048 + round(0.5 / TICK))
+    wait_until(lambda: chain.register(1, "goal_position") == 2048 + round(0.5 / TICK))
 
     def arrived() -> bool:
         states = backend.read()
         return all(abs(states[name].position - value) < 2 * TICK for name, value in goals.items())
 
-    poll(arrived)
+    wait_until(arrived)
     assert backend.read()[joint(3)].position == pytest.approx(0.0)
 
 
@@ -192,7 +180,7 @@ def test_position_goals_are_clamped_to_the_servo_limits(
     chain: EmulatedDynamixelChain, backend: DynamixelBackend
 ) -> None:
     backend.write([MotorCommand(joint(1), position=10.0)])
-    poll(lambda: chain.register(1, "goal_position") == 4095)
+    wait_until(lambda: chain.register(1, "goal_position") == 4095)
 
 
 def test_velocity_mode_switch_and_effort(
@@ -201,10 +189,10 @@ def test_velocity_mode_switch_and_effort(
     backend.write([MotorCommand(joint(2), velocity=1.0)])
     assert chain.register(2, "operating_mode") == 1
     assert chain.register(2, "torque_enable") == 1
-    state = poll(lambda: (s := backend.read()[joint(2)]).velocity > 0.9 and s)
+    state = wait_until(lambda: (s := backend.read()[joint(2)]).velocity > 0.9 and s)
     assert state.velocity == pytest.approx(1.0, abs=0.03)
     start = state.position
-    later = poll(lambda: (s := backend.read()[joint(2)]).position > start + 0.05 and s)
+    later = wait_until(lambda: (s := backend.read()[joint(2)]).position > start + 0.05 and s)
     assert later.velocity == pytest.approx(1.0, abs=0.03)
     # At constant speed the emulated current is steady: effort is its conversion.
     raw_current = chain.register(2, "present_current")
@@ -215,7 +203,7 @@ def test_velocity_mode_switch_and_effort(
     backend.write([MotorCommand(joint(2), position=0.2)])
     assert chain.register(2, "operating_mode") == 3
     assert chain.register(2, "torque_enable") == 1
-    poll(lambda: abs(backend.read()[joint(2)].position - 0.2) < 2 * TICK)
+    wait_until(lambda: abs(backend.read()[joint(2)].position - 0.2) < 2 * TICK)
 
 
 def test_hardware_error_names_joint_and_bit_then_recover_clears_it(
@@ -228,7 +216,7 @@ def test_hardware_error_names_joint_and_bit_then_recover_clears_it(
         d = diag(backend, joint(2))
         return d.level == 2 and d
 
-    message = poll(flagged).message
+    message = wait_until(flagged).message
     assert "limb1_joint2" in message and "servo id 2" in message and "overload" in message
     assert chain.register(2, "torque_enable") == 0  # the servo shut down by itself
     assert all(diag(backend, joint(i)).level == 0 for i in IDS if i != 2)
@@ -274,7 +262,7 @@ def test_silent_servo_is_reported_alone_and_picked_up_again(
         d = diag(backend, joint(3))
         return d.level == 2 and (states, d)
 
-    states, d = poll(reported, timeout=1.5)
+    states, d = wait_until(reported, timeout=1.5)
     assert time.monotonic() - silenced_at < 1.0
     assert d.message == "limb1_joint3: servo id 3 not answering"
     assert sorted(states) == [joint(i) for i in IDS if i != 3]
@@ -282,12 +270,12 @@ def test_silent_servo_is_reported_alone_and_picked_up_again(
 
     # The rest of the chain still reads and moves while id 3 is gone.
     backend.write([MotorCommand(joint(4), position=0.3)])
-    poll(lambda: abs(backend.read()[joint(4)].position - 0.3) < 2 * TICK)
+    wait_until(lambda: abs(backend.read()[joint(4)].position - 0.3) < 2 * TICK)
 
     # Back, after a power cycle that left its torque off: re-enabled and OK again.
     chain.resume(3)
     assert chain.register(3, "torque_enable") == 0
-    poll(lambda: joint(3) in backend.read() and diag(backend, joint(3)).level == 0)
+    wait_until(lambda: joint(3) in backend.read() and diag(backend, joint(3)).level == 0)
     assert chain.register(3, "torque_enable") == 1
 
 
@@ -313,7 +301,7 @@ def test_servo_absent_at_open_does_not_raise(chain: EmulatedDynamixelChain) -> N
         assert d.level == 2 and "servo id 2 not answering" in d.message
         assert sorted(dxl.read()) == [joint(1)]
         chain.resume(2)
-        poll(lambda: joint(2) in dxl.read())
+        wait_until(lambda: joint(2) in dxl.read())
         assert chain.register(2, "torque_enable") == 1
 
 
@@ -321,13 +309,13 @@ def test_halt_holds_position_and_stops_velocity(
     chain: EmulatedDynamixelChain, backend: DynamixelBackend
 ) -> None:
     backend.write([MotorCommand(joint(1), velocity=2.0), MotorCommand(joint(2), position=2.5)])
-    poll(lambda: backend.read()[joint(2)].position > 0.5)
+    wait_until(lambda: backend.read()[joint(2)].position > 0.5)
     backend.halt()
-    poll(lambda: chain.register(1, "goal_velocity") == 0)
+    wait_until(lambda: chain.register(1, "goal_velocity") == 0)
     # Goal pulled back to where the joint was, not left 2.5 rad away.
-    poll(lambda: chain.register(2, "goal_position") < 2048 + 2.0 / TICK)
-    poll(lambda: abs(backend.read()[joint(1)].velocity) < 1e-9)
-    poll(lambda: abs(backend.read()[joint(2)].velocity) < 1e-9)
+    wait_until(lambda: chain.register(2, "goal_position") < 2048 + 2.0 / TICK)
+    wait_until(lambda: abs(backend.read()[joint(1)].velocity) < 1e-9)
+    wait_until(lambda: abs(backend.read()[joint(2)].velocity) < 1e-9)
     assert backend.read()[joint(2)].position < 2.0
 
 
@@ -336,7 +324,7 @@ def test_close_is_idempotent_and_turns_torque_off(chain: EmulatedDynamixelChain)
     dxl.open()
     dxl.close()
     dxl.close()
-    poll(lambda: chain.register(1, "torque_enable") == 0)  # a reply-less SYNC_WRITE
+    wait_until(lambda: chain.register(1, "torque_enable") == 0)  # a reply-less SYNC_WRITE
     assert dxl.read() == {}
     dxl.write([MotorCommand(joint(1), position=1.0)])
     assert diag(dxl, "").level == 2
@@ -356,7 +344,7 @@ def test_bus_that_goes_away_is_a_diagnostic_not_an_exception() -> None:
     with DynamixelBackend(chain.port, motors, {**OPTIONS, "reopen_interval_s": 0.05}) as dxl:
         assert sorted(dxl.read()) == [joint(1), joint(2)]
         chain.close()
-        poll(lambda: not dxl.read() and diag(dxl, "").level == 2)
+        wait_until(lambda: not dxl.read() and diag(dxl, "").level == 2)
         dxl.write([MotorCommand(joint(1), position=0.1)])
         dxl.halt()
         dxl.recover()

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
+from conftest import wait_until
 
 from components.assembly import JointPlan, ResolvedAssembly, load_assembly
 from components.build import BuiltComponent, build_component
@@ -60,18 +61,6 @@ TOLERANCE = 4e-3
 #: Silence to ERROR on ``diagnostics``: the backend notices (CANopen: a 0.5 s heartbeat
 #: timeout; Dynamixel: the next read cycle), then the motor interface's next 1 Hz report.
 DETECT_WITHIN = 2.0
-
-
-def wait_for(predicate: Callable[[], Any], timeout: float, what: str) -> Any:
-    """Poll ``predicate`` until truthy; fail with ``what`` after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout} s: {what}")
-        time.sleep(0.01)
 
 
 def names_motor(plan: JointPlan, message: str) -> bool:
@@ -333,7 +322,7 @@ class Limb:
             return position is not None and abs(position - target) < tolerance
 
         try:
-            wait_for(arrived, timeout, f"{name} read back at {target}")
+            wait_until(arrived, timeout, f"{name} read back at {target}")
         except AssertionError as exc:
             cal = self.plan(name).calibration
             raise AssertionError(
@@ -350,7 +339,7 @@ class Limb:
             seen = self.operator.level(name)
             return seen[1] if seen is not None and seen[0] == level else None
 
-        return wait_for(
+        return wait_until(
             reached, timeout, f"{name} {LEVEL_NAMES[level]} (last: {self.operator.level(name)})"
         )
 
@@ -444,7 +433,7 @@ def test_calibrated_target_reaches_the_motor(limb: Limb) -> None:
     read = limb.move(name, target)
     raw = cal.to_raw(target)
     hw = limb.hardware
-    wait_for(lambda: abs(hw.position(name) - raw) < TOLERANCE, 3.0, f"motor at raw {raw}")
+    wait_until(lambda: abs(hw.position(name) - raw) < TOLERANCE, 3.0, f"motor at raw {raw}")
     assert hw.goal(name) == pytest.approx(raw, abs=TOLERANCE)
     assert read == pytest.approx(cal.to_calibrated(hw.position(name)), abs=TOLERANCE)
     # The joint manager sent raw (motor) space, not the calibrated target.
@@ -466,7 +455,7 @@ def test_finger_target_in_metres_reaches_the_motor(limb: Limb) -> None:
     limb.move(name, target, tolerance=1e-4)
     raw = plan.calibration.to_raw(target)
     hw = limb.hardware
-    wait_for(lambda: abs(hw.position(name) - raw) < 1e-4, 3.0, f"finger at raw {raw} m")
+    wait_until(lambda: abs(hw.position(name) - raw) < 1e-4, 3.0, f"finger at raw {raw} m")
     assert hw.goal(name) == pytest.approx(raw, abs=1e-4)
 
 
@@ -494,7 +483,7 @@ def test_silent_motor_is_an_error_naming_it_then_picked_up_again(limb: Limb) -> 
     limb.wait_level(silent, OK, 5.0)
     limb.move(silent, -0.25)
     raw = limb.plan(silent).calibration.to_raw(-0.25)
-    wait_for(
+    wait_until(
         lambda: abs(limb.hardware.position(silent) - raw) < TOLERANCE, 3.0, "moved after resume"
     )
     assert limb.errors() == {c.name: 0 for c in limb.components}
@@ -559,7 +548,7 @@ def test_out_of_limit_target_never_reaches_the_motor(limb: Limb) -> None:
             return position is not None and abs(position - inside) < 0.05
 
         # It stops short of the limit (the manager keeps a margin) and stays there.
-        wait_for(near_limit, 8.0, f"{name} near its limit {inside}")
+        wait_until(near_limit, 8.0, f"{name} near its limit {inside}")
         time.sleep(0.2)
         position = limb.operator.position(name)
         assert spec.lower < position < spec.upper
