@@ -26,7 +26,6 @@ from components.messages import (
     JointSample,
     diagnostic_array,
     diagnostic_status,
-    joint_samples,
     joint_state,
 )
 
@@ -137,19 +136,8 @@ class KinematicsCore(Core):
     # ------------------------------------------------------------------ inputs
     def on_joint_read(self, message: Any, now: float) -> None:
         """Keep the chain's current angles; publish ``tip_pose`` when the tip moved."""
-        index = self.chain.index
-        touched = False
-        for sample in joint_samples(message):
-            if sample.position is None or not np.isfinite(sample.position):
-                continue
-            try:
-                i = index(sample.name)
-            except KeyError:
-                continue  # a finger, or another chain's joint
-            self.q[i] = sample.position
-            self._seen[i] = True
-            touched = True
-        if not touched:
+        # A finger or another chain's joint is skipped.
+        if not self.chain.take_positions(message, self.q, self._seen):
             return
         self._last_read = now
         if self.ready:

@@ -20,6 +20,7 @@ import math
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -148,6 +149,25 @@ class KinematicModel:
     def nq(self) -> int:
         """Number of movable joints."""
         return self.model.nq
+
+    def take_positions(self, message: Any, q: np.ndarray, seen: np.ndarray) -> bool:
+        """Copy the finite positions a JointState carries for this model's joints into ``q``.
+
+        Joints of other chains or modules and non-finite values are skipped. Marks ``seen``
+        for each joint taken; returns whether any was.
+        """
+        from components.messages import joint_samples
+
+        index = self._index
+        touched = False
+        for sample in joint_samples(message):
+            i = index.get(sample.name)
+            if i is None or sample.position is None or not math.isfinite(sample.position):
+                continue
+            q[i] = sample.position
+            seen[i] = True
+            touched = True
+        return touched
 
     def index(self, joint: str) -> int:
         """Configuration index of ``joint``.

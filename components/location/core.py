@@ -23,7 +23,6 @@ import pinocchio as pin
 from components.executor.core import Core
 from components.kinematics.model import KinematicModel
 from components.kinematics.poses import apart, pose_stamped, tf_message, transform_stamped
-from components.messages import joint_samples
 
 
 @dataclass(frozen=True)
@@ -127,19 +126,7 @@ class LocationCore(Core):
 
     def on_joint_read(self, message: Any, now: float) -> None:
         """Take the module's new angles; publish the links that moved."""
-        index = self.model.index
-        touched = False
-        for sample in joint_samples(message):
-            if sample.position is None or not np.isfinite(sample.position):
-                continue
-            try:
-                i = index(sample.name)
-            except KeyError:
-                continue
-            self.q[i] = sample.position
-            self._seen[i] = True
-            touched = True
-        if touched:
+        if self.model.take_positions(message, self.q, self._seen):
             self._update()
             self._publish_due(now)
 
