@@ -50,7 +50,13 @@ from components.assembly import (
 )
 from components.build import SIMULATOR_COMPONENT
 from components.comm.session import SessionSettings, open_session
-from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request
+from msctl.launcher.control import (
+    AGENT_SRV,
+    RequestError,
+    host_namespace,
+    parse_request,
+    reply,
+)
 from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
 from msctl.launcher.run import (
     Launch,
@@ -271,9 +277,7 @@ class Agent:
         try:
             wait_for_router(self.router, router, self.endpoint)
         except RuntimeError as exc:
-            raise RuntimeError(
-                f"no router at {self.endpoint}, and the agent's own: {exc}"
-            ) from exc
+            raise RuntimeError(f"no router at {self.endpoint}, and the agent's own: {exc}") from exc
         self.log(f"started a router listening on {listen_endpoint_for(self.endpoint)}")
 
     def step(self) -> None:
@@ -317,31 +321,19 @@ class Agent:
 
     # ------------------------------------------------------------------ requests
     def _answer(self, pending: Any) -> None:
-        from components.messages import msg
-
-        def reply(success: bool, message: str, payload: Any = None) -> None:
-            pending.reply(
-                msg(
-                    "msctl_msgs/srv/AgentRequest_Response",
-                    success=success,
-                    message=message,
-                    payload=json.dumps(payload) if payload is not None else "",
-                )
-            )
-
         verb = getattr(pending.request, "verb", "?")
         try:
             request = parse_request(pending.request.verb, pending.request.args)
             payload, message = self.handle(request.verb, request.args)
         except RequestError as exc:
             self.log(f"refused {verb!r}: {exc}")
-            reply(False, str(exc))
+            reply(pending, False, str(exc))
             return
         except Exception as exc:  # a request must never take the agent down
             self.log(f"{verb} failed: {type(exc).__name__}: {exc}")
-            reply(False, f"{self.host} could not {verb}: {type(exc).__name__}: {exc}")
+            reply(pending, False, f"{self.host} could not {verb}: {type(exc).__name__}: {exc}")
             return
-        reply(True, message, payload)
+        reply(pending, True, message, payload)
 
     def handle(self, verb: str, args: dict[str, Any]) -> tuple[Any, str]:
         """Carry out a validated request; returns ``(payload, message)``.

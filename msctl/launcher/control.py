@@ -80,6 +80,20 @@ def parse_request(verb: str, args_text: str) -> Request:
     return Request(verb, args)
 
 
+def reply(pending: Any, success: bool, message: str, payload: Any = None) -> None:
+    """Answer a pending AgentRequest (``payload`` goes as JSON)."""
+    from components.messages import msg
+
+    pending.reply(
+        msg(
+            "msctl_msgs/srv/AgentRequest_Response",
+            success=success,
+            message=message,
+            payload=json.dumps(payload) if payload is not None else "",
+        )
+    )
+
+
 def call_supervisor(
     node: Any, host: str, verb: str, args: dict[str, Any] | None = None, timeout: float = 5.0
 ) -> dict[str, Any]:

@@ -19,7 +19,7 @@ from typing import Any
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionSettings, open_session
 from msctl.launcher import state
-from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request
+from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request, reply
 from msctl.launcher.plan import HostPlan
 from msctl.launcher.supervisor import ManagedProcess, ProcessState, RestartPolicy, Supervisor
 from msctl.launcher.watch import HealthWatch
@@ -252,27 +252,13 @@ class Launch:
 
     # ------------------------------------------------------------------ control
     def _answer(self, pending: Any) -> None:
-        import json
-
-        from components.messages import msg
-
-        def reply(success: bool, message: str, payload: Any = None) -> None:
-            pending.reply(
-                msg(
-                    "msctl_msgs/srv/AgentRequest_Response",
-                    success=success,
-                    message=message,
-                    payload=json.dumps(payload) if payload is not None else "",
-                )
-            )
-
         try:
             request = parse_request(pending.request.verb, pending.request.args)
             payload = self._do(request.verb, request.args)
         except RequestError as exc:
-            reply(False, str(exc))
+            reply(pending, False, str(exc))
             return
-        reply(True, "ok", payload)
+        reply(pending, True, "ok", payload)
 
     def _process_of(self, name: str) -> str:
         if name in self.supervisor.processes:
