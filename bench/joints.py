@@ -290,22 +290,14 @@ def live_rtf(session: Any, windows: int = 3) -> dict[str, float]:
 
 
 def _resolve(root: Path) -> dict[str, Path]:
-    from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME
     from msctl.assembler import resolve
-    from msctl.assembler.store import lock_text, write_assembly
+    from msctl.assembler.store import write_resolution
 
     dirs = {}
     for name in TEMPLATES:
         resolution = resolve(name)
         target = root / name / "assembly"
-        write_assembly(
-            target,
-            {
-                URDF_NAME: resolution.urdf,
-                MJCF_NAME: resolution.mjcf(),
-                LOCK_NAME: lock_text(resolution.document),
-            },
-        )
+        write_resolution(target, resolution)
         dirs[name] = target
     return dirs
 

@@ -40,6 +40,26 @@ def wait_until(
         time.sleep(interval)
 
 
+_resolved: dict[tuple[str, tuple[tuple[str, str], ...]], Any] = {}
+
+
+def resolved_assembly(
+    directory: Any, template: str, units: dict[str, str] | None = None
+) -> Any:
+    """A shipped template resolved (with ``units`` for some slots) and written under
+    ``directory``; loaded as the launcher would load it. Cached per template and units."""
+    from components.assembly import load_assembly
+    from msctl.assembler import resolve
+    from msctl.assembler.store import write_resolution
+
+    key = (template, tuple(sorted((units or {}).items())))
+    if key not in _resolved:
+        resolution = resolve(template, units or {})
+        target = write_resolution(directory / f"{template}-assembly", resolution)
+        _resolved[key] = load_assembly(target)
+    return _resolved[key]
+
+
 @pytest.fixture
 def router_endpoint() -> Iterator[str]:
     """A real Zenoh router listening on a random loopback port; yields its endpoint."""

@@ -13,15 +13,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
-from conftest import wait_until
+from conftest import resolved_assembly, wait_until
 
 from components.assembly import (
-    LOCK_NAME,
-    MJCF_NAME,
-    URDF_NAME,
     ComponentPlan,
     ResolvedAssembly,
-    load_assembly,
 )
 from components.build import BuiltComponent, build_component
 from components.comm.node import Node
@@ -32,28 +28,12 @@ from components.messages import JOINT_STATE, joint_samples
 pyzeros = pytest.importorskip("pyzeros")
 all_msgs = pytest.importorskip("ros2_pyterfaces.cyclone.all_msgs")
 
-_resolved: dict[str, ResolvedAssembly] = {}
 
 
 @pytest.fixture(scope="module")
 def minimal(tmp_path_factory: pytest.TempPathFactory) -> ResolvedAssembly:
     """The shipped ``minimal`` template, resolved with its default units."""
-    from msctl.assembler import resolve
-    from msctl.assembler.store import lock_text, write_assembly
-
-    if "minimal" not in _resolved:
-        resolution = resolve("minimal")
-        target = tmp_path_factory.mktemp("minimal") / "assembly"
-        write_assembly(
-            target,
-            {
-                URDF_NAME: resolution.urdf,
-                MJCF_NAME: resolution.mjcf(),
-                LOCK_NAME: lock_text(resolution.document),
-            },
-        )
-        _resolved["minimal"] = load_assembly(target)
-    return _resolved["minimal"]
+    return resolved_assembly(tmp_path_factory.mktemp("minimal"), "minimal")
 
 
 @dataclass

@@ -15,15 +15,11 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import wait_until
+from conftest import resolved_assembly, wait_until
 
 from components.assembly import (
-    LOCK_NAME,
-    MJCF_NAME,
-    URDF_NAME,
     ComponentPlan,
     ResolvedAssembly,
-    load_assembly,
 )
 from components.build import BuiltComponent, build_component
 from components.comm.node import Node
@@ -35,20 +31,8 @@ from components.messages import POSE_STAMPED
 
 @pytest.fixture(scope="module")
 def minimal(tmp_path_factory: pytest.TempPathFactory) -> ResolvedAssembly:
-    from msctl.assembler import resolve
-    from msctl.assembler.store import lock_text, write_assembly
-
-    resolution = resolve("minimal")
-    target = tmp_path_factory.mktemp("minimal") / "assembly"
-    write_assembly(
-        target,
-        {
-            URDF_NAME: resolution.urdf,
-            MJCF_NAME: resolution.mjcf(),
-            LOCK_NAME: lock_text(resolution.document),
-        },
-    )
-    return load_assembly(target)
+    """The shipped ``minimal`` template, resolved with its default units."""
+    return resolved_assembly(tmp_path_factory.mktemp("minimal"), "minimal")
 
 
 class Latest:

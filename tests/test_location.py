@@ -5,13 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import resolved_assembly
 
 from components.assembly import (
-    LOCK_NAME,
-    MJCF_NAME,
-    URDF_NAME,
     ResolvedAssembly,
-    load_assembly,
 )
 from components.build import BuiltComponent, build_component
 from components.kinematics.model import chain_model
@@ -21,20 +18,8 @@ from components.messages import JointSample, joint_state
 
 @pytest.fixture(scope="module")
 def dragon(tmp_path_factory: pytest.TempPathFactory) -> ResolvedAssembly:
-    from msctl.assembler import resolve
-    from msctl.assembler.store import lock_text, write_assembly
-
-    resolution = resolve("dragon")
-    target = tmp_path_factory.mktemp("dragon") / "assembly"
-    write_assembly(
-        target,
-        {
-            URDF_NAME: resolution.urdf,
-            MJCF_NAME: resolution.mjcf(),
-            LOCK_NAME: lock_text(resolution.document),
-        },
-    )
-    return load_assembly(target)
+    """The shipped ``dragon`` template, resolved with its default units."""
+    return resolved_assembly(tmp_path_factory.mktemp("dragon"), "dragon")
 
 
 def built(assembly: ResolvedAssembly, name: str) -> BuiltComponent:

@@ -11,14 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import resolved_assembly
 
 from components.assembly import (
-    LOCK_NAME,
-    MJCF_NAME,
-    URDF_NAME,
     ComponentPlan,
     ResolvedAssembly,
-    load_assembly,
 )
 from components.build import BuildError, build_component
 from components.messages import (
@@ -31,29 +28,13 @@ from components.simulator.core import SimulatorConfig, SimulatorCore
 from components.simulator.interface import simulator_interface
 from components.simulator.world import SimulationError, SimWorld, max_real_time_factor
 
-_resolved: dict[str, ResolvedAssembly] = {}
-
 
 @pytest.fixture(scope="module")
 def assembly(tmp_path_factory: pytest.TempPathFactory):
     """Resolve a shipped template once per module (default units): name -> assembly."""
-    from msctl.assembler import resolve
-    from msctl.assembler.store import lock_text, write_assembly
 
     def get(name: str) -> ResolvedAssembly:
-        if name not in _resolved:
-            resolution = resolve(name)
-            target = tmp_path_factory.mktemp(name) / "assembly"
-            write_assembly(
-                target,
-                {
-                    URDF_NAME: resolution.urdf,
-                    MJCF_NAME: resolution.mjcf(),
-                    LOCK_NAME: lock_text(resolution.document),
-                },
-            )
-            _resolved[name] = load_assembly(target)
-        return _resolved[name]
+        return resolved_assembly(tmp_path_factory.mktemp(name), name)
 
     return get
 

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from components.assembly import LOCK_NAME
+from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME
 
 #: Leftover staging directories older than this are removed (a crashed run's debris).
 _STALE_SECONDS = 300.0
@@ -26,6 +26,15 @@ _STALE_SECONDS = 300.0
 def lock_text(document: Mapping[str, Any]) -> str:
     """The lock file's text: stable key order, so two resolutions diff cleanly."""
     return json.dumps(document, indent=2, allow_nan=False) + "\n"
+
+
+def write_resolution(target: Path, resolution: Any, mjcf: bool = True) -> Path:
+    """Atomically write a resolution's lock file and URDF (and MJCF, unless ``mjcf`` is
+    False: generating it costs MuJoCo's import) into directory ``target``."""
+    files = {URDF_NAME: resolution.urdf, LOCK_NAME: lock_text(resolution.document)}
+    if mjcf:
+        files[MJCF_NAME] = resolution.mjcf()
+    return write_assembly(target, files)
 
 
 def write_assembly(target: Path, files: Mapping[str, str]) -> Path:

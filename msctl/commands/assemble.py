@@ -137,23 +137,15 @@ def resolve_and_write(template: str, uses: list[str]) -> tuple[dict[str, Any], P
     Returns:
         The lock document, the directory written, and the slots whose unit changed.
     """
-    from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME, assembly_dir
+    from components.assembly import assembly_dir
     from msctl.assembler import parse_uses, resolve
-    from msctl.assembler.store import lock_text, write_assembly
+    from msctl.assembler.store import write_resolution
 
     if template in ACTIONS:  # pragma: no cover - dispatched before
         raise InputError(f"{template!r} is reserved")
     previous = _previous_units()
     resolution = resolve(template, parse_uses(uses), previous, _picker())
-    mjcf = resolution.mjcf()
-    target = write_assembly(
-        assembly_dir(),
-        {
-            URDF_NAME: resolution.urdf,
-            MJCF_NAME: mjcf,
-            LOCK_NAME: lock_text(resolution.document),
-        },
-    )
+    target = write_resolution(assembly_dir(), resolution)
     document = resolution.document
     changed = [s for s, u in document["units"].items() if previous.get(s) not in (None, u)]
     return document, target, changed

@@ -41,8 +41,6 @@ from typing import Any
 from components.assembly import (
     COMPONENT_KINDS,
     LOCK_NAME,
-    MJCF_NAME,
-    URDF_NAME,
     ResolvedAssembly,
     from_document,
     load_assembly,
@@ -421,7 +419,7 @@ class Agent:
     def _prepare(self, document: Mapping[str, Any], sim: bool | None) -> tuple[Any, HostPlan]:
         """Check the document, resolve it from this computer's data, write it, plan it."""
         from msctl.assembler import resolve
-        from msctl.assembler.store import lock_text, write_assembly
+        from msctl.assembler.store import write_resolution
         from msctl.errors import MsctlError
 
         sent = check_assembly(document, self.host)
@@ -441,10 +439,9 @@ class Agent:
                 "and `msctl up --all` again"
             )
         plan = plan_part(sent, self.host, sim)
-        files = {URDF_NAME: resolution.urdf, LOCK_NAME: lock_text(resolution.document)}
-        if any(c.name == SIMULATOR_COMPONENT for c in plan.components):
-            files[MJCF_NAME] = resolution.mjcf()  # ~0.5 s of MuJoCo: only where the world runs
-        target = write_assembly(agent_assembly_dir(), files)
+        # The MJCF costs ~0.5 s of MuJoCo: only where the simulated world runs.
+        simulates = any(c.name == SIMULATOR_COMPONENT for c in plan.components)
+        target = write_resolution(agent_assembly_dir(), resolution, mjcf=simulates)
         return load_assembly(target / LOCK_NAME), plan
 
     def _down(self) -> tuple[Any, str]:
