@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench._common import free_port, print_table, summary  # noqa: E402
+from bench._common import free_port, print_table, summary
 
 PING, PONG, FLOOD = "bench/ping", "bench/pong", "bench/flood"
 JOINTS = [f"limb1_joint{i}" for i in range(1, 7)]
