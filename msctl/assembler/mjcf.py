@@ -95,7 +95,8 @@ def build_mjcf(document: Mapping[str, Any], urdf: str) -> str:
         tops[0].quat = _quat(rpy_matrix(*robots[0]["rpy"]))
     if document["mobile"]:
         for body in tops:
-            body.add_freejoint()
+            # Named after the body it frees, so tools can find the floating base by name.
+            body.add_freejoint(name=f"{body.name}_floating")
 
     for name, plan in joints.items():
         if not plan["actuated"]:
