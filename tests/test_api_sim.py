@@ -8,10 +8,13 @@ command path, the IK syncer's straight line. ``dragon`` for the example scripts 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 import os
+import re
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -207,13 +210,80 @@ def test_connect_refuses_another_assembly(minimal: Up) -> None:
         run(connect("dragon", settings=minimal.settings(), timeout=3.0))
 
 
-def _base_xy(up: Up) -> tuple[float, float]:
-    result = up.msctl("topic", "echo", "/sim/base_pose", "--once", "--json", "--timeout", "5")
-    assert result.returncode == 0, result.stderr
-    import json
+class BasePose:
+    """The simulator's ground-truth pose of the Dragon's root link (``/sim/base_pose``),
+    kept up to date on our own session (closed by :meth:`close`)."""
 
-    position = json.loads(result.stdout.splitlines()[0])["pose"]["position"]
-    return position["x"], position["y"]
+    def __init__(self, up: Up) -> None:
+        from components.comm import Node, open_session
+
+        self.latest: tuple[float, float, float] | None = None  # x, y (m), yaw (rad)
+        self.session = open_session(up.settings())
+        self.node = Node(self.session, "square_watch", "/")
+        self.node.subscription("/sim/base_pose", "geometry_msgs/msg/PoseStamped", self._on)
+
+    def _on(self, message: Any) -> None:
+        p, q = message.pose.position, message.pose.orientation
+        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        self.latest = (p.x, p.y, yaw)
+
+    def close(self) -> None:
+        self.node.close()
+        self.session.close()
+
+
+class Script:
+    """``msctl run examples/dragon_square.py ARGS``, its output read line by line as printed
+    (stdout by a thread that calls ``on_line``, stderr drained by another)."""
+
+    def __init__(self, up: Up, *args: str, on_line: Any = None) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "msctl", "run", "examples/dragon_square.py", *args],
+            env={**up.env, "PYTHONUNBUFFERED": "1"},  # each line when printed, not at exit
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self.errors: list[str] = []
+        self._on_line = on_line
+        self._readers = [
+            threading.Thread(target=self._read, args=(self.process.stdout, True), daemon=True),
+            threading.Thread(target=self._read, args=(self.process.stderr, False), daemon=True),
+        ]
+        for reader in self._readers:
+            reader.start()
+
+    def _read(self, stream: Any, out: bool) -> None:
+        for line in stream:
+            (self.lines if out else self.errors).append(line)
+            if out and self._on_line is not None:
+                self._on_line(line)
+
+    def wait(self, timeout: float) -> tuple[int, str, str]:
+        """Exit code, stdout, stderr (the script is killed after ``timeout`` seconds)."""
+        try:
+            self.process.wait(timeout=timeout)
+        finally:
+            if self.process.poll() is None:
+                self.process.kill()
+                self.process.wait()
+        for reader in self._readers:
+            reader.join(5.0)
+        return self.process.returncode, "".join(self.lines), "".join(self.errors)
+
+
+def run_square(up: Up, base: BasePose, *args: str) -> tuple[int, str, str, list[Any]]:
+    """Run the square example; the base pose when it starts driving and after each leg."""
+    corners: list[Any] = []
+
+    def corner(line: str) -> None:
+        if "driving" in line or re.match(r"leg \d done", line):
+            corners.append(base.latest)
+
+    code, out, err = Script(up, *args, on_line=corner).wait(75.0)
+    return code, out, err, corners
 
 
 def test_examples_run_to_completion_under_msctl_run(dragon: Up) -> None:
@@ -221,15 +291,40 @@ def test_examples_run_to_completion_under_msctl_run(dragon: Up) -> None:
     wave = dragon.msctl("run", "examples/limb_wave.py", "limb1", "1", timeout=60.0)
     assert wave.returncode == 0, wave.stdout + wave.stderr
     assert "done waving" in wave.stdout and "done: limb_wave.py" in wave.stderr
-    before = _base_xy(dragon)
-    square = dragon.msctl(
-        "run", "--assembly", "dragon", "examples/dragon_square.py", "0.3", "0.25", timeout=60.0
+    waved = time.monotonic()
+    side = 0.4
+    base = BasePose(dragon)
+    try:
+        code, out, err, corners = run_square(dragon, base, str(side), "0.2")
+    finally:
+        base.close()
+    assert code == 0, out + err
+    assert "leg 4 done" in out and "square done" in out
+    assert len(corners) == 5 and None not in corners, (corners, out)
+    xy = np.array([c[:2] for c in corners])
+    legs = np.diff(xy, axis=0)
+    lengths = np.linalg.norm(legs, axis=1)
+    directions = np.degrees(np.arctan2(legs[:, 1], legs[:, 0]))
+    corner_turns = [math.remainder(b - a, 360.0) for a, b in itertools.pairwise(directions)]
+    closure = float(np.linalg.norm(xy[-1] - xy[0]))
+    headings = [math.degrees(math.remainder(c[2] - corners[0][2], 2 * math.pi)) for c in corners]
+    print(
+        f"\nexamples: wave {waved - began:.1f} s, square {time.monotonic() - waved:.1f} s; "
+        f"legs {np.round(lengths, 3)} m, directions {np.round(directions, 1)} deg, "
+        f"corners {np.round(corner_turns, 1)} deg, closure {closure:.3f} m, "
+        f"heading change {np.round(headings, 1)} deg"
     )
-    assert square.returncode == 0, square.stdout + square.stderr
-    assert "leg 4 done" in square.stdout
-    after = _base_xy(dragon)
-    print(f"\nexamples: {time.monotonic() - began:.1f} s; base {before} -> {after}")
-    assert math.dist(before, after) > 0.05  # it drove
+    # Measured on the simulated Dragon: legs 0.396-0.401 m, corners 89.5-91.6 deg, closure
+    # under 1 cm, heading within 1 deg. The bounds leave room for a loaded machine (a late
+    # command tick changes a leg by a few mm) while failing anything that is not a square:
+    # the skid-steer version this replaced made legs of 0.25 m and 1-deg corners.
+    assert all(abs(length - side) <= 0.15 * side for length in lengths), lengths
+    assert all(abs(turn - 90.0) <= 15.0 for turn in corner_turns), corner_turns  # left turns
+    assert closure <= 0.15 * side
+    # Crab steering: the body keeps its heading, the first leg runs at 45 degrees to it.
+    assert all(abs(h) <= 10.0 for h in headings), headings
+    first = math.remainder(directions[0] - math.degrees(corners[0][2]), 360.0)
+    assert abs(first - 45.0) <= 15.0, first
 
 
 def test_a_failing_script_names_its_line_and_exits_non_zero(dragon: Up, tmp_path: Path) -> None:
@@ -248,23 +343,22 @@ def test_a_failing_script_names_its_line_and_exits_non_zero(dragon: Up, tmp_path
 def test_ctrl_c_stops_the_script_cleanly(dragon: Up) -> None:
     import signal
 
-    process = subprocess.Popen(
-        [sys.executable, "-m", "msctl", "run", "examples/dragon_square.py"],
-        env=dragon.env,
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    # A 3 m first leg at 0.2 m/s: 15 s of driving after the limbs have steered (~3 s).
+    driving = threading.Event()
+
+    def on_line(line: str) -> None:
+        if "driving" in line:  # the limbs have taken their steering pose
+            driving.set()
+
+    script = Script(dragon, "3.0", "0.2", on_line=on_line)
     try:
-        time.sleep(5.0)  # connected and driving the first leg
-        process.send_signal(signal.SIGINT)
+        assert driving.wait(40.0), "the example never started driving"
+        time.sleep(6.0)  # steered, and driving the first leg
+        script.process.send_signal(signal.SIGINT)
         stopped = time.monotonic()
-        out, err = process.communicate(timeout=15.0)
     finally:
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == 130, out + err
+        code, out, err = script.wait(15.0)
+    assert code == 130, out + err
     assert "interrupted: motions stopped" in err
     assert time.monotonic() - stopped < 5.0
     # The wheels were commanded to 0, not left at the drive's speed.

@@ -20,8 +20,9 @@ Or synchronously, for short scripts::
         robot.syncer("limb1").lerp({"joint2": 0.5}).wait()
 
 Public names: :func:`connect`, :func:`connect_sync`, :class:`Robot`, :class:`JointHandler`,
-:class:`JointSyncer`, :class:`IkSyncer`, :class:`WheelDrive`, :class:`SyncSettings`,
-:class:`IkSyncSettings`, :class:`Motion` and the errors. See ``docs/api.md``.
+:class:`JointSyncer`, :class:`IkSyncer`, :class:`WheelDrive`, :class:`WheelSteering`,
+:class:`SyncSettings`, :class:`IkSyncSettings`, :class:`Motion` and the errors. See
+``docs/api.md``.
 """
 
 from components.api.connect import Robot, connect
@@ -44,6 +45,7 @@ _LAZY = {
     "IkSyncSettings": "components.api.ik_syncer",
     "WheelDrive": "components.api.wheels",
     "WheelGeometry": "components.api.wheels",
+    "WheelSteering": "components.api.wheels",
 }
 
 
@@ -74,6 +76,7 @@ __all__ = [
     "UnknownJointError",
     "WheelDrive",
     "WheelGeometry",
+    "WheelSteering",
     "connect",
     "connect_sync",
 ]

@@ -140,19 +140,23 @@ class Robot:
 
     def drive(self, *slots: str, **tuning: Any) -> Any:
         """A :class:`~components.api.wheels.WheelDrive` over wheel modules ``slots``
-        (default: every wheel module), geometry from the resolved assembly's URDF."""
-        from components.api.wheels import WheelDrive, WheelGeometry
+        (default: every wheel module), geometry from the resolved assembly's URDF at the
+        measured limb angles (again at the start of every motion), steering with the limbs
+        (:class:`~components.api.wheels.WheelSteering`)."""
+        from components.api.wheels import WheelDrive, WheelSteering
 
         urdf = self._urdf("the wheel helper")
         wheels = slots or tuple(self.wheels)
         if not wheels:
             raise ApiError(f"{self.template or 'this robot'} has no wheel module")
         handlers = [self.handler(s) for s in wheels]
-        names = [n for h in handlers for n in h.joints]
-        geometry = WheelGeometry.from_urdf(
-            urdf, self.assembly.root_links[0], names, self.positions()
+        steering = WheelSteering(
+            urdf, self.assembly.root_links[0], {h.slot: tuple(h.joints) for h in handlers}
         )
-        return self._adopt(WheelDrive(handlers, geometry, **tuning))
+        geometry = steering.geometry(self.positions())
+        return self._adopt(
+            WheelDrive(handlers, geometry, steering=steering, positions=self.positions, **tuning)
+        )
 
     def _urdf(self, what: str) -> str:
         if self.assembly is None:

@@ -13,8 +13,15 @@ components (skid-steer on four wheels) cannot be produced by the wheels and are 
 as every skid-steer drive does. This covers two-wheel differential drives and four-wheel
 skid steer alike, whatever the wheels' layout.
 
-The geometry depends on the limbs' angles (the wheels sit at their tips): make a new drive
-(``robot.drive()``) after moving the limbs.
+The geometry depends on the limbs' angles (the wheels sit at their tips): a drive made by
+``robot.drive()`` recomputes it from the measured angles at the start of every motion.
+
+Steering with the limbs (:class:`WheelSteering`): a wheel module at a limb's tip turns about
+the vertical when the limb's joints do. Which joints can do that, where a module faces and
+the joint targets that turn it to a new heading about its own centre, keeping it level, are
+forward and inverse kinematics of the composed URDF (the movable joints on the path from the
+root link to the module). With the modules pointed along a direction, ``WheelDrive.travel``
+drives the assembly along it without turning the body (crab steering).
 """
 
 from __future__ import annotations
@@ -22,15 +29,18 @@ from __future__ import annotations
 import asyncio
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 from components.api.errors import ApiError
 from components.api.joints import JointHandler
 from components.api.motion import Motion
 from components.api.syncer import Commander
+from components.kinematics.ik import IkSettings, IkSolver
+from components.kinematics.model import ChainModel, ModelError, chain_model
 from components.messages import JointSample
 
 
@@ -76,12 +86,15 @@ class WheelGeometry:
         """The mean wheel radius (m)."""
         return float(np.mean([w.radius for w in self.wheels]))
 
-    def wheel_speeds(self, linear: float, angular: float) -> dict[str, float]:
-        """Wheel angular speeds (rad/s) for a body speed ``linear`` (m/s, along x) and
-        ``angular`` (rad/s, about z)."""
+    def wheel_speeds(self, linear: float, angular: float, lateral: float = 0.0) -> dict[str, float]:
+        """Wheel angular speeds (rad/s) for a body speed ``linear`` (m/s, along x),
+        ``angular`` (rad/s, about z) and ``lateral`` (m/s, along y: only wheels turned
+        sideways, see :class:`WheelSteering`, can produce it)."""
         out = {}
         for w in self.wheels:
-            ground = np.array([linear - angular * w.center[1], angular * w.center[0], 0.0])
+            ground = np.array(
+                [linear - angular * w.center[1], lateral + angular * w.center[0], 0.0]
+            )
             out[w.joint] = float(ground @ w.rolling) / w.radius
         return out
 
@@ -98,8 +111,6 @@ class WheelGeometry:
         Raises:
             ApiError: If a joint, its wheel link or the link's radius is missing.
         """
-        import pinocchio as pin
-
         robot = ET.fromstring(urdf_text)
         links = {link.get("name"): link for link in robot.findall("link")}
         elements = {j.get("name"): j for j in robot.findall("joint")}
@@ -164,6 +175,217 @@ def _radius(link: ET.Element | None, joint: str) -> float:
     raise ApiError(f"wheel {joint}: its link has no cylinder or sphere radius in the URDF")
 
 
+#: A joint turns a wheel module about the vertical when its axis is this close (rad) to it.
+VERTICAL_TOLERANCE = 0.05
+
+
+def _wrap(angle: float) -> float:
+    """``angle`` in (-pi, pi]."""
+    return math.pi - (math.pi - angle) % (2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class _Steered:
+    """One wheel module and the joints that move it."""
+
+    link: str
+    chain: ChainModel
+    solver: IkSolver | None  # None: nothing moves the module
+    forward: np.ndarray  # the first wheel's rolling direction, in the module link's frame
+    rest: pin.SE3  # the module link's placement with every joint at 0
+    rest_heading: float  # where it faces then (rad)
+
+
+class WheelSteering:
+    """Turning wheel modules about the vertical with the limbs that carry them.
+
+    Everything is in the root link's frame (x forward, z up). A module's *heading* is the
+    direction (rad, counter-clockwise from x) in which a positive spin of its first wheel
+    rolls it; its *centre* is the origin of its link (the wheels' parent: the middle of
+    the axle). The joints that move a module are the movable joints on the URDF path from
+    the root link to that link.
+
+    A module turns about its own centre only when some of those joints have vertical axes
+    (:meth:`steering_joints`) and the limb is bent: a stretched limb cannot keep the centre
+    in place while the module turns. :meth:`turn` and :meth:`path` give joint targets that
+    keep the centre where it is (at its height with every joint at 0) and the module level
+    (its attitude with every joint at 0, turned about the vertical); they are inverse
+    kinematics warm-started from the pose given, so they stay on that pose's branch (elbow
+    side, roll).
+
+    Args:
+        urdf_text: The composed URDF.
+        root_link: The frame of every result (the assembly's root link).
+        modules: Wheel module slot -> its wheel joints.
+        settings: Inverse kinematics tuning (default: the kinematics manager's, with the
+            joint managers' 0.02 limit margin).
+    """
+
+    def __init__(
+        self,
+        urdf_text: str,
+        root_link: str,
+        modules: Mapping[str, Sequence[str]],
+        settings: IkSettings | None = None,
+    ) -> None:
+        self.urdf_text = urdf_text
+        self.root_link = root_link
+        self.modules = {slot: tuple(joints) for slot, joints in modules.items()}
+        self.settings = settings or IkSettings()
+        self._steered: dict[str, _Steered] = {}  # built on first use: pure driving needs none
+
+    def geometry(self, positions: Mapping[str, float] | None = None) -> WheelGeometry:
+        """Every module's wheels at the joint angles ``positions`` (default: all 0)."""
+        joints = [j for wheels in self.modules.values() for j in wheels]
+        return WheelGeometry.from_urdf(self.urdf_text, self.root_link, joints, positions)
+
+    def _module(self, slot: str) -> _Steered:
+        found = self._steered.get(slot)
+        if found is not None:
+            return found
+        if slot not in self.modules:
+            raise ApiError(f"no wheel module {slot!r}; wheel modules: {', '.join(self.modules)}")
+        wheels = self.modules[slot]
+        if not wheels:
+            raise ApiError(f"wheel module {slot} has no wheel joint")
+        robot = ET.fromstring(self.urdf_text)
+        parents = set()
+        for joint in robot.findall("joint"):
+            if joint.get("name") in wheels:
+                parents.add(joint.find("parent").get("link"))  # type: ignore[union-attr]
+        if len(parents) != 1:
+            raise ApiError(
+                f"wheel module {slot}: its wheels {', '.join(wheels)} should share one parent "
+                f"link in the composed URDF, found {sorted(parents) or 'none'}"
+            )
+        link = parents.pop()
+        try:
+            chain = chain_model(self.urdf_text, self.root_link, link)
+        except ModelError as exc:
+            raise ApiError(f"wheel module {slot}: {exc}") from exc
+        rest = chain.tip(np.zeros(chain.nq))
+        rolling = WheelGeometry.from_urdf(self.urdf_text, self.root_link, wheels[:1], {})
+        at_rest = rolling.wheels[0].rolling
+        forward = rest.rotation.T @ at_rest
+        solver = IkSolver(chain, self.settings) if chain.nq else None
+        heading = math.atan2(at_rest[1], at_rest[0])
+        found = _Steered(link, chain, solver, forward, rest, heading)
+        self._steered[slot] = found
+        return found
+
+    def _pose(self, slot: str, positions: Mapping[str, float]) -> tuple[_Steered, np.ndarray]:
+        module = self._module(slot)
+        return module, module.chain.configuration(positions)
+
+    def heading(self, slot: str, positions: Mapping[str, float]) -> float:
+        """Where module ``slot`` faces (rad) at the joint angles ``positions``."""
+        module, q = self._pose(slot, positions)
+        rolling = module.chain.tip(q).rotation @ module.forward
+        return math.atan2(rolling[1], rolling[0])
+
+    def center(self, slot: str, positions: Mapping[str, float]) -> np.ndarray:
+        """Where module ``slot``'s centre is (m) at the joint angles ``positions``."""
+        module, q = self._pose(slot, positions)
+        return module.chain.tip(q).translation.copy()
+
+    def steering_joints(
+        self, slot: str, positions: Mapping[str, float], tolerance: float = VERTICAL_TOLERANCE
+    ) -> tuple[str, ...]:
+        """The joints that turn module ``slot`` about the vertical at ``positions``: those on
+        its path from the root whose axis is within ``tolerance`` rad of vertical."""
+        module, q = self._pose(slot, positions)
+        model, data = module.chain.model, module.chain.data
+        pin.computeJointJacobians(model, data, q)  # columns in the root frame: axes at q
+        out = []
+        for name in module.chain.joint_names:
+            joint = model.joints[model.getJointId(name)]
+            axis = data.J[3:, joint.idx_v]
+            norm = float(np.linalg.norm(axis))
+            if norm > 0 and abs(axis[2]) / norm >= math.cos(tolerance):
+                out.append(name)
+        return tuple(out)
+
+    def turn(self, slot: str, heading: float, positions: Mapping[str, float]) -> dict[str, float]:
+        """Joint targets that turn module ``slot`` to face ``heading`` (rad) about its centre.
+
+        The centre stays where it is at ``positions`` in the ground plane, at its height
+        with every joint at 0, and the module level (its attitude then, turned about the
+        vertical); the solution is the one nearest ``positions``.
+
+        Raises:
+            ApiError: If the limb cannot do it from there (no vertical joint, stretched, or
+                a joint limit in the way).
+        """
+        module, q = self._pose(slot, positions)
+        # The centre keeps its place in the ground plane and its height at the zero pose:
+        # taking the measured height would carry the limbs' sag under gravity into the
+        # target, and turn after turn the body would sink.
+        centre = module.chain.tip(q).translation.copy()
+        centre[2] = module.rest.translation[2]
+        target = pin.SE3(_yaw(heading - module.rest_heading) @ module.rest.rotation, centre)
+        result = None if module.solver is None else module.solver.solve(target, q)
+        if result is None or not result.reachable:
+            raise ApiError(
+                f"wheel module {slot} cannot turn to {math.degrees(heading):.0f} deg about "
+                "its centre from this pose: bend the limb so that joints with vertical axes "
+                "(steering_joints) can turn it; see examples/dragon_square.py"
+            )
+        return {n: float(v) for n, v in zip(module.chain.joint_names, result.q, strict=True)}
+
+    def path(
+        self,
+        direction: float,
+        positions: Mapping[str, float],
+        step: float = math.radians(15.0),
+    ) -> list[dict[str, float]]:
+        """Waypoints turning every module so its wheels roll along ``direction`` (rad).
+
+        A module rolls either way along a line, so each one turns to whichever of
+        ``direction`` and ``direction + pi`` is nearer the way it faces with every joint at 0
+        (no module turns more than 90 degrees from there; on a tie, the nearer to where it
+        faces now), the shortest way from where it faces at ``positions``. Consecutive
+        waypoints differ by at most ``step`` in heading, so the joint-space line between them
+        (a ``lerp``) keeps each centre within millimetres of its place (one lerp over a
+        large turn would swing the centre by centimetres).
+
+        Returns:
+            Joint targets, one dict per waypoint (the last one is the goal); empty when every
+            module already faces along ``direction``.
+
+        Raises:
+            ApiError: See :meth:`turn`.
+        """
+        if not step > 0:
+            raise ValueError(f"path: step must be > 0, not {step}")
+        turns = {}
+        for slot in self.modules:
+            rest = self._module(slot).rest_heading
+            now = self.heading(slot, positions)
+            # Nearer the rest heading first (rounded: a tie is a tie), then nearer now.
+            goal = min(
+                (direction, direction + math.pi),
+                key=lambda h: (round(abs(_wrap(h - rest)), 9), abs(_wrap(h - now))),
+            )
+            turns[slot] = (now, _wrap(goal - now))
+        largest = max((abs(t) for _, t in turns.values()), default=0.0)
+        # Within a milliradian counts as there (the IK's own tolerance is below it).
+        count = math.ceil(largest / step - 1e-9) if largest > 1e-3 else 0
+        waypoints: list[dict[str, float]] = []
+        current = dict(positions)
+        for k in range(1, count + 1):
+            waypoint: dict[str, float] = {}
+            for slot, (now, turn) in turns.items():
+                waypoint.update(self.turn(slot, now + turn * k / count, current))
+            current.update(waypoint)
+            waypoints.append(waypoint)
+        return waypoints
+
+
+def _yaw(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 class WheelDrive(Commander):
     """Drive the assembly with its wheels: body speeds in, wheel velocity commands out.
 
@@ -173,12 +395,20 @@ class WheelDrive(Commander):
     stop coming), and every motion ends with the wheels commanded to 0: a velocity is never
     left behind.
 
+    With ``steering`` and ``positions`` (what ``robot.drive()`` gives), every motion starts
+    from the geometry at the measured limb angles, and the drive can steer: where the
+    modules face (:meth:`headings`), which joints turn them (:meth:`steering_joints`), the
+    limb targets that point them along a direction (:meth:`steer_path`), and driving along
+    it without turning (:meth:`travel`).
+
     Args:
         handlers: The wheel modules.
         geometry: Their wheels (see :meth:`WheelGeometry.from_urdf`).
         acceleration: m/s².
         angular_acceleration: rad/s².
         rate: Commands per second.
+        steering: The limbs' steering of these modules (see :class:`WheelSteering`).
+        positions: The measured angle of every joint of the assembly, when called.
     """
 
     def __init__(
@@ -188,21 +418,66 @@ class WheelDrive(Commander):
         acceleration: float = 0.5,
         angular_acceleration: float = 1.5,
         rate: float = 40.0,
+        steering: WheelSteering | None = None,
+        positions: Callable[[], Mapping[str, float]] | None = None,
     ) -> None:
         super().__init__(handlers)
         self.geometry = geometry
         self.acceleration = acceleration
         self.angular_acceleration = angular_acceleration
         self.rate = rate
+        self.steering = steering
+        self._positions = positions
         self._owner = {n: h for h in handlers for n in h.joints}
         missing = [w.joint for w in geometry.wheels if w.joint not in self._owner]
         if missing:
             raise ApiError(f"wheels {', '.join(missing)} belong to no module of this drive")
-        self._speed = (0.0, 0.0)
+        self._speed = (0.0, 0.0, 0.0)  # linear, lateral, angular
 
-    def speeds(self, linear: float, angular: float) -> dict[str, float]:
+    # ------------------------------------------------------------------ steering
+    def _steering(self, what: str) -> tuple[WheelSteering, Mapping[str, float]]:
+        if self.steering is None or self._positions is None:
+            raise ApiError(
+                f"{what} needs the limbs' kinematics and angles: make the drive with robot.drive()"
+            )
+        return self.steering, self._positions()
+
+    def refresh(self) -> WheelGeometry:
+        """Recompute the wheel geometry at the measured limb angles (every motion does it
+        first when the drive has them); returns it."""
+        if self.steering is not None and self._positions is not None:
+            self.geometry = self.steering.geometry(self._positions())
+        return self.geometry
+
+    def headings(self) -> dict[str, float]:
+        """Where each wheel module faces (rad in the root link's frame, see
+        :class:`WheelSteering`), at the measured limb angles."""
+        steering, positions = self._steering("headings")
+        return {slot: steering.heading(slot, positions) for slot in self.handlers}
+
+    def steering_joints(self) -> dict[str, tuple[str, ...]]:
+        """For each wheel module, the joints whose axes are vertical now: those that turn it
+        about the vertical (none while the Dragon's limbs lie straight and unrolled)."""
+        steering, positions = self._steering("steering_joints")
+        return {slot: steering.steering_joints(slot, positions) for slot in self.handlers}
+
+    def steer_path(
+        self, direction: float, step: float = math.radians(15.0)
+    ) -> list[dict[str, float]]:
+        """Limb joint targets that point every wheel module along ``direction`` (rad in the
+        root link's frame), each turning about its own centre: give them in turn to the
+        limbs' ``JointSyncer.lerp`` (see :meth:`WheelSteering.path`).
+
+        Raises:
+            ApiError: If a module cannot turn from the limbs' pose (bend the limb first).
+        """
+        steering, positions = self._steering("steer_path")
+        return steering.path(direction, positions, step)
+
+    # ------------------------------------------------------------------ driving
+    def speeds(self, linear: float, angular: float, lateral: float = 0.0) -> dict[str, float]:
         """Wheel speeds for a body speed, scaled down together to the joints' limits."""
-        speeds = self.geometry.wheel_speeds(linear, angular)
+        speeds = self.geometry.wheel_speeds(linear, angular, lateral)
         scale = 1.0
         for name, value in speeds.items():
             limit = self._owner[name].joints[name].max_velocity
@@ -210,32 +485,64 @@ class WheelDrive(Commander):
                 scale = min(scale, limit / abs(value))
         return {n: v * scale for n, v in speeds.items()}
 
-    def _send(self, linear: float, angular: float) -> None:
+    def _send(self, linear: float, lateral: float, angular: float) -> None:
         per_module: dict[str, list[JointSample]] = {}
-        for name, value in self.speeds(linear, angular).items():
+        for name, value in self.speeds(linear, angular, lateral).items():
             per_module.setdefault(self._owner[name].slot, []).append(
                 JointSample(name, None, value, None)
             )
         for slot, rows in per_module.items():
             self.handlers[slot].send(rows)
 
-    def move(self, linear: float, angular: float = 0.0, duration: float | None = None) -> Motion:
-        """Drive at ``linear`` m/s and ``angular`` rad/s for ``duration`` seconds (ramping up,
-        then down to a stop), or until another motion or a stop when None."""
-        for value, what in ((linear, "linear"), (angular, "angular"), (duration, "duration")):
+    def move(
+        self,
+        linear: float,
+        angular: float = 0.0,
+        duration: float | None = None,
+        lateral: float = 0.0,
+    ) -> Motion:
+        """Drive at ``linear`` m/s, ``angular`` rad/s and ``lateral`` m/s (sideways: only
+        with the wheel modules steered, see :meth:`travel`) for ``duration`` seconds (ramping
+        up, then down to a stop), or until another motion or a stop when None."""
+        for value, what in (
+            (linear, "linear"),
+            (angular, "angular"),
+            (duration, "duration"),
+            (lateral, "lateral"),
+        ):
             if value is not None and not math.isfinite(value):
                 raise ValueError(f"move: {what} must be finite, not {value}")
+        self.refresh()
 
         async def body(motion: Motion) -> None:
-            await self._drive(linear, angular, duration)
+            await self._drive(linear, lateral, angular, duration)
             motion.finish(True)
 
-        return self._launch(f"drive {linear:g} m/s {angular:g} rad/s", body)
+        description = f"drive {linear:g} m/s {angular:g} rad/s"
+        if lateral:
+            description += f" {lateral:g} m/s sideways"
+        return self._launch(description, body)
 
     def forward(self, distance: float, speed: float = 0.2) -> Motion:
         """Drive ``distance`` metres straight (negative: backwards) at ``speed`` m/s."""
         speed = math.copysign(abs(speed), distance)
         return self.move(speed, 0.0, self._time_for(abs(distance), abs(speed), self.acceleration))
+
+    def travel(self, distance: float, direction: float, speed: float = 0.2) -> Motion:
+        """Drive ``distance`` metres along ``direction`` (rad in the root link's frame, 0 is
+        forward) at ``speed`` m/s without turning the body.
+
+        The wheels can only roll the assembly along where they face: point the wheel modules
+        along ``direction`` first (:meth:`steer_path`), else the part of the motion across
+        them is lost (and the wheels scrub).
+        """
+        if not math.isfinite(direction):
+            raise ValueError(f"travel: direction must be finite, not {direction}")
+        duration = self._time_for(abs(distance), abs(speed), self.acceleration)
+        speed = math.copysign(abs(speed), distance)
+        return self.move(
+            speed * math.cos(direction), 0.0, duration, lateral=speed * math.sin(direction)
+        )
 
     def turn(self, angle: float, speed: float = 0.5) -> Motion:
         """Turn ``angle`` radians in place (positive: counter-clockwise) at ``speed`` rad/s."""
@@ -252,39 +559,54 @@ class WheelDrive(Commander):
             return 0.0
         return distance / speed
 
-    async def _drive(self, linear: float, angular: float, duration: float | None) -> None:
+    async def _drive(
+        self, linear: float, lateral: float, angular: float, duration: float | None
+    ) -> None:
         loop = asyncio.get_running_loop()
         period = 1.0 / self.rate
         began = wake = loop.time()
-        v, w = self._speed
+        v, u, w = self._speed
+        # The body's velocity (linear, lateral) ramps along the straight line to its goal, so
+        # its direction holds while the speed changes; the angular speed ramps on its own.
+        step, turn = self.acceleration * period, self.angular_acceleration * period
         try:
             while duration is None or loop.time() - began < duration:
-                v = _toward(v, linear, self.acceleration * period)
-                w = _toward(w, angular, self.angular_acceleration * period)
-                self._speed = (v, w)
-                self._send(v, w)
+                v, u = _toward_vector((v, u), (linear, lateral), step)
+                w = _toward(w, angular, turn)
+                self._speed = (v, u, w)
+                self._send(v, u, w)
                 wake += period
                 await asyncio.sleep(max(wake - loop.time(), 0.0))
-            while abs(v) > 1e-9 or abs(w) > 1e-9:
-                v = _toward(v, 0.0, self.acceleration * period)
-                w = _toward(w, 0.0, self.angular_acceleration * period)
-                self._speed = (v, w)
-                self._send(v, w)
+            while abs(v) > 1e-9 or abs(u) > 1e-9 or abs(w) > 1e-9:
+                v, u = _toward_vector((v, u), (0.0, 0.0), step)
+                w = _toward(w, 0.0, turn)
+                self._speed = (v, u, w)
+                self._send(v, u, w)
                 wake += period
                 await asyncio.sleep(max(wake - loop.time(), 0.0))
         finally:
-            if (v, w) != (0.0, 0.0):
+            if (v, u, w) != (0.0, 0.0, 0.0):
                 # Cancelled mid-motion: the next motion ramps from here; a stop sends zeros.
-                self._speed = (v, w)
+                self._speed = (v, u, w)
 
     async def stop(self) -> None:
         """Cancel the motion and command every wheel to 0 at once."""
         await super().stop()
-        self._speed = (0.0, 0.0)
-        self._send(0.0, 0.0)
+        self._speed = (0.0, 0.0, 0.0)
+        self._send(0.0, 0.0, 0.0)
 
 
 def _toward(value: float, goal: float, step: float) -> float:
     if abs(goal - value) <= step:
         return goal
     return value + math.copysign(step, goal - value)
+
+
+def _toward_vector(
+    value: tuple[float, float], goal: tuple[float, float], step: float
+) -> tuple[float, float]:
+    dx, dy = goal[0] - value[0], goal[1] - value[1]
+    gap = math.hypot(dx, dy)
+    if gap <= step:
+        return goal
+    return value[0] + dx * step / gap, value[1] + dy * step / gap
