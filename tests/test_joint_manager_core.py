@@ -418,6 +418,23 @@ def test_watchdog_holds_moving_position_joints_and_leaves_settled_ones() -> None
     assert hold.velocity == 0.0
 
 
+def test_watchdog_leaves_a_sagging_settled_joint_and_holds_a_stalled_one() -> None:
+    """At rest near its target (a loaded servo's steady-state error) a joint is settled: its
+    target stays, so the pose does not walk down after every motion. At rest far from it
+    (stalled against something) it is held where it is, so it stops pushing."""
+    core = make(watchdog_timeout=0.5)
+    feed_calibrated(core, 0.0, joint1=0.0, joint2=0.0)
+    core.on_joint_set(state(JointSample(J1, 0.5), JointSample(J2, 0.8)), now=0.0)
+    core.outbox.take()
+    feed_calibrated(core, 0.5, joint1=0.47, joint2=0.3)  # both still: 0.03 sag, 0.5 stall
+    core.tick(0.6)
+    (hold,) = sent(core, "joint_commands")
+    assert hold.name == J2
+    assert core.calibration("joint2").to_calibrated(hold.position) == approx(0.3)
+    core.tick(1.5)
+    assert sent(core, "joint_commands") == []  # joint1 kept its target of 0.5
+
+
 # ---------------------------------------------------------------------------- halt / recover
 
 

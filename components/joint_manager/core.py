@@ -81,8 +81,11 @@ class JointManagerConfig:
             margin) within this many seconds, from the measured position, becomes a hold;
             the same check runs on every feedback while a joint moves in velocity (or
             effort) mode, so it stops at the limit even between two commands.
-        settle_tolerance: A position-commanded joint farther than this from its target still
-            counts as moving for the watchdog.
+        settle_tolerance: A position-commanded joint that is not measurably moving but is
+            farther than this from its target counts as moving for the watchdog (stalled,
+            e.g. pushing against an obstacle: it is held where it is). Nearer, it is settled:
+            servos under load rest a few hundredths of a radian off their target, and holding
+            them at that sagged reading after every motion would walk the pose downward.
         diagnostics_period: Seconds between ``diagnostics`` publications.
         stale_timeout: A joint whose latest ``joint_states`` is older than this is STALE: it
             is left out of keep-alives, and velocity commands to a bounded joint are refused
@@ -98,7 +101,7 @@ class JointManagerConfig:
     read_effort_threshold: float = 1e-2
     keepalive_period: float = 1.0
     velocity_limit_lookahead: float = 0.1
-    settle_tolerance: float = 1e-2
+    settle_tolerance: float = 0.1
     diagnostics_period: float = 1.0
     stale_timeout: float = 1.0
     warn_window: float = 5.0
