@@ -126,14 +126,15 @@ def test_bad_input_is_counted_and_dropped_while_good_samples_arrive(
     session = talker.session
     good_payload = registry().serialize(text("good"), STRING)
     good_attachment = Attachment(1, time.time_ns(), pub.gid).encode()
-    wrong_key = data_key(0, topic, "std_msgs/msg/Int32")
     base = dict(drops.snapshot().get(sub.topic, {}))
 
     session.put(pub.key, b"\x00\x01\x00\x00\xff\xff\xff\x7f", attachment=good_attachment)
     session.put(pub.key, b"garbage", attachment=good_attachment)
     session.put(pub.key, good_payload, attachment=b"\x01\x02\x03")
     session.put(pub.key, good_payload, attachment=b"\x00" * 33)  # gid length byte 0
-    session.put(wrong_key, b"\x00\x01\x00\x00\x05\x00\x00\x00", attachment=good_attachment)
+    # A publisher of another type on the topic: counted once, from its token, naming its node.
+    wrong = talker.publisher(topic, "std_msgs/msg/Int32")
+    wrong.publish(registry().msg_class("std_msgs/msg/Int32")(data=5))
     pub.publish(text("still fine"))
 
     def counted(reason: str) -> int:

@@ -21,8 +21,8 @@ from components.comm.attachment import (
     AttachmentError,
     gid_of,
 )
-from components.comm.liveliness import EntityKind
-from components.comm.names import key_name, qualify
+from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
 from components.comm.types import dds_type_name, normalize_type_name, registry
@@ -125,9 +125,10 @@ class Subscription:
     """Receives one topic. Create through :meth:`Node.subscription`.
 
     The callback runs on a Zenoh thread with the decoded message. Samples whose payload or
-    attachment do not decode, or whose type differs from the subscription's, are dropped
-    and counted in :data:`components.comm.stats.drops` under the topic name; an exception in
-    the callback is logged and counted, and never reaches Zenoh.
+    attachment do not decode are dropped and counted in :data:`components.comm.stats.drops`
+    under the topic name; a publisher of another type (or another version of the type) on
+    the topic is counted there once, from its liveliness token, naming its node. An
+    exception in the callback is logged and counted, and never reaches Zenoh.
 
     Attributes:
         received: Samples delivered to the callback.
@@ -161,16 +162,18 @@ class Subscription:
             self.qos,
         )
         self.token_key = self.entity.token()
+        self.type_hash = reg.type_hash(self.type_name)
         self.received = 0
         self._last_attachment: bytes | None = None
-        # Listen to every type on the topic so a publisher of the wrong type (or of another
-        # version of the type) is seen and counted, not silently ignored.
-        listen_key = f"{node.domain}/{key_name(self.topic)}/*/*"
+        # The exact key, as rmw_zenoh subscribes: a wildcard here (to see samples of other
+        # types) cost ~20 us a round trip. Publishers of another type, or of another version
+        # of the type, are found from their liveliness tokens instead (_on_publisher_token),
+        # which also names the node at fault.
         session = node.session
         if self.qos.latched:
             self._zsub = zenoh.ext.declare_advanced_subscriber(
                 session,
-                listen_key,
+                self.key,
                 self._on_sample,
                 history=zenoh.ext.HistoryConfig(
                     detect_late_publishers=True, max_samples=self.qos.depth
@@ -178,15 +181,41 @@ class Subscription:
                 subscriber_detection=True,
             )
         else:
-            self._zsub = session.declare_subscriber(listen_key, self._on_sample)
+            self._zsub = session.declare_subscriber(self.key, self._on_sample)
+        self._mismatched: set[str] = set()
+        self._publishers = session.liveliness().declare_subscriber(
+            f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.PUBLISHER.value}/*/*/*/"
+            f"{mangle(self.topic)}/*/*/*",
+            self._on_publisher_token,
+            history=True,
+        )
         self._token = session.liveliness().declare_token(self.token_key)
         self._closed = False
 
-    def _on_sample(self, sample: Any) -> None:
-        key = str(sample.key_expr)
-        if key != self.key:
-            drops.drop(self.topic, "wrong_type", f"(sample key {key}, expected {self.key})")
+    def _on_publisher_token(self, sample: Any) -> None:
+        import zenoh
+
+        if sample.kind != zenoh.SampleKind.PUT:
             return
+        key = str(sample.key_expr)
+        try:
+            entity = Entity.parse(key)
+        except TokenError:
+            return  # counted by the graph view; nothing of ours
+        if (entity.type_name, entity.type_hash) == (self.type_name, self.type_hash):
+            return
+        if key in self._mismatched:
+            return
+        self._mismatched.add(key)
+        # Its samples never reach this subscription (another key): count the publisher once.
+        drops.drop(
+            self.topic,
+            "wrong_type",
+            f"(node {entity.node_fqn} publishes {entity.type_name} {entity.type_hash}; "
+            f"this subscription takes {self.type_name} {self.type_hash})",
+        )
+
+    def _on_sample(self, sample: Any) -> None:
         attachment = sample.attachment
         if attachment is not None:
             raw_attachment = attachment.to_bytes()
@@ -227,7 +256,7 @@ class Subscription:
         if self._closed:
             return
         self._closed = True
-        for thing in (self._token, self._zsub):
+        for thing in (self._token, self._publishers, self._zsub):
             try:
                 thing.undeclare()
             except Exception:
