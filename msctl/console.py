@@ -8,8 +8,9 @@ from typing import Any
 
 from rich.console import Console
 
-#: Data (tables, JSON documents, echoed messages) goes to stdout.
-out = Console(soft_wrap=True)
+#: Data (tables, JSON documents, echoed messages) goes to stdout. Piped into another tool
+#: (no terminal to measure), tables get room instead of rich's 80 columns.
+out = Console(soft_wrap=True, width=None if sys.stdout.isatty() else 160)
 #: Progress, warnings and errors go to stderr so that stdout stays parseable.
 err = Console(stderr=True, soft_wrap=True)
 

@@ -450,3 +450,27 @@ def test_parse_request_accepts() -> None:
 def test_host_namespace_is_a_ros_name() -> None:
     assert host_namespace("hl-limb-01") == "/msctl/hl_limb_01"
     assert host_namespace("1robot.local") == "/msctl/h_1robot_local"
+
+
+def test_ground_station_components_run_one_process_per_role(monkeypatch) -> None:
+    """Ground-control kinds are not built yet; made buildable for the plan alone, a station's
+    components group one process per role, the modules one per module."""
+    import msctl.launcher.plan as plan_module
+    from components.build import KINDS, KindInfo
+
+    two = from_document(resolve("two_dragons").document)
+    roles = {c.kind for c in two.components if c.module is None}
+    monkeypatch.setattr(plan_module, "buildable", lambda kind: True)
+    monkeypatch.setattr(
+        plan_module, "KINDS", {**KINDS, **{k: KindInfo("diagnostics") for k in roles}}
+    )
+    plan = plan_host(two, "a-laptop")
+    ground = [p for p in plan.processes if not any(c.kind in KINDS for c in p.components)]
+    assert ground, "two_dragons has ground stations"
+    for process in ground:
+        kinds = {c.kind for c in process.components}
+        stations = {c.name.split("/")[0] for c in process.components}
+        assert len(kinds) == 1 and len(stations) == 1, process
+        assert process.name == f"{stations.pop()}_{kinds.pop()}"
+    modules = {c.module for c in two.components if c.module}
+    assert {p.name for p in plan.processes} >= modules

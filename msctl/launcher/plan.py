@@ -117,7 +117,8 @@ def plan_host(
         if not buildable(component.kind) or component.kind not in KINDS:
             plan.not_built.append((component.name, component.kind))
             continue
-        group = component.module or component.name.split("/")[0]
+        # One process per module; a ground station's components, one per role (kind).
+        group = component.module or f"{component.name.split('/')[0]}_{component.kind}"
         groups.setdefault(group, []).append(
             _run(component.name, component.kind, component.namespace)
         )
