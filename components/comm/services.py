@@ -43,6 +43,22 @@ def service_key(domain: int, service: str, srv_type: str) -> str:
     )
 
 
+def _identify(
+    endpoint: Any, node: Node, kind: EntityKind, service: str, srv_type: str
+) -> None:
+    """Give a server or client its service name, type, key, graph entity and GID."""
+    endpoint.service = qualify(service, node.namespace, node.name)
+    endpoint.srv_type = normalize_type_name(srv_type)
+    reg = registry()
+    endpoint.parts = reg.service(endpoint.srv_type)
+    endpoint.key = service_key(node.domain, endpoint.service, endpoint.srv_type)
+    endpoint.entity = node.entity(
+        kind, endpoint.service, endpoint.srv_type, reg.type_hash(endpoint.srv_type), SERVICE_QOS
+    )
+    endpoint.token_key = endpoint.entity.token()
+    endpoint.gid = gid_of(endpoint.token_key)
+
+
 class PendingRequest:
     """A request the server has received and not yet answered.
 
@@ -108,24 +124,12 @@ class ServiceServer:
         handler: Callable[[Any], Any],
         deferred: bool = False,
     ) -> None:
-        self.service = qualify(service, node.namespace, node.name)
-        self.srv_type = normalize_type_name(srv_type)
+        _identify(self, node, EntityKind.SERVICE, service, srv_type)
         reg = registry()
-        parts = reg.service(self.srv_type)
-        self._deserialize = reg.deserializer(parts.request)
-        self._serialize = reg.serializer(parts.response)
+        self._deserialize = reg.deserializer(self.parts.request)
+        self._serialize = reg.serializer(self.parts.response)
         self._handler = handler
         self._deferred = deferred
-        self.key = service_key(node.domain, self.service, self.srv_type)
-        self.entity = node.entity(
-            EntityKind.SERVICE,
-            self.service,
-            self.srv_type,
-            reg.type_hash(self.srv_type),
-            SERVICE_QOS,
-        )
-        self.token_key = self.entity.token()
-        self.gid = gid_of(self.token_key)
         self._zqueryable = node.session.declare_queryable(self.key, self._on_query, complete=True)
         self._token = node.session.liveliness().declare_token(self.token_key)
         self._closed = False
@@ -177,22 +181,10 @@ class ServiceClient:
     """Calls one service. Create through :meth:`Node.client`."""
 
     def __init__(self, node: Node, service: str, srv_type: str) -> None:
-        self.service = qualify(service, node.namespace, node.name)
-        self.srv_type = normalize_type_name(srv_type)
+        _identify(self, node, EntityKind.CLIENT, service, srv_type)
         reg = registry()
-        self.parts = reg.service(self.srv_type)
         self._serialize = reg.serializer(self.parts.request)
         self._deserialize = reg.deserializer(self.parts.response)
-        self.key = service_key(node.domain, self.service, self.srv_type)
-        self.entity = node.entity(
-            EntityKind.CLIENT,
-            self.service,
-            self.srv_type,
-            reg.type_hash(self.srv_type),
-            SERVICE_QOS,
-        )
-        self.token_key = self.entity.token()
-        self.gid = gid_of(self.token_key)
         self._session = node.session
         self._seq = itertools.count(1)
         self._token = node.session.liveliness().declare_token(self.token_key)
