@@ -835,3 +835,22 @@ def test_two_managers_in_one_process_share_no_state() -> None:
     assert sent(leg, "joint_commands") == [JointSample("limb2_joint2", approx(-0.05), None, None)]
     assert leg.counters["refused_locked"] == 0 and leg.counters["refused_halted"] == 0
     assert [j.locked for j in leg.on_joints(LIST_REQ, 0.3).joints] == [False, False, False]
+
+
+def test_velocity_and_rezero_need_a_fresh_position_not_just_fresh_velocity() -> None:
+    # An encoder that starts reporting NaN positions (or a motor interface sending positions
+    # in a batch of their own that stops) while velocities keep coming: the position is stale.
+    core = make(stale_timeout=1.0)
+    apply_all(core, "joint_manager", injections=[{"name": "rezero", "joints": ["joint1"]}])
+    feed_calibrated(core, 0.0, joint1=0.0)
+    for t in (0.5, 1.0, 1.5, 2.0):
+        core.on_joint_states(state(JointSample(J1, math.nan, 0.0, 0.0)), t)
+    core.outbox.take()
+    # A bounded joint in velocity mode with a 2 s old position could run through its limit.
+    core.on_joint_set(state(JointSample(J1, velocity=0.5)), now=2.0)
+    assert sent(core, "joint_commands") == []
+    assert core.counters["refused_no_state"] == 1
+    # Re-zeroing on a 2 s old position would save a wrong offset.
+    response = core.on_rezero(TRIGGER_REQ, 2.0)
+    assert not response.success and "limb1_joint1" in response.message
+    assert core.calibration("joint1") == CAL["joint1"]

@@ -173,6 +173,7 @@ class _Joint:
         "pin",
         "pin_note",
         "position",
+        "position_seen",
         "pub_effort",
         "pub_position",
         "pub_velocity",
@@ -201,6 +202,8 @@ class _Joint:
         self.effort: float | None = None
         self.raw_position: float | None = None
         self.seen: float | None = None
+        # When the latest finite position came (velocity or effort alone do not refresh it).
+        self.position_seen: float | None = None
         # What joint_read last carried, for change detection.
         self.pub_position: float | None = None
         self.pub_velocity: float | None = None
@@ -230,7 +233,8 @@ class JointManagerCore(Core):
 
     Hook points for injections and overrides: :meth:`add_command_filter`, :meth:`pin`,
     :meth:`set_calibration`, :attr:`extra_serve`; read access through :meth:`resolve`,
-    :meth:`calibration`, :meth:`latest`, :meth:`latest_raw_position`, :meth:`feedback_age`.
+    :meth:`calibration`, :meth:`latest`, :meth:`latest_raw_position`, :meth:`feedback_age`,
+    :meth:`position_age`.
 
     Args:
         name: Component name (diagnostics are named after it).
@@ -357,6 +361,11 @@ class JointManagerCore(Core):
         seen = self._joints[self.resolve(joint)].seen
         return math.inf if seen is None else now - seen
 
+    def position_age(self, joint: str, now: float) -> float:
+        """Seconds since the joint's latest finite position (``inf`` if never)."""
+        seen = self._joints[self.resolve(joint)].position_seen
+        return math.inf if seen is None else now - seen
+
     def is_pinned(self, joint: str) -> bool:
         """Whether a joint is pinned (reported as locked)."""
         return self._joints[self.resolve(joint)].pin_note is not None
@@ -454,6 +463,7 @@ class JointManagerCore(Core):
                 if math.isfinite(raw_pos):
                     j.raw_position = raw_pos
                     j.position = cal.to_calibrated(raw_pos)
+                    j.position_seen = now
                     updated = True
                 else:
                     self._counters["feedback_rejected"] += 1
@@ -600,7 +610,10 @@ class JointManagerCore(Core):
             effort = limited
         if position is None and velocity is not None and spec.bounded:
             # Velocity mode on a bounded joint: only safe while we know where the joint is.
-            stale = j.seen is None or j.position is None or now - j.seen > self.config.stale_timeout
+            # The position's own age: velocity-only feedback (an encoder reporting NaN, a
+            # motor interface sending positions in another batch) must not make it look fresh.
+            seen = j.position_seen
+            stale = seen is None or j.position is None or now - seen > self.config.stale_timeout
             if stale:
                 self._refuse(
                     j,

@@ -61,7 +61,7 @@ def rezero(core: JointManagerCore, params: dict[str, Any]) -> None:
             name
             for name in targets
             if core.latest_raw_position(name) is None
-            or core.feedback_age(name, now) > core.config.stale_timeout
+            or core.position_age(name, now) > core.config.stale_timeout
         ]
         if stale:
             return trigger_response(
