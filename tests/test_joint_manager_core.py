@@ -854,3 +854,26 @@ def test_velocity_and_rezero_need_a_fresh_position_not_just_fresh_velocity() -> 
     response = core.on_rezero(TRIGGER_REQ, 2.0)
     assert not response.success and "limb1_joint1" in response.message
     assert core.calibration("joint1") == CAL["joint1"]
+
+
+@pytest.mark.parametrize(
+    "params, where",
+    [
+        ({"watchdog_timeout": 0}, "watchdog_timeout"),
+        ({"position_margin": "2cm"}, "position_margin"),
+    ],
+)
+def test_builder_refuses_a_bad_config_param_naming_the_component(params, where) -> None:
+    from dataclasses import replace
+
+    from components.assembly import from_document
+    from components.build import BuildError, build_component
+    from msctl.assembler import resolve
+
+    assembly = from_document(resolve("minimal").document)
+    plan = assembly.component("limb1/joint_manager")
+    bad = replace(plan, params={**plan.params, **params})
+    # A BuildError is what the worker reports as "cannot build <component>" (exit 3); a bare
+    # ValueError/TypeError escaped it as a traceback.
+    with pytest.raises(BuildError, match=rf"limb1/joint_manager.*{where}"):
+        build_component(bad, assembly, {})

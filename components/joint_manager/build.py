@@ -20,16 +20,25 @@ def build(
         raise BuildError(f"{plan.name}: a joint manager needs a module")
     module = assembly.module(plan.module)
     joints = module.actuated_joints
-    config_fields = {
-        k: v for k, v in plan.params.items() if k in JointManagerConfig.__dataclass_fields__
-    }
-    core = JointManagerCore(
-        plan.name,
-        module=module.slot,
-        joints=[j.spec for j in joints],
-        calibration={j.spec.name: j.calibration for j in joints},
-        config=JointManagerConfig(**config_fields),
-    )
+    config_fields = {}
+    for key, value in plan.params.items():
+        if key in JointManagerConfig.__dataclass_fields__:
+            try:
+                config_fields[key] = float(value)
+            except (TypeError, ValueError):
+                raise BuildError(
+                    f"{plan.name}: param {key} must be a number, not {value!r}"
+                ) from None
+    try:
+        core = JointManagerCore(
+            plan.name,
+            module=module.slot,
+            joints=[j.spec for j in joints],
+            calibration={j.spec.name: j.calibration for j in joints},
+            config=JointManagerConfig(**config_fields),
+        )
+    except ValueError as exc:
+        raise BuildError(f"{plan.name}: {exc}") from exc
     injections = [dict(i) for i in module.injections]
     # The rezero injection saves new offsets back to the unit's own calibration file,
     # which the assembler recorded among the lock file's sources.
