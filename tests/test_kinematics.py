@@ -279,3 +279,15 @@ def test_config_rejects_bad_values() -> None:
         KinematicsConfig.from_params({"jump_bound": 0})
     with pytest.raises(ValueError, match="keepalive_period"):
         KinematicsConfig(keepalive_period=0)
+
+
+@pytest.mark.parametrize("x", [math.inf, -math.inf])
+def test_an_infinite_target_is_refused_not_a_solver_crash(x: float) -> None:
+    # NaN means "keep this coordinate"; inf used to reach the solver and fail in it
+    # (AttributeError logged by the executor, nothing in diagnostics).
+    core = make_core("G-line")
+    read(core, np.zeros(4), 0.1)
+    core.on_ik_target(target(x, 0.0, 0.0), 0.2)
+    assert core.outbox.take("joint_set") == []
+    assert core.counters["refused"] == 1
+    assert "infinite" in last_status(core).message

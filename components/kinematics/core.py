@@ -169,6 +169,9 @@ class KinematicsCore(Core):
         if target is None:
             self._refuse("ik_target has a zero-length quaternion", now)
             return
+        if not np.isfinite(target.translation).all():
+            self._refuse("ik_target has an infinite coordinate; send metres (NaN keeps one)", now)
+            return
         result = self.solver.solve(target, self.q)
         self.last_result = result
         if result.reachable:
