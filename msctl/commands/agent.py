@@ -55,7 +55,8 @@ def run(
         ) from None
     previous = {
         s: signal.signal(s, lambda *_: agent.request_stop())
-        for s in (signal.SIGINT, signal.SIGTERM)
+        # SIGHUP (terminal or SSH link gone) stops the run as SIGTERM does: nothing orphaned.
+        for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
     try:
         try:

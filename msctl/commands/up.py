@@ -109,7 +109,9 @@ def _run_foreground(
     launch = Launch(assembly, plan, speed=speed)
     previous = {
         s: signal.signal(s, lambda *_: launch.request_stop())
-        for s in (signal.SIGINT, signal.SIGTERM)
+        # SIGHUP: the operator's terminal or SSH link went away; stop as for Ctrl-C, or
+        # every process group would be left running with a state file naming a dead pid.
+        for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
     daemon = os.environ.get(_DAEMON_ENV) == "1"
     try:

@@ -1,0 +1,174 @@
+"""Regressions found reviewing the operator side (``msctl``), each on the real command in a
+subprocess where the fault showed: a random loopback port, an ``MSCTL_HOME`` of its own."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import free_port, wait_until
+
+
+def _group_alive(pgid: int) -> bool:
+    """Some process of group ``pgid`` runs (zombies awaiting their reaper do not count)."""
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            return True
+    return False
+
+
+class Home:
+    """One MSCTL_HOME and router endpoint; remembers every process group it saw started."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.env = {
+            **{k: v for k, v in os.environ.items() if not k.startswith(("MSCTL_", "ZENOH_"))},
+            "MSCTL_HOME": str(root),
+            "MSCTL_HOST": "review-laptop",  # none of the assembly's computers: simulated
+            "MSCTL_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}",
+            "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+            "MSCTL_ZENOH_MULTICAST": "0",
+            "PYTHONPATH": str(Path(__file__).parents[1]),
+        }
+        self.pgids: set[int] = set()
+
+    def msctl(self, *args: str, timeout: float = 60.0, **env: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env={**self.env, **env},
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+
+    def popen(self, *args: str, **env: str) -> subprocess.Popen:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "msctl", *args],
+            env={**self.env, **env},
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        self.pgids.add(proc.pid)
+        return proc
+
+    def state(self) -> dict | None:
+        try:
+            document = json.loads((self.root / "run" / "state.json").read_text())
+        except (OSError, ValueError):
+            return None
+        for process in document.get("processes", []):
+            if process.get("pgid"):
+                self.pgids.add(process["pgid"])
+        return document
+
+    def kill_everything(self) -> None:
+        self.state()
+        for pgid in self.pgids:
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+@pytest.fixture
+def home(tmp_path: Path) -> Iterator[Home]:
+    current = Home(tmp_path)
+    try:
+        yield current
+    finally:
+        current.kill_everything()
+
+
+def _healthy(home: Home) -> bool:
+    document = home.state()
+    return bool(
+        document
+        and document.get("state") == "running"
+        and document["components"]
+        and all(c["state"] == "running" for c in document["components"])
+    )
+
+
+def test_foreground_up_stops_everything_on_sighup(home: Home) -> None:
+    # An SSH link that drops sends SIGHUP to a foreground `msctl up`: it died at once and left
+    # every component's process group running, the state file naming a dead supervisor.
+    proc = home.popen("up", "minimal")
+    try:
+        wait_until(lambda: _healthy(home), timeout=60.0, what="minimal healthy")
+        groups = {p["name"]: p["pgid"] for p in home.state()["processes"] if p["pgid"]}
+        assert "router" in groups and "sim" in groups
+        proc.send_signal(signal.SIGHUP)
+        _, stderr = proc.communicate(timeout=20.0)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, stderr
+    assert "minimal stopped" in stderr
+    assert home.state()["state"] == "stopped"
+    for name, pgid in groups.items():
+        assert not _group_alive(pgid), f"{name} (group {pgid}) outlived SIGHUP"
+
+
+def test_agent_stops_cleanly_on_sighup(home: Home) -> None:
+    # The same for an agent started in a terminal: its router (and any run) must not outlive it.
+    proc = home.popen("agent", MSCTL_HOST="gl-pi-01")
+    try:
+        router = wait_until(
+            lambda: next(
+                (
+                    int(p.parent.name)
+                    for p in Path("/proc").glob("[0-9]*/cmdline")
+                    if _ppid(p.parent) == proc.pid and b"router" in _read(p)
+                ),
+                None,
+            ),
+            timeout=30.0,
+            what="the agent's router",
+        )
+        home.pgids.add(router)
+        wait_until(
+            lambda: home.msctl("ps", "--json", timeout=30.0).stdout.count("gl-pi-01") > 0,
+            timeout=30.0,
+            what="the agent answering ps",
+        )
+        proc.send_signal(signal.SIGHUP)
+        _, stderr = proc.communicate(timeout=20.0)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, stderr
+    assert "gl-pi-01: stopped" in stderr
+    assert not _group_alive(router), "the agent's router outlived SIGHUP"
+
+
+def _read(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError:
+        return b""
+
+
+def _ppid(proc_dir: Path) -> int:
+    try:
+        return int((proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return -1
