@@ -16,6 +16,7 @@ from components.executor.core import Core
 from components.messages import (
     ERROR,
     OK,
+    WARN,
     JointSample,
     diagnostic_array,
     diagnostic_status,
@@ -32,10 +33,14 @@ class MotorInterfaceConfig:
     Attributes:
         diagnostics_period: Seconds between two ``diagnostics`` messages.
         reopen_period: Seconds between two attempts to open a bus that failed to open.
+        command_timeout: Seconds without ``joint_commands`` after which every joint last
+            commanded with a velocity gets velocity 0. A second line behind the joint
+            manager's own watchdog (0.5 s): it covers a joint manager that died or hung.
     """
 
     diagnostics_period: float = 1.0
     reopen_period: float = 2.0
+    command_timeout: float = 1.0
 
 
 class MotorInterfaceCore(Core):
@@ -66,6 +71,9 @@ class MotorInterfaceCore(Core):
         self._next_open = 0.0
         self._next_diagnostics = 0.0
         self.refused_unknown = 0
+        self._last_command = 0.0
+        self._spinning: set[str] = set()  # raw joints last commanded with a velocity != 0
+        self.watchdog_stops = 0
 
     @property
     def joint_names(self) -> Sequence[str]:
@@ -98,13 +106,23 @@ class MotorInterfaceCore(Core):
                 self.refused_unknown += 1
                 continue
             commands.append(MotorCommand(raw, sample.position, sample.velocity, sample.effort))
+            if sample.position is None and sample.velocity:
+                self._spinning.add(raw)
+            else:
+                self._spinning.discard(raw)
         if commands:
+            self._last_command = now
             self.backend.write(commands)
 
     def tick(self, now: float) -> None:
         """Read the motors, publish ``joint_states``; publish diagnostics when due."""
         if not self.is_open and now >= self._next_open:
             self._try_open(now)
+        if self._spinning and now - self._last_command > self.config.command_timeout:
+            # Commands stopped while joints were turning: never keep the last velocity.
+            self.backend.write([MotorCommand(raw, velocity=0.0) for raw in sorted(self._spinning)])
+            self._spinning.clear()
+            self.watchdog_stops += 1
         if self.is_open:
             states = self.backend.read()
             samples = [
@@ -146,6 +164,17 @@ class MotorInterfaceCore(Core):
         if not statuses:
             statuses.append(
                 diagnostic_status(f"{self.module}/bus", OK, "ok", hardware_id=self.backend.channel)
+            )
+        if self.watchdog_stops:
+            statuses.append(
+                diagnostic_status(
+                    f"{self.module}/motor_interface",
+                    WARN,
+                    f"velocity set to 0 after {self.config.command_timeout:g} s without "
+                    f"joint_commands ({self.watchdog_stops} time(s)); is the joint manager up?",
+                    hardware_id=self.backend.channel,
+                    values={"watchdog_stops": self.watchdog_stops},
+                )
             )
         return statuses
 
