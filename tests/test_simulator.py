@@ -104,9 +104,24 @@ def test_velocity_mode_tracks_the_speed_and_switching_back_holds(assembly) -> No
     assert core.world.position("limb1_joint5") == pytest.approx(here, abs=0.05)
 
 
+def test_a_velocity_left_without_commands_is_stopped_like_a_real_motor_interface(
+    assembly,
+) -> None:
+    a = assembly("minimal")
+    core = make(a, command_timeout=0.3)
+    cal = a.joint("limb1_joint5").calibration
+    command(core, 0.0, JointSample("limb1_joint5", None, cal.rate_to_raw(0.6), None))
+    now = run(core, 0.0, 0.25)
+    assert core.world.velocity("limb1_joint5") == pytest.approx(0.6, abs=0.05)
+    run(core, now, 0.4)  # commands stopped (a dead joint manager): past the timeout
+    assert abs(core.world.velocity("limb1_joint5")) < 0.05
+    assert core.watchdog_stops == 1
+
+
 def test_wheel_velocity_on_the_ground_and_effort_mode(assembly) -> None:
     a = assembly("dragon")
-    core = make(a)
+    # One command, then seconds of driving: no command watchdog in the way here.
+    core = make(a, command_timeout=60.0)
     now = run(core, 0.0, 0.5)  # land
     cal = a.joint("wheel1_wheel_left").calibration
     command(core, now, JointSample("wheel1_wheel_left", None, cal.rate_to_raw(3.0), None))
@@ -122,7 +137,7 @@ def test_wheel_velocity_on_the_ground_and_effort_mode(assembly) -> None:
 
 def test_limits_are_enforced_by_the_model(assembly) -> None:
     a = assembly("minimal")
-    core = make(a)
+    core = make(a, command_timeout=60.0)  # one velocity command, held into the stop
     spec = a.joint("limb1_joint3").spec
     cal = a.joint("limb1_joint3").calibration
     # A raw velocity command drives straight into the upper limit (no joint manager here).

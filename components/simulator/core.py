@@ -67,6 +67,9 @@ class SimulatorConfig:
             so a late world catches up over several short ticks and keeps publishing states,
             rather than stalling everything in one long tick.
         frame_id: Frame of the ground-truth poses.
+        command_timeout: Seconds without commands after which a joint turning in velocity
+            mode is stopped, as the real motor interface does (behind the joint manager's
+            own watchdog): the simulator never keeps a last velocity either.
     """
 
     speed: float = 1.0
@@ -77,6 +80,7 @@ class SimulatorConfig:
     max_catch_up: float = 0.1
     catch_up_rate: float = 4.0
     frame_id: str = "world"
+    command_timeout: float = 1.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -184,6 +188,8 @@ class SimulatorCore(Core):
         )
         self._next_state = dict.fromkeys(self.slots, -math.inf)
         self._commanded: set[str] = set()
+        self._spinning: dict[str, float] = {}  # joint -> when it was last given a velocity
+        self.watchdog_stops = 0
         self._next_pose = -math.inf
         self._next_diagnostics = -math.inf
         self._window_start: float | None = None
@@ -229,6 +235,10 @@ class SimulatorCore(Core):
                 continue
             world.command(sample.name, *values)
             self._commanded.add(world.joint(sample.name).module)
+            if sample.position is None and sample.velocity:
+                self._spinning[sample.name] = now
+            else:
+                self._spinning.pop(sample.name, None)
         self._react(now)
 
     def on_halt(self, slot: str, request: Any, now: float) -> Any:
@@ -248,6 +258,12 @@ class SimulatorCore(Core):
         if self._last is None:
             self.start(now)
             return
+        if self._spinning:
+            timeout = self.config.command_timeout
+            for name in [n for n, at in self._spinning.items() if now - at > timeout]:
+                self.world.command(name, None, 0.0, None)
+                del self._spinning[name]
+                self.watchdog_stops += 1
         steps = self._catch_up(now)
         self._publish_due(now, force=False, stepped=steps > 0)
 
