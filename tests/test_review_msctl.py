@@ -8,7 +8,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -172,3 +171,32 @@ def _ppid(proc_dir: Path) -> int:
         return int((proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[1])
     except (OSError, IndexError, ValueError):
         return -1
+
+
+def test_down_after_the_supervisor_died_kills_what_it_left_and_says_so(home: Home) -> None:
+    # A supervisor SIGKILLed (OOM killer, power blip of a terminal): `ps` went on showing every
+    # component "running" from the state file, and `down` said "nothing is running on this
+    # computer" while it killed the groups left behind, leaving the state file "running".
+    result = home.msctl("up", "minimal", "--detach", timeout=90.0)
+    assert result.returncode == 0, result.stderr
+    document = home.state()
+    groups = {p["name"]: p["pgid"] for p in document["processes"] if p["pgid"]}
+    os.kill(document["supervisor_pid"], signal.SIGKILL)
+    wait_until(lambda: not _group_alive(document["supervisor_pid"]), what="supervisor gone")
+
+    ps = home.msctl("ps", "--json")
+    assert ps.returncode == 0, ps.stderr
+    listed = json.loads(ps.stdout)
+    assert listed["components"]
+    assert not [c["name"] for c in listed["components"] if c["state"] == "running"]
+    assert any("msctl down" in note for note in listed["notes"]), listed["notes"]
+
+    down = home.msctl("down", timeout=30.0)
+    assert down.returncode == 0, down.stderr
+    assert "nothing is running" not in down.stderr
+    assert "killed" in down.stderr and "limb1" in down.stderr, down.stderr
+    for name, pgid in groups.items():
+        assert not _group_alive(pgid), f"{name} (group {pgid}) left after down"
+    assert home.state()["state"] == "stopped"
+    after = json.loads(home.msctl("ps", "--json").stdout)
+    assert not [c["name"] for c in after["components"] if c["state"] == "running"]

@@ -45,10 +45,26 @@ def command(
                 err.print(f"{namespace}: {answer.get('error', 'stopping')}", highlight=False)
     document = state.read_state()
     if not document or not state.supervisor_alive(document):
-        if not all_hosts:
+        # A supervisor that died (SIGKILL, OOM) leaves its process groups behind: kill them,
+        # say so, and make the state file stop claiming they run.
+        left = state.groups_left(document) if document else []
+        _kill_leftovers((document or {}).get("processes", []))
+        if document and document.get("state") != "stopped":
+            _mark_stopped(document)
+        if left:
+            deadline = time.monotonic() + 5.0  # SIGKILLed, but a big process takes a moment
+            while state.groups_left(document) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            still = state.groups_left(document)
+            if still:
+                raise MsctlError(f"processes still alive after down: {', '.join(still)}")
+            err.print(
+                f"[green]down[/]: the supervisor of {document.get('template')} on "
+                f"{document.get('host')} was gone; killed what it left: {', '.join(left)}",
+                highlight=False,
+            )
+        elif not all_hosts:
             err.print("nothing is running on this computer")
-        leftovers = [p for p in (document or {}).get("processes", []) if p.get("pgid")]
-        _kill_leftovers(leftovers)
         return
     if document.get("agent"):
         _down_through_agent(document)
@@ -92,6 +108,21 @@ def _down_through_agent(document: dict) -> None:
         raise MsctlError(f"processes still alive after down: {', '.join(still)}")
     err.print(
         f"[green]down[/]: the agent of {host} stopped {document.get('template')}; it stays up"
+    )
+
+
+def _mark_stopped(document: dict) -> None:
+    """Rewrite a dead supervisor's state file as stopped (no pids, nothing running)."""
+    stopped = {"state": "stopped", "pid": None, "pgid": None}
+    state.write_state(
+        {
+            **document,
+            "state": "stopped",
+            "processes": [{**p, **stopped} for p in document.get("processes", [])],
+            "components": [
+                {**c, "state": "stopped", "pid": None} for c in document.get("components", [])
+            ],
+        }
     )
 
 

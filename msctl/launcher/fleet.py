@@ -66,6 +66,31 @@ def fleet_state(timeout: float = 3.0) -> tuple[list[dict[str, Any]], list[str]]:
         notes.append(f"network: {exc} (showing this computer's state file only)")
     if local and local.get("host") not in documents:
         if not state.supervisor_alive(local) and local.get("state") != "stopped":
-            local = {**local, "state": "stopped (supervisor gone)"}
+            local = _supervisor_gone(local)
+            left = state.groups_left(local)
+            if left:
+                notes.append(
+                    f"the supervisor of {local.get('template')} on {local['host']} (pid "
+                    f"{local.get('supervisor_pid')}) is gone; processes left running: "
+                    f"{', '.join(left)} — stop them with `msctl down`"
+                )
         documents[local["host"]] = local
     return list(documents.values()), notes
+
+
+def _supervisor_gone(document: dict[str, Any]) -> dict[str, Any]:
+    """A state file whose supervisor died: its components are no longer watched, so none is
+    "running"; each is "orphaned" while its process group lives, else "stopped"."""
+    alive = set(state.groups_left(document))
+    components = []
+    for c in document.get("components", []):
+        orphaned = c.get("process") in alive
+        components.append(
+            {
+                **c,
+                "state": "orphaned (supervisor gone)" if orphaned else "stopped",
+                "pid": c.get("pid") if orphaned else None,
+                "uptime": c.get("uptime", 0.0) if orphaned else 0.0,
+            }
+        )
+    return {**document, "state": "stopped (supervisor gone)", "components": components}

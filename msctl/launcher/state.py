@@ -54,16 +54,40 @@ def read_state() -> dict[str, Any] | None:
 
 
 def supervisor_alive(document: dict[str, Any] | None) -> bool:
-    """Whether the supervisor that wrote ``document`` is still running."""
+    """Whether the supervisor that wrote ``document`` is still running (a zombie is not:
+    a killed detached supervisor waits for init to reap it, which some never do)."""
     if not document or document.get("state") == "stopped":
         return False
     pid = document.get("supervisor_pid")
-    return isinstance(pid, int) and _signal_reaches(os.kill, pid)
+    return isinstance(pid, int) and _signal_reaches(os.kill, pid) and _stat(pid) != "Z"
 
 
 def group_alive(pgid: int) -> bool:
-    """Whether any process of the process group ``pgid`` is left."""
-    return _signal_reaches(os.killpg, pgid)
+    """Whether any process of the process group ``pgid`` is left (zombies do not count)."""
+    if not _signal_reaches(os.killpg, pgid):
+        return False
+    try:
+        entries = list(Path("/proc").glob("[0-9]*"))
+    except OSError:
+        return True
+    if not entries:
+        return True  # no /proc to look into: trust the signal
+    for entry in entries:
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if len(fields) > 2 and fields[2] == str(pgid) and fields[0] != "Z":
+            return True
+    return False
+
+
+def _stat(pid: int) -> str:
+    """A process's state letter from ``/proc`` ("" when it cannot tell)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""
 
 
 def groups_left(document: dict[str, Any]) -> list[str]:
