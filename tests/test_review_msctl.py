@@ -200,3 +200,29 @@ def test_down_after_the_supervisor_died_kills_what_it_left_and_says_so(home: Hom
     assert home.state()["state"] == "stopped"
     after = json.loads(home.msctl("ps", "--json").stdout)
     assert not [c["name"] for c in after["components"] if c["state"] == "running"]
+
+
+def test_unknown_component_is_not_found_exit_4(home: Home) -> None:
+    # `msctl restart/stop/logs NAME` of a name nothing runs: exit 1 (restart, stop) or 3 (logs,
+    # "cannot get the log ... from <host>", as if the network failed) instead of 4, not found.
+    result = home.msctl("up", "minimal", "--detach", timeout=90.0)
+    assert result.returncode == 0, result.stderr
+    try:
+        for verb in ("restart", "stop", "logs"):
+            answer = home.msctl(verb, "limb9/joint_manager")
+            assert answer.returncode == 4, (verb, answer.returncode, answer.stderr)
+            assert "limb9/joint_manager" in answer.stderr and "msctl ps" in answer.stderr
+            assert "limb1/joint_manager" in answer.stderr  # what does run
+            assert answer.stdout == ""
+        ok = home.msctl("restart", "limb1/joint_manager")
+        assert ok.returncode == 0, ok.stderr
+    finally:
+        assert home.msctl("down", timeout=30.0).returncode == 0
+
+
+def test_logs_of_a_component_with_no_network_names_the_component(home: Home) -> None:
+    # Nothing ran here and no router: the one line named only the router, not what was asked.
+    answer = home.msctl("logs", "limb1/joint_manager")
+    assert answer.returncode == 3, answer.stderr
+    assert "no log for 'limb1/joint_manager' on this computer" in answer.stderr
+    assert "no Zenoh router reachable" in answer.stderr

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from msctl.errors import InputError, NotFoundError
+from msctl.errors import InputError, NetworkError, NotFoundError
 
 COMMAND_SETTINGS = {"help": "Show (or follow) a component's log."}
 
@@ -49,7 +49,6 @@ def _log_file(component: str | None) -> list[Path]:
 
 def _remote_lines(component: str, lines: int) -> list[str]:
     from components.comm.services import ServiceTimeout
-    from msctl.errors import NetworkError
     from msctl.launcher.control import RequestError, call_supervisor
     from msctl.launcher.remote import host_of
     from msctl.plane import connected
@@ -77,11 +76,18 @@ def command(
         cutoff = datetime.now() - timedelta(seconds=_since_seconds(since))
     try:
         files = _log_file(component)
-    except NotFoundError:
+    except NotFoundError as local:
         if component is None or follow:
             raise
         # Not on this computer: ask the supervisor (agent) of the host that runs it.
-        for line in _remote_lines(component, lines):
+        try:
+            remote = _remote_lines(component, lines)
+        except NetworkError as exc:
+            raise NetworkError(
+                f"{local.message}, and no other computer can be asked: {exc.message}",
+                hint=exc.hint,
+            ) from exc
+        for line in remote:
             out.print(line, highlight=False, markup=False)
         return
     if not files:

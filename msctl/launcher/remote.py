@@ -12,6 +12,8 @@ def host_of(component: str, node: Any) -> str:
     from msctl.launcher import state
     from msctl.launcher.fleet import ask_all
 
+    answered: set[str] = set()
+    known: list[str] = []
     for namespace, answer in ask_all(node, "ps").items():
         for c in answer.get("components", []):
             if component in (c["name"], c.get("process")):
@@ -19,13 +21,22 @@ def host_of(component: str, node: Any) -> str:
         for p in answer.get("processes", []):
             if component == p["name"]:
                 return answer["host"]
+        if "host" in answer:
+            answered.add(answer["host"])
+            known += [c["name"] for c in answer.get("components", [])]
         del namespace
     local = state.read_state()
-    if local and state.supervisor_alive(local):
+    # This computer's supervisor, when its answer did not arrive: let it say for itself.
+    if local and state.supervisor_alive(local) and local.get("host") not in answered:
         return local["host"]
     raise NotFoundError(
-        f"no running supervisor knows {component!r}",
-        hint="see what runs with `msctl ps`",
+        f"no running supervisor knows {component!r}"
+        + (
+            f" (components: {', '.join(known[:12])}{', ...' if len(known) > 12 else ''})"
+            if known
+            else ""
+        ),
+        hint="see what runs where with `msctl ps`",
     )
 
 
