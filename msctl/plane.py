@@ -171,10 +171,18 @@ def _convert(desc: Any, value: Any, where: str, nodetype: Any) -> Any:
             if base in ("string", "wstring"):
                 return str(value)
             if base == "bool":
-                return bool(value)
+                if not isinstance(value, bool):  # bool("false") is True: never guess
+                    raise InputError(f"field {where!r} is a bool; give true or false")
+                return value
             if base in ("float32", "float64"):
                 return float(value)
-            return int(value)
+            number = int(value)
+            if isinstance(value, float) and number != value:
+                raise InputError(f"field {where!r} is a {base}; give a whole number")
+            low, high = _INT_RANGES.get(base, (-(2**63), 2**64 - 1))
+            if not low <= number <= high:
+                raise InputError(f"field {where!r} is a {base}, from {low} to {high}")
+            return number
         if node == nodetype.NAME:
             if not isinstance(value, dict):
                 raise InputError(f"field {where!r} is a {detail}; give a mapping")
@@ -190,8 +198,18 @@ def _convert(desc: Any, value: Any, where: str, nodetype: Any) -> Any:
 
             return np.array(items, dtype=_NUMPY_TYPES.get(inner[1][0], np.float64))
         return items
+    except InputError:
+        raise  # already names the innermost field
     except (TypeError, ValueError) as exc:
         raise InputError(f"field {where!r}: cannot use {value!r} ({exc})") from exc
+
+
+#: Integer field ranges (char, byte and octet are unsigned 8-bit in ROS 2).
+_INT_RANGES = {
+    **{f"int{b}": (-(2 ** (b - 1)), 2 ** (b - 1) - 1) for b in (8, 16, 32, 64)},
+    **{f"uint{b}": (0, 2**b - 1) for b in (8, 16, 32, 64)},
+    **dict.fromkeys(("char", "byte", "octet"), (0, 255)),
+}
 
 
 def to_plain(message: Any) -> Any:

@@ -287,6 +287,23 @@ def test_service_call_errors(node: Node, env: dict[str, str]) -> None:
         (("topic", "pub", "/x", "sensor_msgs/msg/JointState", "{position: 3}"), 2, "position"),
         (("topic", "pub", "/x", "geometry_msgs/msg/Pose", "{position: {x: abc}}"), 2, "position.x"),
         (("topic", "pub", "/x", STRING, "{data: a}", "--rate", "0"), 2, "--rate"),
+        # Out of the field's range: an internal error from the serializer, exit 70.
+        (("topic", "pub", "/x", "std_msgs/msg/Int8", "{data: 300}"), 2, "'data' is a int8"),
+        (("topic", "pub", "/x", "std_msgs/msg/UInt8", "{data: -1}"), 2, "'data' is a uint8"),
+        (
+            (
+                "topic",
+                "pub",
+                "/x",
+                "sensor_msgs/msg/JointState",
+                "{header: {stamp: {sec: 99999999999}}}",
+            ),
+            2,
+            "header.stamp.sec",
+        ),
+        # bool("false") is True: a quoted 'false' was published as true.
+        (("topic", "pub", "/x", "std_msgs/msg/Bool", "{data: 'false'}"), 2, "'data' is a bool"),
+        (("topic", "pub", "/x", "std_msgs/msg/Int32", "{data: 1.5}"), 2, "whole number"),
         (("topic", "pub", "/x", "nope_msgs/msg/Nothing", "{}"), 4, "nope_msgs/msg/Nothing"),
         (("topic", "pub", "/x", "NotAType", "{}"), 2, "NotAType"),
         (("topic", "echo", "/cli/silent", STRING, "--timeout", "0.3"), 5, "/cli/silent"),
