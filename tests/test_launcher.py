@@ -207,6 +207,20 @@ def test_stop_keeps_it_stopped(supervisor) -> None:
     assert process.state is ProcessState.STARTING and process.pid is not None
 
 
+def test_start_of_a_live_process_starts_no_second_copy(supervisor) -> None:
+    # `start` (an AgentRequest verb) of a running process spawned a second copy and dropped
+    # the first from view: two workers driving the same motors, and one left after `down`.
+    process = supervisor.add("sleeper", [PY, "-c", SLEEP])
+    supervisor.start("sleeper")
+    wait_until(lambda: log_has(supervisor, "sleeper", "ready"))
+    first = process.pid
+    assert first is not None
+    supervisor.start("sleeper")
+    assert process.pid == first
+    supervisor.shutdown()
+    assert group_gone(first)
+
+
 def test_restart_replaces_the_process_and_counts(supervisor) -> None:
     process = supervisor.add("sleeper", [PY, "-c", SLEEP])
     supervisor.start("sleeper")

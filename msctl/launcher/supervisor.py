@@ -165,10 +165,12 @@ class Supervisor:
 
     # ------------------------------------------------------------------ starting
     def start(self, name: str) -> None:
-        """Start one process now (it becomes STARTING)."""
+        """Start one process now (it becomes STARTING); one already alive is left as it is."""
         process = self.processes[name]
         process.wanted = True
         process.next_start = None
+        if process.pid is not None:
+            return  # a second copy would drive the same hardware, and the first be lost
         self._spawn(process)
 
     def start_all(self) -> None:
