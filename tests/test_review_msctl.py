@@ -226,3 +226,36 @@ def test_logs_of_a_component_with_no_network_names_the_component(home: Home) -> 
     assert answer.returncode == 3, answer.stderr
     assert "no log for 'limb1/joint_manager' on this computer" in answer.stderr
     assert "no Zenoh router reachable" in answer.stderr
+
+
+def test_the_embedded_router_is_restarted_not_stopped_through_the_control_service(
+    home: Home,
+) -> None:
+    # `msctl stop router` stopped the router that carries every request: the reply was lost
+    # (exit 3) and nothing could reach the supervisor again, not even `msctl restart router`.
+    # `msctl restart router` did restart it, but its reply was lost the same way (exit 3).
+    result = home.msctl("up", "minimal", "--detach", timeout=90.0)
+    assert result.returncode == 0, result.stderr
+    try:
+        first = {p["name"]: p["pid"] for p in home.state()["processes"]}["router"]
+        stop = home.msctl("stop", "router")
+        assert stop.returncode == 1, stop.stderr
+        assert "msctl restart router" in stop.stderr and "msctl down" in stop.stderr
+        restart = home.msctl("restart", "router")
+        assert restart.returncode == 0, restart.stderr
+        assert "router" in restart.stderr
+        wait_until(
+            lambda: (
+                {p["name"]: p["pid"] for p in home.state()["processes"]}["router"]
+                not in (None, first)
+            ),
+            timeout=10.0,
+            what="a new router process",
+        )
+        wait_until(
+            lambda: home.msctl("restart", "limb1/joint_manager").returncode == 0,
+            timeout=20.0,
+            what="requests reach the supervisor again",
+        )
+    finally:
+        assert home.msctl("down", timeout=30.0).returncode == 0

@@ -148,6 +148,7 @@ class Launch:
         self._stop = False
         self._started = time.time()
         self._last_state_write = 0.0
+        self._router_restart_at: float | None = None
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
@@ -211,6 +212,9 @@ class Launch:
                     and all(all(status[c]) for c in process.components)
                 ):
                     self.supervisor.mark_running(process.name)
+        if self._router_restart_at is not None and time.monotonic() >= self._router_restart_at:
+            self._router_restart_at = None
+            self.supervisor.restart(ROUTER_PROCESS)
         router = self.supervisor.processes.get(ROUTER_PROCESS)
         if (
             router is not None
@@ -290,6 +294,18 @@ class Launch:
         if verb == "logs":
             lines = int(args.get("lines", 50))
             return {process: list(self.supervisor.processes[process].log.tail)[-lines:]}
+        if process == ROUTER_PROCESS and verb == "stop":
+            # Every request and reply goes through it: stopped alone, nothing could reach
+            # this supervisor again, not even to start it.
+            raise RequestError(
+                f"the embedded router carries every topic and request of {self.plan.host}; "
+                "restart it with `msctl restart router`, or stop everything with `msctl down`"
+            )
+        if process == ROUTER_PROCESS and verb == "restart":
+            # After the reply has left through it, or the caller hears nothing.
+            self._router_restart_at = time.monotonic() + 0.3
+            self.events.append(f"{process}: restart requested")
+            return {"process": process, "state": ProcessState.RESTARTING.value}
         if verb == "restart":
             self.supervisor.restart(process)
         elif verb == "stop":
