@@ -340,7 +340,9 @@ def test_a_failing_script_names_its_line_and_exits_non_zero(dragon: Up, tmp_path
     assert f"{script}:3 (main)" in message and "joint42" in message, message
 
 
-def test_ctrl_c_stops_the_script_cleanly(dragon: Up) -> None:
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_stops_the_script_cleanly(dragon: Up, signum: str) -> None:
+    """Ctrl-C, and SIGTERM as systemd or `kill` send it, stop the motions and hold."""
     import signal
 
     # A 3 m first leg at 0.2 m/s: 15 s of driving after the limbs have steered (~3 s).
@@ -354,7 +356,7 @@ def test_ctrl_c_stops_the_script_cleanly(dragon: Up) -> None:
     try:
         assert driving.wait(40.0), "the example never started driving"
         time.sleep(6.0)  # steered, and driving the first leg
-        script.process.send_signal(signal.SIGINT)
+        script.process.send_signal(getattr(signal, signum))
         stopped = time.monotonic()
     finally:
         code, out, err = script.wait(15.0)

@@ -26,8 +26,10 @@ Example::
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib.util
 import inspect
+import signal
 import sys
 import threading
 import traceback
@@ -93,6 +95,13 @@ async def _run(script: Path, main: Any, assembly: str | None, timeout: float) ->
     from msctl.console import err
 
     err.print(f"connected: {robot!r}", highlight=False)
+    # SIGTERM (systemd, `kill`) and SIGHUP (a dropped terminal) stop the script exactly as
+    # Ctrl-C does: the main task is cancelled and its motions are stopped, joints held.
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(signum, task.cancel)
     try:
         if inspect.iscoroutinefunction(main):
             await main(robot)
