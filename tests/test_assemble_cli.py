@@ -71,6 +71,10 @@ def test_models_to_stdout_or_file(env: dict[str, str], tmp_path: Path) -> None:
     target = tmp_path / "out" / "model.xml"
     result = msctl(env, "mjcf", "-o", str(target))
     assert result.stdout == "" and target.read_text().startswith("<mujoco")
+    # Written atomically, yet with the mode a plain write gives (not the temp file's 0600).
+    umask = os.umask(0)
+    os.umask(umask)
+    assert target.stat().st_mode & 0o777 == 0o666 & ~umask
 
 
 def test_list(env: dict[str, str]) -> None:
