@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 from collections.abc import Iterator
@@ -13,7 +17,12 @@ from conftest import wait_until
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
-from components.motors.dynamixel_chain import MODELS, DynamixelBackend, JointUnits
+from components.motors.dynamixel_chain import (
+    BUS_WATCHDOG_EXPIRED,
+    MODELS,
+    DynamixelBackend,
+    JointUnits,
+)
 from components.motors.emulation.dynamixel import (
     EmulatedDynamixelChain,
     PacketParser,
@@ -372,3 +381,197 @@ def test_model_mismatch_is_a_warning() -> None:
     ):
         d = diag(dxl, joint(1))
         assert d.level == 1 and "XL430-W250" in d.message
+
+
+# -- bus watchdog ----------------------------------------------------------------------------
+
+#: The backend's default: 100 ms = 5 units of 20 ms.
+WATCHDOG_S = 0.1
+#: How late the emulator may notice an expiry: it steps every 5 ms, a loaded machine later.
+WATCHDOG_SLACK_S = 0.05
+
+#: A msctl process driving joint 2 by velocity at 100 Hz until it is killed.
+DRIVER = textwrap.dedent(
+    """
+    import sys, time
+    from components.motors.base import MotorCommand, MotorSpec
+    from components.motors.dynamixel_chain import DynamixelBackend
+
+    dxl = DynamixelBackend(sys.argv[1], [MotorSpec("limb1_joint2", 2, "XM430-W350")],
+                           {"latency_timer_ms": 40.0})
+    dxl.open()
+    print("open", flush=True)
+    while True:
+        dxl.read()
+        dxl.write([MotorCommand("limb1_joint2", velocity=1.0)])
+        time.sleep(0.01)
+    """
+)
+
+
+def test_servo_stops_by_itself_when_the_driving_process_is_killed(
+    chain: EmulatedDynamixelChain,
+) -> None:
+    with subprocess.Popen(
+        [sys.executable, "-c", DRIVER, chain.port], stdout=subprocess.PIPE, text=True
+    ) as driver:
+        try:
+            assert driver.stdout is not None and driver.stdout.readline() == "open\n"
+            wait_until(lambda: chain.register(2, "present_velocity") > 35, what="turning")
+            assert chain.register(2, "bus_watchdog") == 5  # armed with the default 100 ms
+            # Fed at 100 Hz, it never trips while the process lives.
+            time.sleep(3 * WATCHDOG_S)
+            assert chain.register(2, "present_velocity") > 35
+            assert chain.watchdog(2)[2] == 0
+        finally:
+            driver.send_signal(signal.SIGKILL)  # no close(), no torque off: just gone
+            driver.wait()
+            killed_at = time.monotonic()
+    wait_until(lambda: chain.register(2, "present_velocity") == 0, timeout=1.0, what="stop")
+    stopped_at = time.monotonic()
+    heard_at, expired_at, trips = chain.watchdog(2)
+    assert trips == 1 and expired_at is not None
+    assert expired_at - heard_at == pytest.approx(WATCHDOG_S)
+    assert stopped_at - killed_at < WATCHDOG_S + WATCHDOG_SLACK_S + 0.1
+    assert chain.register(2, "goal_velocity") == 0
+    assert chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
+    assert chain.register(2, "torque_enable") == 1  # stopped under torque, not dropped
+    position = chain.register(2, "present_position")
+    time.sleep(2 * WATCHDOG_S)
+    assert chain.register(2, "present_position") == position
+
+
+def test_backend_abandoned_without_close_lets_the_servo_stop(
+    chain: EmulatedDynamixelChain,
+) -> None:
+    dxl = DynamixelBackend(chain.port, [MotorSpec(joint(1), 1, "XM430-W350")], OPTIONS)
+    dxl.open()
+    try:
+        dxl.write([MotorCommand(joint(1), velocity=-1.5)])
+        wait_until(lambda: dxl.read()[joint(1)].velocity < -1.4)
+        # The process "dies": the port goes without the graceful close path.
+        dxl._port.closePort()  # a crash, not the API
+        dropped_at = time.monotonic()
+        wait_until(lambda: chain.register(1, "present_velocity") == 0, timeout=1.0)
+        assert time.monotonic() - dropped_at < WATCHDOG_S + WATCHDOG_SLACK_S + 0.1
+        assert chain.register(1, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
+    finally:
+        dxl._port = None
+        dxl.close()
+
+
+def test_pause_longer_than_the_watchdog_is_reported_and_rearmed(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    backend.write([MotorCommand(joint(2), velocity=1.0)])
+    wait_until(lambda: backend.read()[joint(2)].velocity > 0.9)
+    assert chain.register(2, "bus_watchdog") == 5
+    assert diag(backend, joint(2)).values["bus_watchdog"] == "100 ms"
+
+    time.sleep(3 * WATCHDOG_S)  # the process stalls: no read, no write
+    assert chain.register(2, "present_velocity") == 0
+    assert chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
+    heard_at, expired_at, _ = chain.watchdog(2)
+    assert expired_at is not None and expired_at - heard_at == pytest.approx(WATCHDOG_S)
+
+    # Back: the first read finds the expiry, clears it, re-arms, and says which joint.
+    backend.read()
+    d = diag(backend, joint(2))
+    assert d.level == 1
+    assert d.message == (
+        "limb1_joint2: servo id 2 stopped by its bus watchdog (no command for 100 ms); re-armed"
+    )
+    assert d.values["bus_watchdog_trips"] == "1"
+    assert int(d.values["bus_watchdog_last_gap_ms"]) >= 299  # the pause, as this side saw it
+    assert chain.register(2, "bus_watchdog") == 5
+    # Not resumed on its own: the old velocity needs a new command.
+    assert chain.register(2, "goal_velocity") == 0
+    assert all(diag(backend, joint(i)).level == 0 for i in IDS if i != 2)
+
+    backend.write([MotorCommand(joint(2), velocity=-0.5)])
+    state = wait_until(lambda: (s := backend.read()[joint(2)]).velocity < -0.45 and s)
+    assert state.velocity == pytest.approx(-0.5, abs=0.03)
+    assert chain.watchdog(2)[2] == 1
+
+
+def test_write_after_a_pause_is_not_swallowed_by_the_expired_watchdog(
+    chain: EmulatedDynamixelChain, backend: DynamixelBackend
+) -> None:
+    backend.write([MotorCommand(joint(3), velocity=1.0)])
+    wait_until(lambda: chain.register(3, "present_velocity") > 35)
+    time.sleep(2 * WATCHDOG_S)
+    assert chain.register(3, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
+    # A write comes first after the pause: the goal must land, not be refused.
+    backend.write([MotorCommand(joint(3), velocity=0.7)])
+    wait_until(lambda: chain.register(3, "goal_velocity") == JointUnits(XM430, 1.0)
+               .velocity_units(0.7))
+    assert chain.register(3, "bus_watchdog") == 5
+    assert "bus watchdog" in diag(backend, joint(3)).message
+
+
+def test_position_mode_and_close_leave_the_watchdog_off(chain: EmulatedDynamixelChain) -> None:
+    motors = [MotorSpec(joint(i), i, "XM430-W350") for i in (1, 2)]
+    dxl = DynamixelBackend(chain.port, motors, {**OPTIONS, "bus_watchdog_ms": 200})
+    dxl.open()
+    assert [chain.register(i, "bus_watchdog") for i in (1, 2)] == [0, 0]
+    dxl.write([MotorCommand(joint(1), velocity=1.0), MotorCommand(joint(2), position=0.3)])
+    assert chain.register(1, "bus_watchdog") == 10  # 200 ms
+    assert chain.register(2, "bus_watchdog") == 0
+    assert diag(dxl, joint(2)).values["bus_watchdog"] == "off"
+    # Back to position: off again (a held position must not be dropped by a pause).
+    dxl.write([MotorCommand(joint(1), position=0.0)])
+    assert chain.register(1, "bus_watchdog") == 0
+    dxl.write([MotorCommand(joint(1), velocity=0.5)])
+    assert chain.register(1, "bus_watchdog") == 10
+    dxl.close()
+    wait_until(lambda: chain.register(1, "bus_watchdog") == 0)  # a reply-less SYNC_WRITE
+    assert chain.register(1, "torque_enable") == 0
+    time.sleep(0.3)  # longer than the period: nothing left to expire
+    assert [chain.register(i, "bus_watchdog") for i in (1, 2)] == [0, 0]
+    assert chain.watchdog(1)[2] == 0
+
+
+def test_hold_on_close_stops_velocity_joints_and_disarms(chain: EmulatedDynamixelChain) -> None:
+    motors = [MotorSpec(joint(1), 1, "XM430-W350")]
+    with DynamixelBackend(chain.port, motors, {**OPTIONS, "hold_on_close": True}) as dxl:
+        dxl.write([MotorCommand(joint(1), velocity=1.0)])
+        wait_until(lambda: chain.register(1, "present_velocity") > 35)
+    wait_until(lambda: chain.register(1, "bus_watchdog") == 0)
+    assert chain.register(1, "goal_velocity") == 0
+    assert chain.register(1, "torque_enable") == 1
+
+
+def test_watchdog_option_zero_disables_it(chain: EmulatedDynamixelChain) -> None:
+    motors = [MotorSpec(joint(1), 1, "XM430-W350")]
+    with DynamixelBackend(chain.port, motors, {**OPTIONS, "bus_watchdog_ms": 0}) as dxl:
+        dxl.write([MotorCommand(joint(1), velocity=1.0)])
+        time.sleep(2 * WATCHDOG_S)
+        assert chain.register(1, "bus_watchdog") == 0
+        assert chain.register(1, "present_velocity") > 35
+    with pytest.raises(MotorError, match=r"bus_watchdog_ms"):
+        DynamixelBackend(chain.port, motors, {"bus_watchdog_ms": 5000}).open()
+
+
+def test_slow_paths_keep_feeding_armed_servos(chain: EmulatedDynamixelChain) -> None:
+    # Three servos go silent at once and a fourth needs a reboot: retries, re-probes and the
+    # boot wait each block for a reply timeout (~82 ms here), which would add up to several
+    # hundred ms of silence towards joint 1 if nothing fed it in between.
+    options = {**OPTIONS, "bus_watchdog_ms": 200, "reprobe_interval_s": 0.05}
+    motors = [MotorSpec(joint(i), i, "XM430-W350") for i in IDS]
+    with DynamixelBackend(chain.port, motors, options) as dxl:
+        dxl.write([MotorCommand(joint(1), velocity=1.0)])
+        wait_until(lambda: chain.register(1, "present_velocity") > 35)
+        for i in (2, 3, 5):
+            chain.silence(i)
+        chain.set_hardware_error(4, 1 << 5)
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            dxl.read()
+        assert [diag(dxl, joint(i)).level for i in (2, 3, 5)] == [2, 2, 2]
+        dxl.recover()
+        dxl.read()
+        assert diag(dxl, joint(4)).level == 0
+        assert chain.register(1, "bus_watchdog") == 10
+        assert chain.watchdog(1)[2] == 0
+        assert chain.register(1, "present_velocity") > 35
+        assert diag(dxl, joint(1)).level == 0

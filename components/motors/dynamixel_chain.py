@@ -17,6 +17,17 @@ bit would be lost) and fails the whole group when one servo is silent, which wou
 chain. Servos missing from the group reply get ``retries`` individual READs; if those fail too
 the servo is reported not answering, left out of the group read, and pinged every
 ``reprobe_interval_s`` until it answers, then brought up again (mode, goal, torque).
+
+Every servo in velocity mode has its own Bus Watchdog (register 98) armed (``bus_watchdog_ms``,
+default 100 ms): if this process dies, hangs or loses the port, the servo sets its goal velocity
+to 0 by itself instead of turning on at the last command. The ~100 Hz read cycle feeds it; steps
+that can block for a whole reply timeout (retries of a silent servo, re-probes, the boot wait in
+:meth:`DynamixelBackend.recover`) are each followed by a short SYNC_READ of the armed servos, so
+no normal path stays silent towards them for longer than one reply timeout (``2 *
+latency_timer_ms + 2`` ms) plus 10 ms. A watchdog found expired (the register reads 0xFF and the
+servo ignores goals) is reported as a WARN naming the joint, cleared and re-armed; the goal
+stays 0 until the next command. Position modes and :meth:`DynamixelBackend.close` leave the
+watchdog off.
 """
 
 from __future__ import annotations
@@ -77,6 +88,7 @@ X_SERIES_REGISTERS: dict[str, tuple[int, int]] = {
     "led": (65, 1),
     "status_return_level": (68, 1),
     "hardware_error_status": (70, 1),
+    "bus_watchdog": (98, 1),
     "goal_pwm": (100, 2),
     "goal_current": (102, 2),
     "goal_velocity": (104, 4),
@@ -135,6 +147,18 @@ HARDWARE_ERROR_BITS: dict[int, str] = {
     5: "overload",
 }
 ALERT_BIT = 0x80
+
+#: Bus Watchdog (address 98): one unit in ms, the largest period in units, and the value the
+#: servo shows once it has expired (-1 as a signed byte) until 0 is written.
+BUS_WATCHDOG_UNIT_MS = 20
+BUS_WATCHDOG_MAX_UNITS = 127
+BUS_WATCHDOG_EXPIRED = 0xFF
+#: How long the "stopped by its bus watchdog" warning stays in the diagnostics: long enough
+#: for a 1 Hz diagnostics publisher to carry it a few times.
+WATCHDOG_REPORT_S = 5.0
+#: Silence towards an armed servo after which a slow step is followed by a feeding SYNC_READ:
+#: above one normal cycle's bus time (a few ms), far below any useful watchdog period.
+FEED_AFTER_S = 0.01
 
 #: The block read every cycle: present current up to and including present temperature.
 READ_BLOCK_START = X_SERIES_REGISTERS["present_current"][0]
@@ -291,6 +315,13 @@ class _Servo:
     voltage: float | None = None
     model_number: int | None = None
     note: str = ""
+    sent_at: float = 0.0
+    watchdog_units: int = 0
+    next_watchdog_check: float = 0.0
+    watchdog_trips: int = 0
+    watchdog_report: str = ""
+    watchdog_gap: float | None = None
+    watchdog_report_until: float = 0.0
 
     @property
     def sid(self) -> int:
@@ -320,12 +351,17 @@ class DynamixelBackend(MotorBackend):
             missing from the group reply before it counts as not answering, default 1),
             ``reprobe_interval_s`` (how often a silent servo is pinged, default 0.5),
             ``status_interval_s`` (how often Hardware Error Status is re-read while a servo
-            keeps its alert bit set, default 0.5), ``boot_timeout_s`` (how long
+            keeps its alert bit set, and how often an armed Bus Watchdog is checked, default
+            0.5), ``boot_timeout_s`` (how long
             :meth:`recover` waits for a rebooted servo, default 1.0), ``reopen_interval_s``
             (how often a lost port is reopened, default 1.0), ``hold_on_close`` (keep torque
-            on at :meth:`close`, default False), ``protocol`` (must be 2.0 if
-            given). Other keys from module data (``return_delay_us``, ``bulk_read``) are
-            accepted and ignored.
+            on at :meth:`close`, default False; servos in velocity mode get goal 0 first),
+            ``bus_watchdog_ms`` (the servo's own Bus Watchdog while in velocity mode: it
+            stops when it hears nothing for this long; default 100, rounded to 20 ms steps,
+            at most 2540; 0 leaves it off; keep it well above the cycle period and the reply
+            timeout ``2 * latency_timer_ms + 2``), ``protocol`` (must be 2.0 if given).
+            Other keys from module data (``return_delay_us``, ``bulk_read``) are accepted
+            and ignored.
     """
 
     def __init__(self, channel: str, motors: list[MotorSpec], options: dict[str, Any]):
@@ -338,10 +374,13 @@ class DynamixelBackend(MotorBackend):
         self.boot_timeout = float(self.options.get("boot_timeout_s", 1.0))
         self.reopen_interval = float(self.options.get("reopen_interval_s", 1.0))
         self.hold_on_close = bool(self.options.get("hold_on_close", False))
+        self.bus_watchdog_ms = self.options.get("bus_watchdog_ms", 100)
+        self._watchdog_units = 0
         self._port: PortHandler | None = None
         self._packet = PacketHandler(2.0)
         self._servos: list[_Servo] = []
         self._by_joint: dict[str, _Servo] = {}
+        self._by_id: dict[int, _Servo] = {}
         self._opened = False
         self._bus_error = ""
         self._next_reopen = 0.0
@@ -362,8 +401,10 @@ class DynamixelBackend(MotorBackend):
                 f"{self.channel}: Dynamixel protocol {protocol:g} is not supported; this backend "
                 "speaks Protocol 2.0 (X-series): set the bus's protocol to 2.0 in module data"
             )
+        self._watchdog_units = self._bus_watchdog_units()
         self._servos = [self._make_servo(spec) for spec in self.motors]
         self._by_joint = {s.joint: s for s in self._servos}
+        self._by_id = {s.sid: s for s in self._servos}
         try:
             self._open_port()
         except MotorError:
@@ -394,16 +435,28 @@ class DynamixelBackend(MotorBackend):
         if not self._opened:
             return
         self._opened = False
-        if self.hold_on_close:
-            self._close_port()
-            return
+        answering = [s for s in self._servos if s.answering]
         try:
             if self._port is not None and self._port.is_open:
-                self._sync_write("torque_enable", {s.sid: 0 for s in self._servos if s.answering})
+                if self.hold_on_close:
+                    # Holding a velocity means turning on: those servos hold still instead.
+                    self._sync_write("goal_velocity", {
+                        s.sid: 0 for s in answering if s.mode == VELOCITY_MODE
+                    })
+                else:
+                    self._sync_write("torque_enable", {s.sid: 0 for s in answering})
+                # Off only after torque off (or goal 0), so no moment runs unguarded. Left
+                # armed, it would expire once the port is closed and make the servo refuse
+                # the goals of whoever opens the chain next.
+                self._sync_write(
+                    "bus_watchdog", {s.sid: 0 for s in answering if s.watchdog_units}
+                )
         except Exception as exc:
-            log.warning("%s: torque off on close failed: %s", self.channel, exc)
+            log.warning("%s: stopping the servos on close failed: %s", self.channel, exc)
         for servo in self._servos:
-            servo.torque_on = False
+            servo.watchdog_units = 0
+            if not self.hold_on_close:
+                servo.torque_on = False
         self._close_port()
 
     # -- the cycle ------------------------------------------------------------------------
@@ -474,6 +527,7 @@ class DynamixelBackend(MotorBackend):
             rebooted: list[_Servo] = []
             for servo in self._servos:
                 if servo.answering and servo.hardware_error:
+                    servo.sent_at = time.monotonic()
                     result, _ = self._packet.reboot(self._port, servo.sid)
                     self._release()
                     log.info("%s: reboot servo id %d -> %s", servo.joint, servo.sid,
@@ -483,14 +537,18 @@ class DynamixelBackend(MotorBackend):
             for servo in rebooted:
                 servo.hardware_error = 0
                 servo.answering = False
+                servo.watchdog_units = 0  # a reboot resets RAM, the watchdog included
                 while not self._probe(servo, time.monotonic()) and time.monotonic() < deadline:
+                    self._feed_watchdogs()  # the boot wait must not starve the other servos
                     time.sleep(0.02)
+                self._feed_watchdogs()
             rebooted_ids = {s.sid for s in rebooted}
             for servo in self._servos:
                 if not servo.answering and servo.sid not in rebooted_ids:
                     self._probe(servo, time.monotonic())
                 elif servo.answering and not servo.torque_on:
                     self._bring_up_or_drop(servo, time.monotonic())
+                self._feed_watchdogs()
         except Exception as exc:
             self._bus_lost(exc)
 
@@ -550,6 +608,33 @@ class DynamixelBackend(MotorBackend):
             ),
         )
 
+    def _bus_watchdog_units(self) -> int:
+        """``bus_watchdog_ms`` as Bus Watchdog units (0 = off); raises MotorError if invalid."""
+        limit_ms = BUS_WATCHDOG_MAX_UNITS * BUS_WATCHDOG_UNIT_MS
+        try:
+            ms = float(self.bus_watchdog_ms)
+        except (TypeError, ValueError):
+            ms = math.nan
+        if not 0.0 <= ms <= limit_ms:
+            raise MotorError(
+                f"{self.channel}: bus_watchdog_ms {self.bus_watchdog_ms!r} is out of range; use "
+                f"0 (off) or {BUS_WATCHDOG_UNIT_MS}..{limit_ms} (ms, in steps of "
+                f"{BUS_WATCHDOG_UNIT_MS}) in the bus options of the module data"
+            )
+        if ms == 0.0:
+            return 0
+        units = max(1, round(ms / BUS_WATCHDOG_UNIT_MS))
+        # Steps that wait for a silent servo block for one reply timeout: a period that short
+        # would trip on a lost reply rather than on a dead process.
+        reply_timeout_ms = 2.0 * self.latency_timer_ms + 2.0
+        if units * BUS_WATCHDOG_UNIT_MS < 1.25 * reply_timeout_ms:
+            log.warning(
+                "%s: bus_watchdog_ms %d is close to the reply timeout (%.0f ms): a silent servo "
+                "may trip the watchdog of the others; raise it or lower latency_timer_ms",
+                self.channel, units * BUS_WATCHDOG_UNIT_MS, reply_timeout_ms,
+            )
+        return units
+
     def _port_error_text(self, exc: object) -> str:
         return (
             f"cannot open Dynamixel port {self.channel} at {self.baudrate} baud ({exc}); check "
@@ -596,8 +681,17 @@ class DynamixelBackend(MotorBackend):
             return
         for servo in self._servos:
             self._probe(servo, now)
+            self._feed_watchdogs()
 
     # -- low-level exchanges --------------------------------------------------------------
+
+    def _mark_sent(self, ids: Any) -> None:
+        """Note that an instruction including these servo ids goes out now (feeds watchdogs)."""
+        now = time.monotonic()
+        for sid in ids:
+            servo = self._by_id.get(sid)
+            if servo is not None:
+                servo.sent_at = now
 
     def _release(self) -> None:
         # The SDK marks the port busy per transaction and clears it on the happy paths only;
@@ -608,6 +702,7 @@ class DynamixelBackend(MotorBackend):
     def _read_register(self, servo: _Servo, name: str) -> tuple[int, int]:
         """(value, status error byte) of one register; raises _NoAnswer when silent."""
         address, size = servo.model.registers[name]
+        servo.sent_at = time.monotonic()
         data, result, error = self._packet.readTxRx(self._port, servo.sid, address, size)
         self._release()
         if result != COMM_SUCCESS or len(data) != size:
@@ -621,6 +716,7 @@ class DynamixelBackend(MotorBackend):
         """Write one register and return the status error byte; raises _NoAnswer when silent."""
         address, size = servo.model.registers[name]
         data = list((value & ((1 << (8 * size)) - 1)).to_bytes(size, "little"))
+        servo.sent_at = time.monotonic()
         result, error = self._packet.writeTxRx(self._port, servo.sid, address, size, data)
         self._release()
         if result != COMM_SUCCESS:
@@ -638,6 +734,7 @@ class DynamixelBackend(MotorBackend):
         mask = (1 << (8 * size)) - 1
         for sid, value in values.items():
             group.addParam(sid, list((value & mask).to_bytes(size, "little")))
+        self._mark_sent(values)
         result = group.txPacket()
         self._release()
         if result != COMM_SUCCESS:
@@ -648,6 +745,7 @@ class DynamixelBackend(MotorBackend):
         if not servos:
             return {}
         ids = [s.sid for s in servos]
+        self._mark_sent(ids)
         result = self._packet.syncReadTx(
             self._port, READ_BLOCK_START, READ_BLOCK_LENGTH, ids, len(ids), False
         )
@@ -672,6 +770,7 @@ class DynamixelBackend(MotorBackend):
         return replies
 
     def _read_block_single(self, servo: _Servo) -> tuple[bytes, int] | None:
+        servo.sent_at = time.monotonic()
         data, result, error = self._packet.readTxRx(
             self._port, servo.sid, READ_BLOCK_START, READ_BLOCK_LENGTH
         )
@@ -687,6 +786,7 @@ class DynamixelBackend(MotorBackend):
         servo.next_probe = now + self.reprobe_interval
         if self._port is None:
             return False
+        servo.sent_at = time.monotonic()
         model_number, result, error = self._packet.ping(self._port, servo.sid)
         self._release()
         if result != COMM_SUCCESS:
@@ -735,16 +835,97 @@ class DynamixelBackend(MotorBackend):
         """
         self._write_register(servo, "torque_enable", 0)
         servo.torque_on = False
+        # Cleared first: after an expiry the servo ignores goal writes until it reads 0.
+        self._disarm_watchdog(servo)
         current, _ = self._read_register(servo, "operating_mode")
         if current != mode:
             self._write_register(servo, "operating_mode", mode)
         servo.mode = mode
         if mode == VELOCITY_MODE:
             self._write_register(servo, "goal_velocity", 0 if goal is None else goal)
+            if self._watchdog_units:
+                # Armed with torque still off: it starts counting when torque comes on.
+                self._write_register(servo, "bus_watchdog", self._watchdog_units)
+                servo.watchdog_units = self._watchdog_units
+                servo.next_watchdog_check = time.monotonic() + self.status_interval
         else:
             if goal is None:
                 goal, _ = self._read_register(servo, "present_position")
             self._write_register(servo, "goal_position", goal)
+
+    def _disarm_watchdog(self, servo: _Servo) -> None:
+        """Bus Watchdog to 0, reporting an expiry found on the way (e.g. after a lost bus)."""
+        value, _ = self._read_register(servo, "bus_watchdog")
+        if value == BUS_WATCHDOG_EXPIRED:
+            self._report_trip(servo, servo.watchdog_units or self._watchdog_units, None,
+                              "cleared")
+        if value:
+            self._write_register(servo, "bus_watchdog", 0)
+        servo.watchdog_units = 0
+
+    def _report_trip(self, servo: _Servo, units: int, gap: float | None, action: str) -> None:
+        period = f" (no command for {units * BUS_WATCHDOG_UNIT_MS} ms)" if units else ""
+        servo.watchdog_trips += 1
+        servo.watchdog_gap = gap
+        servo.watchdog_report = (
+            f"{servo.joint}: servo id {servo.sid} stopped by its bus watchdog{period}; {action}"
+        )
+        servo.watchdog_report_until = time.monotonic() + WATCHDOG_REPORT_S
+        seen = "" if gap is None else f" (this backend was silent for {gap * 1000:.0f} ms)"
+        log.warning("%s%s", servo.watchdog_report, seen)
+
+    def _check_watchdogs(self, now: float) -> None:
+        """Find armed servos whose watchdog expired; clear, re-arm and report them.
+
+        A servo is asked when this backend itself was silent towards it for most of the
+        period (a paused process, a slow step), and every ``status_interval_s`` anyway,
+        since an expiry is invisible otherwise: the servo takes no alert bit for it and
+        ignores SYNC_WRITE goals silently.
+        """
+        suspect_after = 0.8 * self._watchdog_units * BUS_WATCHDOG_UNIT_MS / 1000.0
+        for servo in self._servos:
+            if not (servo.answering and servo.watchdog_units):
+                continue
+            gap = now - servo.sent_at
+            if gap < suspect_after and now < servo.next_watchdog_check:
+                continue
+            servo.next_watchdog_check = now + self.status_interval
+            try:
+                value, _ = self._read_register(servo, "bus_watchdog")
+                if value == servo.watchdog_units:
+                    continue
+                if value == BUS_WATCHDOG_EXPIRED:
+                    self._write_register(servo, "bus_watchdog", 0)
+                    self._write_register(servo, "bus_watchdog", servo.watchdog_units)
+                    self._report_trip(servo, servo.watchdog_units, gap, "re-armed")
+                else:
+                    log.warning("%s: servo id %d bus watchdog read %d, expected %d; re-armed",
+                                servo.joint, servo.sid, value, servo.watchdog_units)
+                    self._write_register(servo, "bus_watchdog", servo.watchdog_units)
+            except _NoAnswer:
+                continue  # the group read decides whether the servo is gone
+
+    def _feed_watchdogs(self) -> None:
+        """SYNC_READ the armed servos if a slow step just kept them waiting.
+
+        Retries, re-probes and boot waits each block for up to one reply timeout; calling
+        this between them keeps every armed servo's silence to about one timeout (plus
+        :data:`FEED_AFTER_S`) instead of their sum. After a normal step it sends nothing.
+        """
+        if self._port is None or not self._watchdog_units:
+            return
+        now = time.monotonic()
+        period = self._watchdog_units * BUS_WATCHDOG_UNIT_MS / 1000.0
+        feed_after = min(FEED_AFTER_S, period / 4.0)
+        stale = [
+            s for s in self._servos
+            if s.answering and s.watchdog_units and now - s.sent_at > feed_after
+        ]
+        replies = self._sync_read_block(stale)
+        stamp = time.time()
+        for servo in stale:
+            if servo.sid in replies:
+                self._decode(servo, replies[servo.sid][0], stamp)
 
     def _enable_torque(self, servo: _Servo) -> None:
         # Read back: a servo in hardware-error shutdown acknowledges the write but stays off.
@@ -767,12 +948,14 @@ class DynamixelBackend(MotorBackend):
         if self._port is None:
             self._try_reopen(now)
             return
+        self._check_watchdogs(now)
         live = [s for s in self._servos if s.answering]
         replies = self._sync_read_block(live)
         for servo in live:
             if servo.sid in replies:
                 continue
             for _ in range(max(self.retries, 0)):
+                self._feed_watchdogs()
                 reply = self._read_block_single(servo)
                 if reply is not None:
                     replies[servo.sid] = reply
@@ -788,11 +971,15 @@ class DynamixelBackend(MotorBackend):
                 data, error = replies[servo.sid]
                 self._decode(servo, data, stamp)
                 self._track_alert(servo, error, now)
+                self._feed_watchdogs()
         for servo in self._servos:
-            if not servo.answering and now >= servo.next_probe and self._probe(servo, now):
-                reply = self._read_block_single(servo)
-                if reply is not None:
-                    self._decode(servo, reply[0], time.time())
+            if not servo.answering and now >= servo.next_probe:
+                self._feed_watchdogs()
+                if self._probe(servo, now):
+                    reply = self._read_block_single(servo)
+                    if reply is not None:
+                        self._decode(servo, reply[0], time.time())
+        self._feed_watchdogs()
 
     def _decode(self, servo: _Servo, data: bytes, stamp: float) -> None:
         """The one place a state block becomes SI units."""
@@ -840,6 +1027,8 @@ class DynamixelBackend(MotorBackend):
         return ticks
 
     def _write_commands(self, commands: list[MotorCommand]) -> None:
+        # Before the goals: a servo whose watchdog expired would drop them without a word.
+        self._check_watchdogs(time.monotonic())
         positions: dict[int, int] = {}
         velocities: dict[int, int] = {}
         for command in commands:
@@ -851,6 +1040,7 @@ class DynamixelBackend(MotorBackend):
                     servo.mode = servo.position_mode  # so clamping uses the new mode's range
                     goal = self._clamp_ticks(servo, servo.units.position_ticks(command.position))
                     self._switch_mode(servo, servo.position_mode, goal)
+                    self._feed_watchdogs()
                     continue
                 positions[servo.sid] = self._clamp_ticks(
                     servo, servo.units.position_ticks(command.position)
@@ -860,6 +1050,7 @@ class DynamixelBackend(MotorBackend):
                 units = max(-servo.velocity_limit, min(servo.velocity_limit, units))
                 if servo.mode != VELOCITY_MODE:
                     self._switch_mode(servo, VELOCITY_MODE, units)
+                    self._feed_watchdogs()
                     continue
                 velocities[servo.sid] = units
         self._sync_write("goal_position", positions)
@@ -879,6 +1070,12 @@ class DynamixelBackend(MotorBackend):
         if servo.voltage is not None:
             values["input_voltage_v"] = f"{servo.voltage:.1f}"
         values["hardware_error_status"] = f"0x{servo.hardware_error:02x}"
+        values["bus_watchdog"] = (
+            f"{servo.watchdog_units * BUS_WATCHDOG_UNIT_MS} ms" if servo.watchdog_units else "off"
+        )
+        values["bus_watchdog_trips"] = str(servo.watchdog_trips)
+        if servo.watchdog_gap is not None:
+            values["bus_watchdog_last_gap_ms"] = f"{servo.watchdog_gap * 1000:.0f}"
         prefix = f"{servo.joint}: servo id {servo.sid}"
         if not self._opened:
             return MotorDiagnostic(servo.joint, ERROR, f"{prefix} bus closed", values)
@@ -907,6 +1104,8 @@ class DynamixelBackend(MotorBackend):
                     f"(limit {servo.temperature_limit:.0f} °C)",
                     values,
                 )
+        if servo.watchdog_report and time.monotonic() < servo.watchdog_report_until:
+            return MotorDiagnostic(servo.joint, WARN, servo.watchdog_report, values)
         if servo.model_number is not None and servo.model_number != servo.model.model_number:
             seen = MODELS_BY_NUMBER.get(servo.model_number)
             seen_name = seen.name if seen else f"model number {servo.model_number}"

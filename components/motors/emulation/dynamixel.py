@@ -10,7 +10,8 @@ exactly as to a U2D2 adapter::
 
 Each servo has a control table (the same register map the backend uses), simple motion
 physics (position follows the goal at the profile velocity; velocity mode integrates; current
-follows speed and tracking error), and fault hooks: :meth:`EmulatedDynamixelChain.silence`,
+follows speed and tracking error), the Bus Watchdog (register 98, see
+:meth:`EmulatedServo.heard`), and fault hooks: :meth:`EmulatedDynamixelChain.silence`,
 :meth:`~EmulatedDynamixelChain.resume`, :meth:`~EmulatedDynamixelChain.set_hardware_error`,
 :meth:`~EmulatedDynamixelChain.set_temperature`. The baud rate is irrelevant on a pty.
 
@@ -31,6 +32,9 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 from components.motors.dynamixel_chain import (
+    BUS_WATCHDOG_EXPIRED,
+    BUS_WATCHDOG_MAX_UNITS,
+    BUS_WATCHDOG_UNIT_MS,
     MODELS,
     OPERATING_MODES,
     SIGNED_REGISTERS,
@@ -67,6 +71,9 @@ RAM_START = 64
 READ_ONLY_START = 120
 
 _REG = X_SERIES_REGISTERS
+
+#: The goal registers a Bus Watchdog expiry makes read-only until the watchdog is cleared.
+GOAL_REGISTERS = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")
 
 
 def _crc_table() -> list[int]:
@@ -174,7 +181,22 @@ class PacketParser:
 
 
 class EmulatedServo:
-    """One X-series servo: a control table, motion physics and fault state."""
+    """One X-series servo: a control table, motion physics and fault state.
+
+    Bus Watchdog (register 98), as the X-series e-manual describes it: 0 is off, 1..127 arms
+    it in units of 20 ms. While torque is on and it is armed, a gap between instruction
+    packets for this servo (:meth:`heard`) longer than the period stops the servo: Goal
+    Velocity becomes 0 (a position-mode servo keeps its shaft where it is), the register
+    reads 0xFF (-1), and writes to the goal registers are refused with a range error until
+    0 is written to register 98. Which packets count is this emulator's reading of "all
+    instruction packets": those addressed to the servo, broadcast ones, and SYNC ones that
+    list it. There is no acceleration profile, so the stop is immediate.
+
+    Attributes:
+        heard_at: ``time.monotonic()`` of the last instruction packet for this servo.
+        watchdog_expired_at: When the Bus Watchdog last expired (None: never).
+        watchdog_trips: How many times it expired.
+    """
 
     def __init__(self, dxl_id: int, model: DynamixelModel, now: float):
         self.dxl_id = dxl_id
@@ -182,6 +204,9 @@ class EmulatedServo:
         self.table = bytearray(662)  # up to the end of the X-series indirect data area
         self.silenced = False
         self.booting_until = 0.0
+        self.heard_at = now
+        self.watchdog_expired_at: float | None = None
+        self.watchdog_trips = 0
         self._position = float(model.center_tick)
         self._t = now
         self._factory_defaults()
@@ -251,11 +276,23 @@ class EmulatedServo:
         if bits & self.get("shutdown"):
             self.set("torque_enable", 0)
 
+    def heard(self, now: float) -> None:
+        """An instruction packet for this servo arrived: it feeds the Bus Watchdog.
+
+        Motion is brought up to ``now`` first, so a watchdog that expired just before the
+        packet still counts as expired.
+        """
+        self.step(now)
+        self.heard_at = now
+
     def write(self, address: int, data: bytes) -> int:
         """A WRITE/SYNC_WRITE to this servo; returns the status error number (0 = done)."""
         end = address + len(data)
         if not data or end > len(self.table):
             return ERR_DATA_RANGE
+        watchdog_expired = self.get("bus_watchdog") == BUS_WATCHDOG_EXPIRED
+        if watchdog_expired and any(self._touches(name, address, end) for name in GOAL_REGISTERS):
+            return ERR_DATA_RANGE  # goals are read-only until the watchdog error is cleared
         if end > READ_ONLY_START and address < READ_ONLY_START + 28:
             return ERR_ACCESS
         if address <= _REG["hardware_error_status"][0] < end:
@@ -265,6 +302,11 @@ class EmulatedServo:
         previous = bytes(self.table[address:end])
         self.table[address:end] = data
         error = self._check_limits(address, end)
+        if not error and self._touches("bus_watchdog", address, end):
+            value = self.get("bus_watchdog")
+            # 1..127 arms, 0 disarms and is the only way out of the error state.
+            if value > BUS_WATCHDOG_MAX_UNITS or (watchdog_expired and value != 0):
+                error = ERR_DATA_RANGE
         if error:
             self.table[address:end] = previous
             return error
@@ -299,8 +341,31 @@ class EmulatedServo:
 
     # -- physics --------------------------------------------------------------------------
 
+    def _watchdog_deadline(self) -> float | None:
+        """When the armed Bus Watchdog expires unless a packet comes (None: not counting)."""
+        units = self.get("bus_watchdog")
+        if not self.get("torque_enable") or not 1 <= units <= BUS_WATCHDOG_MAX_UNITS:
+            return None
+        return self.heard_at + units * BUS_WATCHDOG_UNIT_MS / 1000.0
+
+    def _expire_watchdog(self, when: float) -> None:
+        self.set("goal_velocity", 0)
+        if self.get("operating_mode") in (3, 4, 5):
+            self.set("goal_position", round(self._position))
+        self.set("bus_watchdog", BUS_WATCHDOG_EXPIRED)
+        self.watchdog_expired_at = when
+        self.watchdog_trips += 1
+
     def step(self, now: float) -> None:
-        """Advance motion, current and thermal state to ``now``."""
+        """Advance motion, current and thermal state (and the Bus Watchdog) to ``now``."""
+        deadline = self._watchdog_deadline()
+        if deadline is not None and deadline <= now:
+            # Move at the old goal until the moment of expiry, then stop from there.
+            self._advance(max(deadline, self._t))
+            self._expire_watchdog(deadline)
+        self._advance(now)
+
+    def _advance(self, now: float) -> None:
         dt = now - self._t
         if dt <= 0:
             return
@@ -448,6 +513,16 @@ class EmulatedDynamixelChain:
             servo.step(time.monotonic())
             return servo.get(name)
 
+    def watchdog(self, dxl_id: int) -> tuple[float, float | None, int]:
+        """Bus Watchdog bookkeeping of one servo: (last packet heard, last expiry, expiries).
+
+        Times are ``time.monotonic()``; the expiry is None if it never expired.
+        """
+        with self._lock:
+            servo = self.servos[dxl_id]
+            servo.step(time.monotonic())
+            return servo.heard_at, servo.watchdog_expired_at, servo.watchdog_trips
+
     def set_register(self, dxl_id: int, name: str, value: int) -> None:
         """Set a register directly, bypassing protocol checks (test and demo setup)."""
         with self._lock:
@@ -490,6 +565,8 @@ class EmulatedDynamixelChain:
             if packet.dxl_id == BROADCAST_ID:
                 return b""
             return build_status(packet.dxl_id, ERR_CRC | live[packet.dxl_id].status_error())
+        for servo in self._addressed(packet, live):
+            servo.heard(now)
         handler = {
             INST_PING: self._ping,
             INST_READ: self._read,
@@ -503,6 +580,23 @@ class EmulatedDynamixelChain:
                 return b""
             return build_status(packet.dxl_id, ERR_INSTRUCTION)
         return handler(packet, live, now)
+
+    def _addressed(self, packet: Packet, live: dict[int, EmulatedServo]) -> list[EmulatedServo]:
+        """The servos an instruction is for: its id, or every one a broadcast reaches.
+
+        A SYNC_READ or SYNC_WRITE reaches only the ids it lists.
+        """
+        if packet.dxl_id != BROADCAST_ID:
+            return [live[packet.dxl_id]]
+        params = packet.params
+        if packet.instruction == INST_SYNC_READ:
+            ids: Iterable[int] = params[4:]
+        elif packet.instruction == INST_SYNC_WRITE and len(params) >= 4:
+            length = params[2] | params[3] << 8
+            ids = params[4::length + 1] if length else ()
+        else:
+            return list(live.values())
+        return [live[i] for i in dict.fromkeys(ids) if i in live]
 
     def _targets(self, packet: Packet, live: dict[int, EmulatedServo]) -> list[EmulatedServo]:
         if packet.dxl_id == BROADCAST_ID:
