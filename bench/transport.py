@@ -57,9 +57,7 @@ def role_echo(endpoint: str, flavour: str, seconds: float) -> None:
             node.subscription(PING, JOINT_STATE, pong.publish)
         else:
             publisher = session.declare_publisher("bare/pong")
-            session.declare_subscriber(
-                "bare/ping", lambda s: publisher.put(s.payload.to_bytes())
-            )
+            session.declare_subscriber("bare/ping", lambda s: publisher.put(s.payload.to_bytes()))
             node = None
         print("ready", flush=True)
         sys.stdin.readline()  # the parent closes stdin when done
@@ -110,8 +108,18 @@ def publisher_bytes(message) -> bytes:
 # ----------------------------------------------------------------------------- parent side
 def _spawn(role: str, endpoint: str, flavour: str, arg: str) -> subprocess.Popen:
     process = subprocess.Popen(
-        [sys.executable, __file__, "--role", role, "--endpoint", endpoint, "--flavour", flavour,
-         "--arg", arg],
+        [
+            sys.executable,
+            __file__,
+            "--role",
+            role,
+            "--endpoint",
+            endpoint,
+            "--flavour",
+            flavour,
+            "--arg",
+            arg,
+        ],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -249,16 +257,31 @@ def main() -> None:
     print_table(
         f"Round trip, 6-joint JointState ping-pong, {args.pings} round trips (microseconds)",
         ["", "p50", "p99", "mean"],
-        [[f, f"{lat[f]['p50'] * us:.0f}", f"{lat[f]['p99'] * us:.0f}",
-          f"{lat[f]['mean'] * us:.0f}"] for f in ("bare", "ours")],
+        [
+            [
+                f,
+                f"{lat[f]['p50'] * us:.0f}",
+                f"{lat[f]['p99'] * us:.0f}",
+                f"{lat[f]['mean'] * us:.0f}",
+            ]
+            for f in ("bare", "ours")
+        ],
     )
     ratio = lat["ours"]["p50"] / lat["bare"]["p50"]
     print(f"ours/bare p50 ratio: {ratio:.2f} (target <= 1.5)")
     print_table(
         f"Throughput, {args.messages} JointState one publisher -> one subscriber (reliable)",
         ["", "received/s", "sent/s", "received", "lost"],
-        [[f, f"{thr[f]['rate']:,.0f}", f"{thr[f]['send_rate']:,.0f}", thr[f]["received"],
-          thr[f]["lost"]] for f in ("bare", "ours")],
+        [
+            [
+                f,
+                f"{thr[f]['rate']:,.0f}",
+                f"{thr[f]['send_rate']:,.0f}",
+                thr[f]["received"],
+                thr[f]["lost"],
+            ]
+            for f in ("bare", "ours")
+        ],
     )
     print(
         f"ours/bare throughput ratio: {thr['ours']['rate'] / max(thr['bare']['rate'], 1):.2f}; "

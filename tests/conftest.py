@@ -43,9 +43,7 @@ def wait_until(
 _resolved: dict[tuple[str, tuple[tuple[str, str], ...]], Any] = {}
 
 
-def resolved_assembly(
-    directory: Any, template: str, units: dict[str, str] | None = None
-) -> Any:
+def resolved_assembly(directory: Any, template: str, units: dict[str, str] | None = None) -> Any:
     """A shipped template resolved (with ``units`` for some slots) and written under
     ``directory``; loaded as the launcher would load it. Cached per template and units."""
     from components.assembly import load_assembly

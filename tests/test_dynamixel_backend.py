@@ -503,8 +503,9 @@ def test_write_after_a_pause_is_not_swallowed_by_the_expired_watchdog(
     assert chain.register(3, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
     # A write comes first after the pause: the goal must land, not be refused.
     backend.write([MotorCommand(joint(3), velocity=0.7)])
-    wait_until(lambda: chain.register(3, "goal_velocity") == JointUnits(XM430, 1.0)
-               .velocity_units(0.7))
+    wait_until(
+        lambda: chain.register(3, "goal_velocity") == JointUnits(XM430, 1.0).velocity_units(0.7)
+    )
     assert chain.register(3, "bus_watchdog") == 5
     assert "bus watchdog" in diag(backend, joint(3)).message
 

@@ -29,7 +29,6 @@ pyzeros = pytest.importorskip("pyzeros")
 all_msgs = pytest.importorskip("ros2_pyterfaces.cyclone.all_msgs")
 
 
-
 @pytest.fixture(scope="module")
 def minimal(tmp_path_factory: pytest.TempPathFactory) -> ResolvedAssembly:
     """The shipped ``minimal`` template, resolved with its default units."""

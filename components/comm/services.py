@@ -43,9 +43,7 @@ def service_key(domain: int, service: str, srv_type: str) -> str:
     )
 
 
-def _identify(
-    endpoint: Any, node: Node, kind: EntityKind, service: str, srv_type: str
-) -> None:
+def _identify(endpoint: Any, node: Node, kind: EntityKind, service: str, srv_type: str) -> None:
     """Give a server or client its service name, type, key, graph entity and GID."""
     endpoint.service = qualify(service, node.namespace, node.name)
     endpoint.srv_type = normalize_type_name(srv_type)

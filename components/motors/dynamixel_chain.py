@@ -162,9 +162,7 @@ FEED_AFTER_S = 0.01
 
 #: The block read every cycle: present current up to and including present temperature.
 READ_BLOCK_START = X_SERIES_REGISTERS["present_current"][0]
-READ_BLOCK_LENGTH = (
-    X_SERIES_REGISTERS["present_temperature"][0] + 1 - READ_BLOCK_START
-)
+READ_BLOCK_LENGTH = X_SERIES_REGISTERS["present_temperature"][0] + 1 - READ_BLOCK_START
 
 
 def to_signed(value: int, size: int) -> int:
@@ -267,20 +265,47 @@ class JointUnits:
 MODELS: dict[str, DynamixelModel] = {
     model.name: model
     for model in (
-        DynamixelModel("XM430-W350", 1020, torque_constant=4.1 / 2.3, stall_torque=4.1,
-                       no_load_speed_rpm=46.0),
-        DynamixelModel("XM430-W210", 1030, torque_constant=3.0 / 2.3, stall_torque=3.0,
-                       no_load_speed_rpm=77.0),
-        DynamixelModel("XM540-W270", 1120, torque_constant=10.6 / 4.4, stall_torque=10.6,
-                       no_load_speed_rpm=30.0),
-        DynamixelModel("XM540-W150", 1130, torque_constant=7.3 / 4.4, stall_torque=7.3,
-                       no_load_speed_rpm=53.0),
-        DynamixelModel("XH430-W350", 1010, current_unit_a=1.34e-3, torque_constant=3.4 / 1.3,
-                       stall_torque=3.4, no_load_speed_rpm=46.0),
-        DynamixelModel("XL430-W250", 1060, effort_register="load", stall_torque=1.5,
-                       no_load_speed_rpm=57.0, temperature_limit=72),
-        DynamixelModel("XL330-M288", 1200, current_unit_a=1.0e-3, torque_constant=0.52 / 1.47,
-                       stall_torque=0.52, no_load_speed_rpm=103.0, temperature_limit=70),
+        DynamixelModel(
+            "XM430-W350", 1020, torque_constant=4.1 / 2.3, stall_torque=4.1, no_load_speed_rpm=46.0
+        ),
+        DynamixelModel(
+            "XM430-W210", 1030, torque_constant=3.0 / 2.3, stall_torque=3.0, no_load_speed_rpm=77.0
+        ),
+        DynamixelModel(
+            "XM540-W270",
+            1120,
+            torque_constant=10.6 / 4.4,
+            stall_torque=10.6,
+            no_load_speed_rpm=30.0,
+        ),
+        DynamixelModel(
+            "XM540-W150", 1130, torque_constant=7.3 / 4.4, stall_torque=7.3, no_load_speed_rpm=53.0
+        ),
+        DynamixelModel(
+            "XH430-W350",
+            1010,
+            current_unit_a=1.34e-3,
+            torque_constant=3.4 / 1.3,
+            stall_torque=3.4,
+            no_load_speed_rpm=46.0,
+        ),
+        DynamixelModel(
+            "XL430-W250",
+            1060,
+            effort_register="load",
+            stall_torque=1.5,
+            no_load_speed_rpm=57.0,
+            temperature_limit=72,
+        ),
+        DynamixelModel(
+            "XL330-M288",
+            1200,
+            current_unit_a=1.0e-3,
+            torque_constant=0.52 / 1.47,
+            stall_torque=0.52,
+            no_load_speed_rpm=103.0,
+            temperature_limit=70,
+        ),
     )
 }
 
@@ -440,17 +465,15 @@ class DynamixelBackend(MotorBackend):
             if self._port is not None and self._port.is_open:
                 if self.hold_on_close:
                     # Holding a velocity means turning on: those servos hold still instead.
-                    self._sync_write("goal_velocity", {
-                        s.sid: 0 for s in answering if s.mode == VELOCITY_MODE
-                    })
+                    self._sync_write(
+                        "goal_velocity", {s.sid: 0 for s in answering if s.mode == VELOCITY_MODE}
+                    )
                 else:
                     self._sync_write("torque_enable", {s.sid: 0 for s in answering})
                 # Off only after torque off (or goal 0), so no moment runs unguarded. Left
                 # armed, it would expire once the port is closed and make the servo refuse
                 # the goals of whoever opens the chain next.
-                self._sync_write(
-                    "bus_watchdog", {s.sid: 0 for s in answering if s.watchdog_units}
-                )
+                self._sync_write("bus_watchdog", {s.sid: 0 for s in answering if s.watchdog_units})
         except Exception as exc:
             log.warning("%s: stopping the servos on close failed: %s", self.channel, exc)
         for servo in self._servos:
@@ -530,8 +553,12 @@ class DynamixelBackend(MotorBackend):
                     servo.sent_at = time.monotonic()
                     result, _ = self._packet.reboot(self._port, servo.sid)
                     self._release()
-                    log.info("%s: reboot servo id %d -> %s", servo.joint, servo.sid,
-                             self._packet.getTxRxResult(result))
+                    log.info(
+                        "%s: reboot servo id %d -> %s",
+                        servo.joint,
+                        servo.sid,
+                        self._packet.getTxRxResult(result),
+                    )
                     rebooted.append(servo)
             deadline = time.monotonic() + self.boot_timeout
             for servo in rebooted:
@@ -560,14 +587,16 @@ class DynamixelBackend(MotorBackend):
             bus = MotorDiagnostic("", ERROR, f"dynamixel bus {self.channel} closed", bus_values)
         elif self._bus_error:
             bus = MotorDiagnostic(
-                "", ERROR,
+                "",
+                ERROR,
                 f"dynamixel bus {self.channel} lost ({self._bus_error}); reopening every "
                 f"{self.reopen_interval:g} s: check the USB cable and adapter power",
                 bus_values,
             )
         elif answering < len(self._servos):
             bus = MotorDiagnostic(
-                "", WARN,
+                "",
+                WARN,
                 f"dynamixel bus {self.channel}: {answering}/{len(self._servos)} servos answering",
                 bus_values,
             )
@@ -631,7 +660,9 @@ class DynamixelBackend(MotorBackend):
             log.warning(
                 "%s: bus_watchdog_ms %d is close to the reply timeout (%.0f ms): a silent servo "
                 "may trip the watchdog of the others; raise it or lower latency_timer_ms",
-                self.channel, units * BUS_WATCHDOG_UNIT_MS, reply_timeout_ms,
+                self.channel,
+                units * BUS_WATCHDOG_UNIT_MS,
+                reply_timeout_ms,
             )
         return units
 
@@ -765,7 +796,7 @@ class DynamixelBackend(MotorBackend):
             length = (packet[PKT_LENGTH_L] | packet[PKT_LENGTH_H] << 8) - 4
             if sid in wanted and length == READ_BLOCK_LENGTH:
                 start = PKT_PARAMETER0 + 1
-                replies[sid] = (bytes(packet[start:start + length]), packet[PKT_ERROR])
+                replies[sid] = (bytes(packet[start : start + length]), packet[PKT_ERROR])
         self._release()
         return replies
 
@@ -857,8 +888,7 @@ class DynamixelBackend(MotorBackend):
         """Bus Watchdog to 0, reporting an expiry found on the way (e.g. after a lost bus)."""
         value, _ = self._read_register(servo, "bus_watchdog")
         if value == BUS_WATCHDOG_EXPIRED:
-            self._report_trip(servo, servo.watchdog_units or self._watchdog_units, None,
-                              "cleared")
+            self._report_trip(servo, servo.watchdog_units or self._watchdog_units, None, "cleared")
         if value:
             self._write_register(servo, "bus_watchdog", 0)
         servo.watchdog_units = 0
@@ -899,8 +929,13 @@ class DynamixelBackend(MotorBackend):
                     self._write_register(servo, "bus_watchdog", servo.watchdog_units)
                     self._report_trip(servo, servo.watchdog_units, gap, "re-armed")
                 else:
-                    log.warning("%s: servo id %d bus watchdog read %d, expected %d; re-armed",
-                                servo.joint, servo.sid, value, servo.watchdog_units)
+                    log.warning(
+                        "%s: servo id %d bus watchdog read %d, expected %d; re-armed",
+                        servo.joint,
+                        servo.sid,
+                        value,
+                        servo.watchdog_units,
+                    )
                     self._write_register(servo, "bus_watchdog", servo.watchdog_units)
             except _NoAnswer:
                 continue  # the group read decides whether the servo is gone
@@ -918,7 +953,8 @@ class DynamixelBackend(MotorBackend):
         period = self._watchdog_units * BUS_WATCHDOG_UNIT_MS / 1000.0
         feed_after = min(FEED_AFTER_S, period / 4.0)
         stale = [
-            s for s in self._servos
+            s
+            for s in self._servos
             if s.answering and s.watchdog_units and now - s.sent_at > feed_after
         ]
         replies = self._sync_read_block(stale)
@@ -988,7 +1024,7 @@ class DynamixelBackend(MotorBackend):
         def field_value(name: str) -> int:
             address, size = model.registers[name]
             offset = address - READ_BLOCK_START
-            value = int.from_bytes(data[offset:offset + size], "little")
+            value = int.from_bytes(data[offset : offset + size], "little")
             return to_signed(value, size) if name in SIGNED_REGISTERS else value
 
         servo.voltage = field_value("present_input_voltage") * 0.1
@@ -1016,8 +1052,12 @@ class DynamixelBackend(MotorBackend):
         except _NoAnswer:
             pass  # the next group read decides whether the servo is gone
         if servo.hardware_error:
-            log.warning("%s: servo id %d hardware error: %s", servo.joint, servo.sid,
-                        hardware_error_text(servo.hardware_error))
+            log.warning(
+                "%s: servo id %d hardware error: %s",
+                servo.joint,
+                servo.sid,
+                hardware_error_text(servo.hardware_error),
+            )
 
     # -- write ----------------------------------------------------------------------------
 
@@ -1084,7 +1124,8 @@ class DynamixelBackend(MotorBackend):
             return MotorDiagnostic(servo.joint, ERROR, f"{prefix} not answering{hint}", values)
         if servo.hardware_error:
             return MotorDiagnostic(
-                servo.joint, ERROR,
+                servo.joint,
+                ERROR,
                 f"{prefix} hardware error: {hardware_error_text(servo.hardware_error)}; "
                 "call recover to reboot it",
                 values,
@@ -1092,14 +1133,16 @@ class DynamixelBackend(MotorBackend):
         if state is not None and state.temperature is not None:
             if state.temperature >= servo.temperature_limit:
                 return MotorDiagnostic(
-                    servo.joint, ERROR,
+                    servo.joint,
+                    ERROR,
                     f"{prefix} over temperature: {state.temperature:.0f} °C "
                     f"(limit {servo.temperature_limit:.0f} °C)",
                     values,
                 )
             if state.temperature >= servo.temperature_limit - 5:
                 return MotorDiagnostic(
-                    servo.joint, WARN,
+                    servo.joint,
+                    WARN,
                     f"{prefix} hot: {state.temperature:.0f} °C "
                     f"(limit {servo.temperature_limit:.0f} °C)",
                     values,
@@ -1110,13 +1153,15 @@ class DynamixelBackend(MotorBackend):
             seen = MODELS_BY_NUMBER.get(servo.model_number)
             seen_name = seen.name if seen else f"model number {servo.model_number}"
             return MotorDiagnostic(
-                servo.joint, WARN,
+                servo.joint,
+                WARN,
                 f"{prefix} is a {seen_name}, module data says {servo.model.name}: fix the data",
                 values,
             )
         if not servo.torque_on:
-            return MotorDiagnostic(servo.joint, WARN, f"{prefix} torque off {servo.note}".rstrip(),
-                                   values)
+            return MotorDiagnostic(
+                servo.joint, WARN, f"{prefix} torque off {servo.note}".rstrip(), values
+            )
         return MotorDiagnostic(servo.joint, OK, "OK", values)
 
 

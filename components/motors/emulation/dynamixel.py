@@ -217,14 +217,14 @@ class EmulatedServo:
     def get(self, name: str) -> int:
         """A register's value (signed where the register is)."""
         address, size = _REG[name]
-        value = int.from_bytes(self.table[address:address + size], "little")
+        value = int.from_bytes(self.table[address : address + size], "little")
         return to_signed(value, size) if name in SIGNED_REGISTERS else value
 
     def set(self, name: str, value: int) -> None:
         """Store a register's value without protocol checks (for physics and fault hooks)."""
         address, size = _REG[name]
         mask = (1 << (8 * size)) - 1
-        self.table[address:address + size] = (int(value) & mask).to_bytes(size, "little")
+        self.table[address : address + size] = (int(value) & mask).to_bytes(size, "little")
 
     def _factory_defaults(self) -> None:
         model = self.model
@@ -380,8 +380,9 @@ class EmulatedServo:
             if mode in (3, 4, 5):
                 goal = self.get("goal_position")
                 if mode == 3:
-                    goal = max(self.get("min_position_limit"),
-                               min(self.get("max_position_limit"), goal))
+                    goal = max(
+                        self.get("min_position_limit"), min(self.get("max_position_limit"), goal)
+                    )
                 limit = self.get("profile_velocity") or self.get("velocity_limit")
                 max_step = limit * ticks_per_unit * dt
                 step = max(-max_step, min(max_step, goal - self._position))
@@ -593,7 +594,7 @@ class EmulatedDynamixelChain:
             ids: Iterable[int] = params[4:]
         elif packet.instruction == INST_SYNC_WRITE and len(params) >= 4:
             length = params[2] | params[3] << 8
-            ids = params[4::length + 1] if length else ()
+            ids = params[4 :: length + 1] if length else ()
         else:
             return list(live.values())
         return [live[i] for i in dict.fromkeys(ids) if i in live]
@@ -624,13 +625,15 @@ class EmulatedDynamixelChain:
             return build_status(servo.dxl_id, ERR_DATA_RANGE | servo.status_error())
         if servo.get("status_return_level") < 1:
             return b""
-        data = servo.table[address:address + length]
+        data = servo.table[address : address + length]
         return build_status(servo.dxl_id, servo.status_error(), data)
 
     def _write(self, packet: Packet, live: dict[int, EmulatedServo], now: float) -> bytes:
         if len(packet.params) < 3:
-            return b"" if packet.dxl_id == BROADCAST_ID else build_status(
-                packet.dxl_id, ERR_DATA_LENGTH
+            return (
+                b""
+                if packet.dxl_id == BROADCAST_ID
+                else build_status(packet.dxl_id, ERR_DATA_LENGTH)
             )
         address = packet.params[0] | packet.params[1] << 8
         data = packet.params[2:]
@@ -662,7 +665,7 @@ class EmulatedDynamixelChain:
                 break
             if servo is None or address + length > len(servo.table):
                 continue
-            data = servo.table[address:address + length]
+            data = servo.table[address : address + length]
             replies += build_status(dxl_id, servo.status_error(), data)
         return replies
 
@@ -677,7 +680,7 @@ class EmulatedDynamixelChain:
         for offset in range(0, len(entries) - length, length + 1):
             servo = live.get(entries[offset])
             if servo is not None:
-                servo.write(address, entries[offset + 1:offset + 1 + length])
+                servo.write(address, entries[offset + 1 : offset + 1 + length])
         return b""
 
 
