@@ -263,6 +263,10 @@ def test_velocity_only_command_without_fresh_state_is_refused() -> None:
     core.on_joint_set(state(JointSample(J1, velocity=0.2)), now=2.5)  # feedback 1.5 s old
     assert sent(core, "joint_commands") == []
     assert core.counters["refused_no_state"] == 2
+    # An effort-only command pushes toward a limit just as well: refused the same way.
+    core.on_joint_set(state(JointSample(J1, effort=1.0)), now=2.5)
+    assert sent(core, "joint_commands") == []
+    assert core.counters["refused_no_state"] == 3
     # A continuous joint needs no position to stay within limits.
     core.on_joint_set(state(JointSample(WHEEL, velocity=9.0)), now=2.5)
     assert sent(core, "joint_commands") == [JointSample(WHEEL, None, 4.0, None)]

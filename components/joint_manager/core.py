@@ -608,26 +608,33 @@ class JointManagerCore(Core):
             limited = min(max(effort, -spec.max_effort), spec.max_effort)
             clamped |= limited != effort
             effort = limited
-        if position is None and velocity is not None and spec.bounded:
-            # Velocity mode on a bounded joint: only safe while we know where the joint is.
-            # The position's own age: velocity-only feedback (an encoder reporting NaN, a
-            # motor interface sending positions in another batch) must not make it look fresh.
+        if position is None and (velocity is not None or effort is not None) and spec.bounded:
+            # Velocity or effort mode on a bounded joint drives it toward its limits: only
+            # safe while we know where the joint is. The position's own age: velocity-only
+            # feedback (an encoder reporting NaN, a motor interface sending positions in
+            # another batch) must not make it look fresh.
             seen = j.position_seen
             stale = seen is None or j.position is None or now - seen > self.config.stale_timeout
             if stale:
+                mode = "velocity" if velocity is not None else "effort"
                 self._refuse(
                     j,
                     "refused_no_state",
-                    f"{spec.name}: velocity command refused, no fresh joint_states "
+                    f"{spec.name}: {mode} command refused, no fresh joint_states "
                     "(is the motor interface running?)",
                     now,
                 )
                 return None
-            if self._heading_past_limit(j, velocity):
-                self._mark_clamp(j, f"{spec.name}: velocity toward a limit, holding", now)
-                j.mode = _HOLD
-                j.target_raw = None
-                return self._hold_sample(j)
+        if (
+            position is None
+            and velocity is not None
+            and spec.bounded
+            and self._heading_past_limit(j, velocity)
+        ):
+            self._mark_clamp(j, f"{spec.name}: velocity toward a limit, holding", now)
+            j.mode = _HOLD
+            j.target_raw = None
+            return self._hold_sample(j)
         if clamped:
             self._mark_clamp(j, f"{spec.name}: command clamped to limits", now)
         if position is not None:
