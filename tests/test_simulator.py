@@ -118,6 +118,22 @@ def test_a_velocity_left_without_commands_is_stopped_like_a_real_motor_interface
     assert core.watchdog_stops == 1
 
 
+def test_a_module_topic_takes_only_that_module_s_joints(assembly) -> None:
+    a = assembly("dragon")
+    core = make(a)
+    before = core.world.position("wheel1_wheel_left")
+    cal = a.joint("wheel1_wheel_left").calibration
+    # A wheel's joint named on limb1's topic: refused, as limb1's motor interface would.
+    core.on_joint_commands_limb1(
+        joint_state([JointSample("wheel1_wheel_left", None, cal.rate_to_raw(3.0), None)]), 0.0
+    )
+    run(core, 0.0, 0.3)
+    assert core.refused_other_module == 1
+    # Only the robot settling on the ground moves it; nowhere near the 3 rad/s asked.
+    assert abs(core.world.velocity("wheel1_wheel_left")) < 0.3
+    assert core.world.position("wheel1_wheel_left") == pytest.approx(before, abs=0.1)
+
+
 def test_wheel_velocity_on_the_ground_and_effort_mode(assembly) -> None:
     a = assembly("dragon")
     # One command, then seconds of driving: no command watchdog in the way here.

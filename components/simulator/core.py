@@ -124,6 +124,11 @@ def pose_topics(roots: Sequence[str]) -> list[tuple[str, str]]:
     return pairs
 
 
+def commands_handler(slot: str) -> str:
+    """Name of the core's handler for ``/<slot>/joint_commands``."""
+    return f"on_joint_commands_{slot}"
+
+
 def halt_handler(slot: str) -> str:
     """Name of the core's handler for ``/<slot>/motors/halt``."""
     return f"on_halt_{slot}"
@@ -202,7 +207,9 @@ class SimulatorCore(Core):
         self.state_rate: float | None = None
         self.load: float | None = None
         self._halted: set[str] = set()
+        self.refused_other_module = 0
         for slot in self.slots:
+            setattr(self, commands_handler(slot), functools.partial(self.on_module_commands, slot))
             setattr(self, halt_handler(slot), functools.partial(self.on_halt, slot))
             setattr(self, recover_handler(slot), functools.partial(self.on_recover, slot))
 
@@ -218,16 +225,27 @@ class SimulatorCore(Core):
         self.world.hold()
 
     # ------------------------------------------------------------------ commands
-    def on_joint_commands(self, message: Any, now: float) -> None:
-        """Raw commands of any module: each named joint gets its position, speed or effort.
+    def on_module_commands(self, slot: str, message: Any, now: float) -> None:
+        """``/<slot>/joint_commands``: like a real motor interface, only that module's joints.
 
-        Joint names are assembly-unique, so one handler serves every module's topic. Names
-        the world does not drive, and non-finite values, are counted and skipped.
+        A joint of another module named on this topic is refused and counted, as the module's
+        own motor interface would refuse it (it does not drive that joint).
+        """
+        self.on_joint_commands(message, now, slot)
+
+    def on_joint_commands(self, message: Any, now: float, slot: str | None = None) -> None:
+        """Raw commands: each named joint gets its position, speed or effort.
+
+        Joint names are assembly-unique. Names the world does not drive, joints of another
+        module than ``slot`` (when given), and non-finite values are counted and skipped.
         """
         world = self.world
         for sample in joint_samples(message):
             if not world.has_joint(sample.name):
                 self.refused_unknown += 1
+                continue
+            if slot is not None and world.joint(sample.name).module != slot:
+                self.refused_other_module += 1
                 continue
             values = (sample.position, sample.velocity, sample.effort)
             if any(v is not None and not math.isfinite(v) for v in values):

@@ -16,6 +16,7 @@ from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, POSE_STAMPED, TRI
 from components.simulator.core import (
     SIM_NAMESPACE,
     SimulatorConfig,
+    commands_handler,
     commands_topic,
     halt_handler,
     module_diagnostics_topic,
@@ -46,7 +47,7 @@ def simulator_interface(
     config = config or SimulatorConfig()
     subscribe, publish, serve = [], [], []
     for slot in simulated_slots(assembly):
-        subscribe.append(Subscribe(commands_topic(slot), JOINT_STATE, "on_joint_commands"))
+        subscribe.append(Subscribe(commands_topic(slot), JOINT_STATE, commands_handler(slot)))
         publish.append(Publish(states_topic(slot), JOINT_STATE, SENSOR))
         publish.append(Publish(module_diagnostics_topic(slot), DIAGNOSTIC_ARRAY))
         serve.append(Serve(f"/{slot}/motors/halt", TRIGGER, halt_handler(slot)))
