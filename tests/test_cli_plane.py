@@ -275,6 +275,11 @@ def test_service_call_errors(node: Node, env: dict[str, str]) -> None:
     bad_field = msctl("service", "call", "/cli/x", ADD, "{a: 1, c: 2}", env=env)
     assert bad_field.returncode == 2
     assert "'c'" in one_error_line(bad_field.stderr)
+    # The wrong type for a served service: named at once, not a timeout.
+    wrong = msctl("service", "call", "/cli/refuser", ADD, "{a: 1, b: 2}", env=env)
+    assert wrong.returncode == 2
+    line = one_error_line(wrong.stderr)
+    assert "std_srvs/srv/Trigger" in line and ADD in line
 
 
 # --------------------------------------------------------------------------- bad input
@@ -308,6 +313,7 @@ def test_service_call_errors(node: Node, env: dict[str, str]) -> None:
         (("topic", "pub", "/x", "NotAType", "{}"), 2, "NotAType"),
         (("topic", "echo", "/cli/silent", STRING, "--timeout", "0.3"), 5, "/cli/silent"),
         (("topic", "echo", "/cli/never_seen"), 4, "/cli/never_seen"),
+        (("topic", "hz", "/x", STRING, "--window", "1"), 2, "--window"),
     ],
 )
 def test_bad_input_exits_with_one_line(

@@ -36,6 +36,20 @@ def list_services(
         out.print(line, highlight=False, markup=False)
 
 
+def _check_type_on_graph(node: object, service: str, type_name: str) -> None:
+    """A server of another type would never answer this query: say so, not "timeout"."""
+    from components.comm.graph import snapshot
+    from components.comm.names import qualify
+
+    qualified = qualify(service, "/")
+    info = snapshot(node.session, node.domain).services().get(qualified)  # type: ignore[attr-defined]
+    if info is not None and info.servers and type_name not in info.types:
+        raise InputError(
+            f"service {qualified} is a {', '.join(sorted(info.types))}, not a {type_name}",
+            hint="leave the type out to use the one the server declares",
+        )
+
+
 @app.command("call")
 def call(
     service: str = typer.Argument(..., help="Service name, e.g. /limb1/halt."),
@@ -62,6 +76,8 @@ def call(
                 f"unknown service type {type_name!r}",
                 hint=f"known: {', '.join(registry().service_names())}",
             )
+        if srv_type:
+            _check_type_on_graph(node, service, type_name)
         client = node.client(service, type_name)
         request = build_message(client.parts.request, parse_values(values))
         try:

@@ -208,6 +208,8 @@ def hz(
     from msctl.console import out, print_json
     from msctl.plane import connected
 
+    if window < 2:
+        raise InputError(f"--window {window}: a rate needs at least 2 samples in the window")
     stamps: list[float] = []
     lock = threading.Lock()
 
