@@ -488,3 +488,40 @@ def test_ground_station_components_run_one_process_per_role(monkeypatch) -> None
         assert process.name == f"{stations.pop()}_{kinds.pop()}"
     modules = {c.module for c in two.components if c.module}
     assert {p.name for p in plan.processes} >= modules
+
+
+def test_a_stale_state_file_never_blocks_up_nor_kills_strangers(tmp_path: Path) -> None:
+    """After a reboot the state file's ids may belong to other programs: `up` must not be
+    refused because of them, and `down` must not kill them."""
+    import json
+    import subprocess
+
+    from msctl.launcher import state
+
+    stranger = subprocess.Popen(["sleep", "30"], start_new_session=True)
+    try:
+        home = tmp_path / "home"
+        (home / "run").mkdir(parents=True)
+        document = {
+            "host": "robot",
+            "template": "dragon",
+            "state": "running",
+            "supervisor_pid": stranger.pid,
+            "processes": [{"name": "limb1", "pgid": stranger.pid, "pid": stranger.pid}],
+            "components": [],
+        }
+        (home / "run" / "state.json").write_text(json.dumps(document))
+        assert not state.supervisor_alive(document)
+        assert not state.group_alive(stranger.pid)
+        down = subprocess.run(
+            [sys.executable, "-m", "msctl", "down"],
+            env={**os.environ, "MSCTL_HOME": str(home)},
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert down.returncode == 0, down.stderr
+        assert stranger.poll() is None, "msctl down killed a process that is not msctl's"
+    finally:
+        stranger.kill()
+        stranger.wait()

@@ -59,7 +59,12 @@ def supervisor_alive(document: dict[str, Any] | None) -> bool:
     if not document or document.get("state") == "stopped":
         return False
     pid = document.get("supervisor_pid")
-    return isinstance(pid, int) and _signal_reaches(os.kill, pid) and _stat(pid) != "Z"
+    return (
+        isinstance(pid, int)
+        and _signal_reaches(os.kill, pid)
+        and _stat(pid) != "Z"
+        and _is_msctl(Path(f"/proc/{pid}"))
+    )
 
 
 def group_alive(pgid: int) -> bool:
@@ -77,9 +82,23 @@ def group_alive(pgid: int) -> bool:
             fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
         except (OSError, IndexError):
             continue
-        if len(fields) > 2 and fields[2] == str(pgid) and fields[0] != "Z":
+        if len(fields) > 2 and fields[2] == str(pgid) and fields[0] != "Z" and _is_msctl(entry):
             return True
     return False
+
+
+# What every process msctl starts has on its command line: the CLI, a component worker, the
+# embedded router. A state file outlives a reboot; its ids may then belong to strangers.
+_OUR_MARKERS = (b"msctl", b"components.executor.worker")
+
+
+def _is_msctl(proc_dir: Path) -> bool:
+    """Whether the process behind ``/proc/<pid>`` is one of msctl's (True if unreadable)."""
+    try:
+        cmdline = (proc_dir / "cmdline").read_bytes()
+    except OSError:
+        return True  # cannot tell: keep the old behaviour rather than ignore a live run
+    return any(marker in cmdline for marker in _OUR_MARKERS)
 
 
 def _stat(pid: int) -> str:
