@@ -283,7 +283,57 @@ def test_bad_thresholds_name_the_key(data: dict[str, Any]) -> None:
 
 
 def test_unused_module_keys_are_ignored() -> None:
-    assert HealthThresholds.from_mapping({"max_tracking_error": 0.2}) == HealthThresholds()
+    assert HealthThresholds.from_mapping({"max_current": 3.0}) == HealthThresholds()
+
+
+# ---------------------------------------------------------------------------- tracking
+
+
+def test_a_joint_stalled_off_its_target_is_warn_after_the_grace() -> None:
+    from components.messages import JointSample, joint_state
+
+    core = make({"max_tracking_error": 0.2, "tracking_grace": 1.0})
+    core.start(0.0)
+    core.on_joint_commands(joint_state([JointSample("limb1_joint1", 1.0)]), 0.0)
+    core.on_joint_commands(joint_state([JointSample("limb1_joint2", 0.5)]), 0.0)
+    for t in (0.5, 1.0, 1.6):
+        core.on_joint_states(
+            joint_state(
+                [
+                    JointSample("limb1_joint1", 0.6, 0.0, 0.0),  # stuck 0.4 short, still
+                    JointSample("limb1_joint2", 0.45, 0.0, 0.0),  # a servo's sag: fine
+                ]
+            ),
+            t,
+        )
+    assert level_now(core, "tracking", 1.4) == OK  # stalled 0.9 s: within the grace
+    status = items_now(core, 1.6)["limb1/tracking"]
+    assert status.level == WARN
+    assert "limb1_joint1" in status.message and "limb1_joint2" not in status.message
+    # A new target gives it a new chance; reaching it clears the item.
+    core.on_joint_commands(joint_state([JointSample("limb1_joint1", 0.6)]), 1.7)
+    core.on_joint_states(joint_state([JointSample("limb1_joint1", 0.6, 0.0, 0.0)]), 1.8)
+    assert level_now(core, "tracking", 3.0) == OK
+
+
+def test_a_moving_joint_or_a_velocity_command_is_not_a_tracking_fault() -> None:
+    from components.messages import JointSample, joint_state
+
+    core = make({"max_tracking_error": 0.2, "tracking_grace": 0.5})
+    core.start(0.0)
+    core.on_joint_commands(joint_state([JointSample("limb1_joint1", 2.0)]), 0.0)
+    for t in (0.2, 0.6, 1.0):  # far from target but on its way
+        core.on_joint_states(joint_state([JointSample("limb1_joint1", t, 1.0, 0.0)]), t)
+    assert level_now(core, "tracking", 1.0) == OK
+    core.on_joint_commands(joint_state([JointSample("limb1_joint1", None, 0.0)]), 1.1)
+    core.on_joint_states(joint_state([JointSample("limb1_joint1", 1.0, 0.0, 0.0)]), 1.2)
+    assert level_now(core, "tracking", 3.0) == OK  # velocity mode: nothing to track
+
+
+def test_without_a_limit_in_module_data_there_is_no_tracking_item() -> None:
+    core = make()
+    core.start(0.0)
+    assert "limb1/tracking" not in items_now(core, 0.1)
 
 
 # ---------------------------------------------------------------------------- motors

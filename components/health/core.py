@@ -41,6 +41,7 @@ from components.messages import (
     diagnostic_array,
     diagnostic_status,
     diagnostic_values,
+    joint_samples,
 )
 
 #: How bad a level is. ERROR (a known failure) outranks STALE (no news): an operator must
@@ -108,6 +109,12 @@ class HealthThresholds:
         host_temperature_warn: Onboard computer temperature (°C) for WARN.
         host_temperature_error: Onboard computer temperature (°C) for ERROR.
         publish_period: Seconds between regular publications of ``health``.
+        max_tracking_error: A joint farther than this (rad or m, raw) from its commanded
+            position while not moving is WARN: stalled, blocked or too weak for its load.
+            ``None``: not checked.
+        tracking_grace: Seconds a joint must stay stalled off target before it is WARN (a
+            servo settling, or starting a move, is not a fault).
+        stall_velocity: Below this speed (rad/s or m/s) a joint counts as not moving.
         topics: Per-topic overrides, ``{"joint_read": {"stale_after": 2.0, "min_rate": 1}}``.
     """
 
@@ -129,14 +136,17 @@ class HealthThresholds:
     host_temperature_warn: float = 80.0
     host_temperature_error: float = 90.0
     publish_period: float = 1.0
+    max_tracking_error: float | None = None
+    tracking_grace: float = 1.0
+    stall_velocity: float = 0.05
     topics: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str = "[health]") -> HealthThresholds:
         """Thresholds from module data; absent keys keep their defaults.
 
-        Keys this monitor does not use (e.g. ``max_tracking_error``) are ignored so that
-        module data can serve several readers.
+        Keys this monitor does not use are ignored so that module data can serve several
+        readers.
 
         Raises:
             ValueError: If a known key holds something other than a number (the message
@@ -316,6 +326,11 @@ class HealthMonitorCore(Core):
         }
         self._host: Mapping[str, Any] | None = None
         self._host_error: str | None = None
+        # joint -> commanded raw position (position mode only) and since when it is stalled
+        # off that target.
+        self._targets: dict[str, float] = {}
+        self._stalled_since: dict[str, float] = {}
+        self._tracking_errors: dict[str, float] = {}
         self._started: float | None = None
         self._last_publish: float | None = None
         self._levels: dict[str, int] = {}
@@ -369,8 +384,36 @@ class HealthMonitorCore(Core):
             self._check(now)
 
     def on_joint_states(self, message: Any, now: float) -> None:
-        """A ``joint_states`` sample arrived (only its arrival matters here)."""
+        """A ``joint_states`` sample arrived: its rate, and how far joints are from target."""
         self._arrived("joint_states", now)
+        limit = self.thresholds.max_tracking_error
+        if limit is None or not self._targets:
+            return
+        for sample in joint_samples(message):
+            target = self._targets.get(sample.name)
+            if target is None or sample.position is None or not math.isfinite(sample.position):
+                continue
+            error = abs(sample.position - target)
+            self._tracking_errors[sample.name] = error
+            moving = sample.velocity is not None and abs(sample.velocity) > (
+                self.thresholds.stall_velocity
+            )
+            if error > limit and not moving:
+                self._stalled_since.setdefault(sample.name, now)
+            else:
+                self._stalled_since.pop(sample.name, None)
+
+    def on_joint_commands(self, message: Any, now: float) -> None:
+        """What the joint manager asked the motors for: position targets are tracked."""
+        for sample in joint_samples(message):
+            if sample.position is not None and math.isfinite(sample.position):
+                if self._targets.get(sample.name) != sample.position:
+                    self._stalled_since.pop(sample.name, None)  # a new target: a new chance
+                self._targets[sample.name] = sample.position
+            else:  # velocity or effort mode: there is no position to track
+                self._targets.pop(sample.name, None)
+                self._stalled_since.pop(sample.name, None)
+                self._tracking_errors.pop(sample.name, None)
 
     def on_joint_read(self, message: Any, now: float) -> None:
         """A ``joint_read`` sample arrived."""
@@ -412,6 +455,8 @@ class HealthMonitorCore(Core):
         items = [self._component_item(s, now) for s in self._components.values()]
         items.extend(self._topic_item(s, now) for s in self._topics.values())
         items.extend(self._motor_item(label, now) for label in self._motor_reports)
+        if self.thresholds.max_tracking_error is not None:
+            items.append(self._tracking_item(now))
         if self._read_host_metrics is not None:
             items.extend(self._host_items())
         bad = [i for i in items if i.level != OK]
@@ -459,6 +504,27 @@ class HealthMonitorCore(Core):
             diagnostic_status(i.name, i.level, i.message, i.hardware_id, i.values) for i in items
         ]
         self.publish("health", diagnostic_array(statuses, self.stamp(now)))
+
+    def _tracking_item(self, now: float) -> Item:
+        limit = self.thresholds.max_tracking_error
+        grace = self.thresholds.tracking_grace
+        stalled = sorted(n for n, since in self._stalled_since.items() if now - since >= grace)
+        values = {
+            "max_tracking_error": limit,
+            **{n: f"{e:.3f}" for n, e in sorted(self._tracking_errors.items())},
+        }
+        name = f"{self.module}/tracking"
+        if stalled:
+            worst_joint = max(stalled, key=lambda n: self._tracking_errors.get(n, 0.0))
+            return Item(
+                name,
+                WARN,
+                f"{', '.join(stalled)} not moving, {self._tracking_errors[worst_joint]:.3f} "
+                f"from target (limit {limit:g}): blocked, stalled or overloaded?",
+                self.unit,
+                values,
+            )
+        return Item(name, OK, "every joint tracks its target", self.unit, values)
 
     def _component_item(self, state: _ComponentState, now: float) -> Item:
         expected = state.expected

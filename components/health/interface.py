@@ -27,6 +27,8 @@ HEALTH_MONITOR = InterfaceSpec(
         Subscribe("joint_states", JOINT_STATE, "on_joint_states", qos=RATE_QOS),
         Subscribe("joint_read", JOINT_STATE, "on_joint_read"),
         Subscribe("diagnostics", DIAGNOSTIC_ARRAY, "on_diagnostics"),
+        # What the joint manager asks the motors for, to see a joint stalled off target.
+        Subscribe("joint_commands", JOINT_STATE, "on_joint_commands"),
     ),
     publish=(Publish("health", DIAGNOSTIC_ARRAY),),
     every=(Every(CHECK_PERIOD, "tick"), Every(HOST_PERIOD, "on_host_timer")),
