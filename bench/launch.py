@@ -42,6 +42,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench._common import free_port, print_table
+from msctl.launcher.state import process_group_alive
 
 HOST = "bench-laptop"  # none of the robots' computers: the whole assembly runs here, simulated
 
@@ -214,7 +215,7 @@ def _run_template(template: str) -> Result:
         up.wait(timeout=30.0)
         result.shutdown_s = time.monotonic() - stopping
         time.sleep(0.05)
-        result.leftovers = sum(_group_alive(pgid) for pgid in pgids)
+        result.leftovers = sum(process_group_alive(pgid) for pgid in pgids)
     finally:
         for pgid in pgids:
             try:
@@ -224,21 +225,6 @@ def _run_template(template: str) -> Result:
         up.wait(timeout=5.0)
         reader.join(timeout=2.0)
     return result
-
-
-def _group_alive(pgid: int) -> bool:
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            return True
-    return False
 
 
 def floor(count: int) -> float:

@@ -29,6 +29,7 @@ from components.comm.types import registry
 from msctl.launcher.agent import check_assembly, plan_part
 from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace
 from msctl.launcher.plan import plan_host
+from msctl.launcher.state import process_group_alive
 
 USES = ["--use", "limb1=gl-limb-01", "--use", "limb2=gl-limb-02"]
 GROUND = "ground1"
@@ -132,7 +133,7 @@ class Agents:
             except (OSError, ValueError):
                 continue
             for process in document.get("processes", []):
-                if process.get("pgid") and _group_alive(process["pgid"]):
+                if process.get("pgid") and process_group_alive(process["pgid"]):
                     os.killpg(process["pgid"], signal.SIGKILL)
 
 
@@ -160,14 +161,6 @@ def node(endpoint: str) -> Iterator[Node]:
     finally:
         test_node.close()
         session.close()
-
-
-def _group_alive(pgid: int) -> bool:
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    return True
 
 
 def msctl(
@@ -348,7 +341,7 @@ def test_up_all_ps_restart_down(
     assert all(r["state"] == "running" for h in rows.values() for r in h.values()), rows
     pgids = {r["pid"] for h in rows.values() for r in h.values()}
     assert len(pgids) == sum(len(p.processes) for p in plans.values())
-    assert all(_group_alive(p) for p in pgids)
+    assert all(process_group_alive(p) for p in pgids)
     # Each agent ran what the assembly says, from its own resolution.
     assert (agents.home("gl-pi-01") / "agent" / "assembly" / "assembly.mjcf.xml").is_file()
 
@@ -390,14 +383,14 @@ def test_up_all_ps_restart_down(
     local_down = msctl(agents.home("hl-wheel-01"), net_env, "down")
     assert local_down.returncode == 0, local_down.stderr
     assert "stays up" in local_down.stderr
-    assert [p for p in wheel_groups if _group_alive(p)] == []
+    assert [p for p in wheel_groups if process_group_alive(p)] == []
     assert agents.procs["hl-wheel-01"].poll() is None, agents.logs()
     assert any("limb2" in line for line in json.loads(logs.payload)["limb2"])
 
     down = msctl(ground_home, net_env, "down", "--all")
     assert down.returncode == 0, down.stderr
     # The agents answer `down` once their processes are gone: nothing to wait for.
-    assert [p for p in pgids if _group_alive(p)] == []
+    assert [p for p in pgids if process_group_alive(p)] == []
     assert ps(ground_home, net_env)["components"] == []
     assert all(p.poll() is None for p in agents.procs.values()), agents.logs()
 
@@ -418,12 +411,12 @@ def test_unreachable_agent_is_named_and_the_others_start(
     # SIGTERM to an agent stops its run (every process group gone) and it exits cleanly.
     limb_groups = {r["pid"] for r in rows["gl-pi-01"].values()}
     assert agents.stop("gl-pi-01") == 0, agents.logs()
-    assert [p for p in limb_groups if _group_alive(p)] == []
+    assert [p for p in limb_groups if process_group_alive(p)] == []
 
     wheel_groups = {r["pid"] for r in rows["hl-wheel-01"].values()}
     down = msctl(ground_home, net_env, "down", "--all")
     assert down.returncode == 0, down.stderr
-    assert [p for p in wheel_groups if _group_alive(p)] == []
+    assert [p for p in wheel_groups if process_group_alive(p)] == []
 
 
 # --------------------------------------------------------------------------- install

@@ -29,6 +29,7 @@ from components.comm.node import Node
 from components.comm.session import SessionOpenError, SessionSettings, open_session
 from components.messages import JOINT_STATE
 from msctl.launcher.plan import plan_host
+from msctl.launcher.state import process_group_alive
 
 
 @dataclass
@@ -86,22 +87,6 @@ class Run:
                 os.killpg(pgid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
-
-
-def group_alive(pgid: int) -> bool:
-    """Some process of group ``pgid`` runs (zombies awaiting their reaper do not count)."""
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            return True
-    return False
 
 
 def make_run(tmp: Path) -> Run:
@@ -198,7 +183,7 @@ def test_ps_json_shows_every_component_running_with_pids(run: Run) -> None:
     for name, c in components.items():
         assert c["state"] == "running", c
         assert c["host"] == "e2e-laptop" and c["restarts"] == 0 and c["last_error"] == ""
-        assert c["pid"] == processes[c["process"]]["pid"] and group_alive(c["pid"]), name
+        assert c["pid"] == processes[c["process"]]["pid"] and process_group_alive(c["pid"]), name
         assert c["uptime"] >= 0
     assert components["limb1/joint_manager"]["pid"] == components["limb1/health_monitor"]["pid"]
     assert processes["router"]["state"] == "running"
@@ -210,7 +195,7 @@ def test_sigkilled_worker_is_restarted_and_its_data_flows_again(run: Run) -> Non
     try:
         assert listener.wait_for(1, timeout=5.0), "no joint_read before the kill"
         os.killpg(before["pgid"], signal.SIGKILL)
-        wait_until(lambda: not group_alive(before["pgid"]), timeout=2.0)
+        wait_until(lambda: not process_group_alive(before["pgid"]), timeout=2.0)
         after_kill = listener.count
         restarted = wait_until(
             lambda: (p := run.process("limb1"))["restarts"] >= 1 and p["state"] == "running" and p,
@@ -310,7 +295,7 @@ def test_down_leaves_no_process_group_behind(run: Run) -> None:
         with pytest.raises(ProcessLookupError):
             os.killpg(pgid, 0)
         del name
-    assert not group_alive(supervisor)  # the detached supervisor's own group
+    assert not process_group_alive(supervisor)  # the detached supervisor's own group
     assert run.msctl("down").returncode == 0  # idempotent: nothing is running
 
 
@@ -348,4 +333,4 @@ def test_foreground_up_for_runs_its_time_then_stops_clean(tmp_path: Path) -> Non
     assert all(p["state"] == "stopped" for p in document["processes"])
     assert len(current.pgids) >= 7  # supervisor, router, simulator, four modules
     for pgid in current.pgids:
-        assert not group_alive(pgid), pgid
+        assert not process_group_alive(pgid), pgid

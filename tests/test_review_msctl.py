@@ -14,21 +14,7 @@ from pathlib import Path
 import pytest
 from conftest import free_port, wait_until
 
-
-def _group_alive(pgid: int) -> bool:
-    """Some process of group ``pgid`` runs (zombies awaiting their reaper do not count)."""
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid and fields[0] != "Z":
-            return True
-    return False
+from msctl.launcher.state import process_group_alive
 
 
 class Home:
@@ -124,7 +110,7 @@ def test_foreground_up_stops_everything_on_sighup(home: Home) -> None:
     assert "minimal stopped" in stderr
     assert home.state()["state"] == "stopped"
     for name, pgid in groups.items():
-        assert not _group_alive(pgid), f"{name} (group {pgid}) outlived SIGHUP"
+        assert not process_group_alive(pgid), f"{name} (group {pgid}) outlived SIGHUP"
 
 
 def test_agent_stops_cleanly_on_sighup(home: Home) -> None:
@@ -156,7 +142,7 @@ def test_agent_stops_cleanly_on_sighup(home: Home) -> None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 0, stderr
     assert "gl-pi-01: stopped" in stderr
-    assert not _group_alive(router), "the agent's router outlived SIGHUP"
+    assert not process_group_alive(router), "the agent's router outlived SIGHUP"
 
 
 def _read(path: Path) -> bytes:
@@ -182,7 +168,7 @@ def test_down_after_the_supervisor_died_kills_what_it_left_and_says_so(home: Hom
     document = home.state()
     groups = {p["name"]: p["pgid"] for p in document["processes"] if p["pgid"]}
     os.kill(document["supervisor_pid"], signal.SIGKILL)
-    wait_until(lambda: not _group_alive(document["supervisor_pid"]), what="supervisor gone")
+    wait_until(lambda: not process_group_alive(document["supervisor_pid"]), what="supervisor gone")
 
     ps = home.msctl("ps", "--json")
     assert ps.returncode == 0, ps.stderr
@@ -196,7 +182,7 @@ def test_down_after_the_supervisor_died_kills_what_it_left_and_says_so(home: Hom
     assert "nothing is running" not in down.stderr
     assert "killed" in down.stderr and "limb1" in down.stderr, down.stderr
     for name, pgid in groups.items():
-        assert not _group_alive(pgid), f"{name} (group {pgid}) left after down"
+        assert not process_group_alive(pgid), f"{name} (group {pgid}) left after down"
     assert home.state()["state"] == "stopped"
     after = json.loads(home.msctl("ps", "--json").stdout)
     assert not [c["name"] for c in after["components"] if c["state"] == "running"]

@@ -67,8 +67,14 @@ def supervisor_alive(document: dict[str, Any] | None) -> bool:
     )
 
 
-def group_alive(pgid: int) -> bool:
-    """Whether any process of the process group ``pgid`` is left (zombies do not count)."""
+def process_group_alive(pgid: int, ours_only: bool = False) -> bool:
+    """Whether any process of group ``pgid`` is left (zombies awaiting a reaper do not count).
+
+    Args:
+        pgid: The process group.
+        ours_only: Count only msctl's own processes (a stale state file's ids may have been
+            reused by strangers after a reboot).
+    """
     if not _signal_reaches(os.killpg, pgid):
         return False
     try:
@@ -82,9 +88,19 @@ def group_alive(pgid: int) -> bool:
             fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
         except (OSError, IndexError):
             continue
-        if len(fields) > 2 and fields[2] == str(pgid) and fields[0] != "Z" and _is_msctl(entry):
+        if (
+            len(fields) > 2
+            and fields[2] == str(pgid)
+            and fields[0] != "Z"
+            and (not ours_only or _is_msctl(entry))
+        ):
             return True
     return False
+
+
+def group_alive(pgid: int) -> bool:
+    """Whether any of msctl's processes of the process group ``pgid`` is left."""
+    return process_group_alive(pgid, ours_only=True)
 
 
 # What every process msctl starts has on its command line: the CLI, a component worker, the
