@@ -43,6 +43,7 @@ from components.api.joints import JointHandler
 from components.api.motion import Motion
 from components.api.planner import ASAP, LERP, SPEED_SAFE, UNSAFE, SyncPlanner, SyncSettings
 from components.api.syncer import Commander
+from components.config import require
 
 log = logging.getLogger(__name__)
 
@@ -81,21 +82,21 @@ class IkSyncSettings:
     ik_budget: int = 60
 
     def __post_init__(self) -> None:
-        for name in (
-            "delta_position",
-            "delta_angle",
-            "delta",
-            "tolerance_position",
-            "tolerance_angle",
-            "speed",
-            "angular_speed",
-            "joint_speed",
-            "rate",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"IkSyncSettings.{name} must be > 0, not {getattr(self, name)}")
-        if self.ik_budget < 1:
-            raise ValueError("IkSyncSettings.ik_budget must be >= 1")
+        require(
+            self,
+            positive=(
+                "delta_position",
+                "delta_angle",
+                "delta",
+                "tolerance_position",
+                "tolerance_angle",
+                "speed",
+                "angular_speed",
+                "joint_speed",
+                "rate",
+                "ik_budget",
+            ),
+        )
 
     def joint_settings(self) -> SyncSettings:
         """The joint syncer settings the IK syncer's joint step uses."""

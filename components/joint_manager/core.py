@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from components.config import require
 from components.executor.core import Core
 from components.executor.interface import Serve
 from components.joints import JointCalibration, JointSpec
@@ -107,29 +108,24 @@ class JointManagerConfig:
     warn_window: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in (
-            "watchdog_timeout",
-            "keepalive_period",
-            "diagnostics_period",
-            "stale_timeout",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(
-                    f"JointManagerConfig.{name} must be > 0, not {getattr(self, name)}"
-                )
-        for name in (
-            "position_margin",
-            "read_position_threshold",
-            "read_velocity_threshold",
-            "read_effort_threshold",
-            "velocity_limit_lookahead",
-            "settle_tolerance",
-            "warn_window",
-        ):
-            if not getattr(self, name) >= 0:
-                raise ValueError(
-                    f"JointManagerConfig.{name} must be >= 0, not {getattr(self, name)}"
-                )
+        require(
+            self,
+            positive=(
+                "watchdog_timeout",
+                "keepalive_period",
+                "diagnostics_period",
+                "stale_timeout",
+            ),
+            non_negative=(
+                "position_margin",
+                "read_position_threshold",
+                "read_velocity_threshold",
+                "read_effort_threshold",
+                "velocity_limit_lookahead",
+                "settle_tolerance",
+                "warn_window",
+            ),
+        )
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from components.config import require
 from components.executor.core import Core
 from components.kinematics.ik import IkResult, IkSettings, IkSolver
 from components.kinematics.model import ChainModel
@@ -57,12 +58,16 @@ class KinematicsConfig:
     warn_window: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("keepalive_period", "diagnostics_period", "stale_timeout"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"KinematicsConfig.{name} must be > 0, not {getattr(self, name)}")
-        for name in ("tip_position_threshold", "tip_angle_threshold", "min_period", "warn_window"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"KinematicsConfig.{name} must be >= 0, not {getattr(self, name)}")
+        require(
+            self,
+            positive=("keepalive_period", "diagnostics_period", "stale_timeout"),
+            non_negative=(
+                "tip_position_threshold",
+                "tip_angle_threshold",
+                "min_period",
+                "warn_window",
+            ),
+        )
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> KinematicsConfig:

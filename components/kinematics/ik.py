@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from components.config import require
 from components.kinematics.model import ChainModel
 
 _TWO_PI = 2.0 * math.pi
@@ -78,21 +79,21 @@ class IkSettings:
     limit_margin: float = 0.02
 
     def __post_init__(self) -> None:
-        for name in (
-            "position_tolerance",
-            "orientation_tolerance",
-            "max_step",
-            "reach_step",
-            "turn_step",
-            "jump_bound",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"IkSettings.{name} must be > 0, not {getattr(self, name)}")
-        for name in ("damping", "limit_margin", "orientation_weight"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"IkSettings.{name} must be >= 0, not {getattr(self, name)}")
-        if self.iterations < 1 or self.budget < 1 or self.far_solutions < 1:
-            raise ValueError("IkSettings.iterations, budget and far_solutions must be >= 1")
+        require(
+            self,
+            positive=(
+                "position_tolerance",
+                "orientation_tolerance",
+                "max_step",
+                "reach_step",
+                "turn_step",
+                "jump_bound",
+                "iterations",
+                "budget",
+                "far_solutions",
+            ),
+            non_negative=("damping", "limit_margin", "orientation_weight"),
+        )
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,21 @@
+"""Checks shared by the components' configuration dataclasses."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+
+def require(config: Any, positive: Iterable[str] = (), non_negative: Iterable[str] = ()) -> None:
+    """Refuse a configuration whose named fields are out of range.
+
+    Raises:
+        ValueError: Naming the class and field at fault, and the value given.
+    """
+    kind = type(config).__name__
+    for name in positive:
+        if not getattr(config, name) > 0:
+            raise ValueError(f"{kind}.{name} must be > 0, not {getattr(config, name)}")
+    for name in non_negative:
+        if not getattr(config, name) >= 0:
+            raise ValueError(f"{kind}.{name} must be >= 0, not {getattr(config, name)}")
