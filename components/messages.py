@@ -6,6 +6,7 @@ meaning "not given", stamps as ``builtin_interfaces/Time``) live in one place.
 
 from __future__ import annotations
 
+import enum
 import functools
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -20,9 +21,53 @@ DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TRIGGER = "std_srvs/srv/Trigger"
 
-#: diagnostic_msgs/DiagnosticStatus levels.
-OK, WARN, ERROR, STALE = 0, 1, 2, 3
-LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
+
+class Level(enum.IntEnum):
+    """A ``diagnostic_msgs/DiagnosticStatus`` level, with the message's byte values.
+
+    The values are the wire bytes (OK 0, WARN 1, ERROR 2, STALE 3), so a ``Level`` goes into
+    a message as is. They are not an order of badness: ERROR (a known failure) outranks STALE
+    (no news), because "the joint manager is halted" must not hide behind "no joint_states
+    for 2 s". Order levels by :attr:`severity` or with :func:`worst`, never with ``max()``,
+    ``<`` or ``>`` on the numbers.
+    """
+
+    OK = 0
+    WARN = 1
+    ERROR = 2
+    STALE = 3
+
+    @classmethod
+    def of(cls, value: int) -> Level:
+        """The level of a received byte; a value diagnostic_msgs does not define is ERROR.
+
+        A sender that invents a level is broken, and a broken sender is an error to show,
+        not something to rank below OK.
+        """
+        try:
+            return cls(value)
+        except ValueError:
+            return cls.ERROR
+
+    @property
+    def severity(self) -> int:
+        """Rank of badness, higher is worse: OK < WARN < STALE < ERROR."""
+        return _SEVERITY[self]
+
+
+_SEVERITY = {Level.OK: 0, Level.WARN: 1, Level.STALE: 2, Level.ERROR: 3}
+
+#: The levels under their diagnostic_msgs names (aliases of the :class:`Level` members).
+OK, WARN, ERROR, STALE = Level.OK, Level.WARN, Level.ERROR, Level.STALE
+LEVEL_NAMES = {level: level.name for level in Level}
+
+
+def worst(levels: Iterable[int]) -> Level:
+    """The most severe of ``levels`` by :attr:`Level.severity` (OK for none).
+
+    Plain ints (a received ``status.level``) are read with :meth:`Level.of`.
+    """
+    return max((Level.of(level) for level in levels), key=_SEVERITY.__getitem__, default=Level.OK)
 
 
 def msg(type_name: str, **fields: Any) -> Any:

@@ -471,6 +471,35 @@ def test_halt_holds_at_once_and_refuses_until_recover() -> None:
     assert "nothing to recover" in core.on_recover(TRIGGER_REQ, now=0.4).message
 
 
+@pytest.mark.parametrize("fed", [False, True], ids=["never_fed", "feedback_lost"])
+def test_a_halted_manager_without_feedback_publishes_error_not_stale(fed: bool) -> None:
+    """The halt is a known failure an operator must see; "no news" must not hide it."""
+    core = make(stale_timeout=1.0, diagnostics_period=1.0)
+    if fed:
+        feed_calibrated(core, 0.0, joint1=0.3, joint2=-0.5, wheel=0.0)
+    core.on_halt(TRIGGER_REQ, now=0.1)
+    core.outbox.take()
+    core.tick(2.5)  # no joint_states for 2.5 s (or ever): stale as well as halted
+    (diag,) = core.outbox.take("diagnostics")
+    manager = diag.status[0]
+    assert manager.level == ERROR
+    assert "halted" in manager.message and "no joint_states" in manager.message
+    assert [s.level for s in diag.status[1:]] == [STALE, STALE, STALE]  # joints: no news
+    # Recovered and still without feedback: back to STALE, not OK.
+    core.on_recover(TRIGGER_REQ, now=2.6)
+    assert core.diagnostics(2.7).status[0].level == STALE
+
+
+def test_a_tripped_watchdog_without_feedback_publishes_error_not_stale() -> None:
+    core = make(watchdog_timeout=0.5, stale_timeout=1.0)
+    feed_calibrated(core, 0.0, joint1=0.1)
+    core.on_joint_set(state(JointSample(J1, velocity=0.3)), now=0.0)
+    core.tick(0.6)
+    assert core.counters["watchdog_trips"] == 1
+    manager = core.diagnostics(3.0).status[0]
+    assert manager.level == ERROR and "watchdog" in manager.message
+
+
 # ---------------------------------------------------------------------------- joint_read
 
 

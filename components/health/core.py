@@ -34,34 +34,20 @@ from typing import Any, NamedTuple
 from components.executor.core import Core
 from components.messages import (
     ERROR,
-    LEVEL_NAMES,
     OK,
     STALE,
     WARN,
+    Level,
     diagnostic_array,
     diagnostic_status,
     diagnostic_values,
     joint_samples,
+    worst,
 )
-
-#: How bad a level is. ERROR (a known failure) outranks STALE (no news): an operator must
-#: see "joint_manager died" before "joint_read is quiet", and a worst-of over a motor's
-#: sources must not hide an ERROR behind a STALE.
-SEVERITY = {OK: 0, WARN: 1, STALE: 2, ERROR: 3}
 
 #: Keys motor backends use for a motor's temperature (°C) and supply voltage (V).
 TEMPERATURE_KEYS = ("temperature", "temperature_c")
 VOLTAGE_KEYS = ("input_voltage_v", "voltage")
-
-
-def severity(level: int) -> int:
-    """Rank of a diagnostic level, higher is worse (unknown levels rank as ERROR)."""
-    return SEVERITY.get(level, SEVERITY[ERROR])
-
-
-def worst(levels: Sequence[int]) -> int:
-    """The most severe of ``levels`` (OK for none)."""
-    return max(levels, key=severity, default=OK)
 
 
 @dataclass(frozen=True)
@@ -242,7 +228,7 @@ class Item(NamedTuple):
     """One evaluated health item, before it becomes a DiagnosticStatus."""
 
     name: str
-    level: int
+    level: Level
     message: str
     hardware_id: str
     values: Mapping[str, Any]
@@ -272,7 +258,7 @@ class _TopicState:
 
 
 class _SourceReport(NamedTuple):
-    level: int
+    level: Level
     message: str
     values: dict[str, str]
     at: float
@@ -333,7 +319,7 @@ class HealthMonitorCore(Core):
         self._tracking_errors: dict[str, float] = {}
         self._started: float | None = None
         self._last_publish: float | None = None
-        self._levels: dict[str, int] = {}
+        self._levels: dict[str, Level] = {}
         self.publications = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -429,7 +415,7 @@ class HealthMonitorCore(Core):
                 continue
             reports = self._motor_reports.setdefault(label, {})
             reports[status.name] = _SourceReport(
-                int(status.level), status.message, diagnostic_values(status), now
+                Level.of(status.level), status.message, diagnostic_values(status), now
             )
             touched = True
         if touched:
@@ -462,10 +448,9 @@ class HealthMonitorCore(Core):
         bad = [i for i in items if i.level != OK]
         level = worst([i.level for i in items])
         if bad:
-            shown = sorted(bad, key=lambda i: -severity(i.level))[:3]
+            shown = sorted(bad, key=lambda i: -i.level.severity)[:3]
             message = "; ".join(
-                f"{i.name.removeprefix(self.module + '/')} {LEVEL_NAMES.get(i.level, i.level)}"
-                for i in shown
+                f"{i.name.removeprefix(self.module + '/')} {i.level.name}" for i in shown
             )
             if len(bad) > len(shown):
                 message += f" (+{len(bad) - len(shown)} more)"
@@ -488,7 +473,7 @@ class HealthMonitorCore(Core):
 
     def _check(self, now: float) -> None:
         items = self.evaluate(now)
-        worse = any(severity(i.level) > severity(self._levels.get(i.name, OK)) for i in items)
+        worse = any(i.level.severity > self._levels.get(i.name, OK).severity for i in items)
         self._levels = {i.name: i.level for i in items}
         due = (
             self._last_publish is None or now - self._last_publish >= self.thresholds.publish_period
@@ -648,12 +633,12 @@ class HealthMonitorCore(Core):
             )
             return Item(name, STALE, message, self.unit, {"sources": len(reports)})
         checked = [(src, r, *self._motor_limits(r)) for src, r in sorted(fresh.items())]
-        source, report, level, message = max(checked, key=lambda c: severity(c[2]))
+        source, report, level, message = max(checked, key=lambda c: c[2].severity)
         values: dict[str, Any] = {"source": source, **report.values}
         values["sources"] = len(fresh)
         return Item(name, level, message, self.unit, values)
 
-    def _motor_limits(self, report: _SourceReport) -> tuple[int, str]:
+    def _motor_limits(self, report: _SourceReport) -> tuple[Level, str]:
         """A source's level and message, made worse by the module's temperature/voltage limits."""
         level, message = report.level, report.message
         t = self.thresholds
@@ -665,11 +650,11 @@ class HealthMonitorCore(Core):
                 extra = (ERROR, f"{temperature:.0f} °C reaches {limit}: let it cool")
             elif temperature >= t.max_temperature - t.temperature_margin:
                 extra = (WARN, f"{temperature:.0f} °C near {limit}")
-            if extra is not None and severity(extra[0]) > severity(level):
+            if extra is not None and extra[0].severity > level.severity:
                 level, message = extra
         voltage = _first_float(report.values, VOLTAGE_KEYS)
         low = t.min_voltage is not None and voltage is not None and voltage < t.min_voltage
-        if low and severity(WARN) > severity(level):
+        if low and WARN.severity > level.severity:
             level = WARN
             message = f"supply {voltage:.1f} V below {t.min_voltage:g} V: charge the battery"
         return level, message

@@ -43,6 +43,7 @@ from components.messages import (
     joint_state_batches,
     msg,
     trigger_response,
+    worst,
 )
 
 LIST_JOINTS_RESPONSE = "msctl_msgs/srv/ListJoints_Response"
@@ -811,28 +812,30 @@ class JointManagerCore(Core):
 
     def _manager_status(self, now: float) -> Any:
         cfg = self.config
-        level, notes = OK, []
+        levels, notes = [OK], []
         if self._halted:
-            level = ERROR
+            levels.append(ERROR)
             notes.append("halted: commands refused until recover")
         if self._tripped_at is not None:
-            level = ERROR
+            levels.append(ERROR)
             notes.append(
                 f"watchdog stopped {', '.join(self._tripped_joints)}: no command for "
                 f"{cfg.watchdog_timeout} s; send a command or recover"
             )
         age = None if self._last_feedback is None else now - self._last_feedback
         if age is None or age > cfg.stale_timeout:
-            level = max(level, STALE)
+            # Below ERROR: "no news" must not hide a halt or a watchdog trip.
+            levels.append(STALE)
             notes.append(
                 "no joint_states yet" if age is None else f"no joint_states for {age:.1f} s"
             )
         if now - self._last_refusal <= cfg.warn_window:
-            level = max(level, WARN)
+            levels.append(WARN)
             notes.append(self._refusal_note)
         if now - self._last_clamp <= cfg.warn_window:
-            level = max(level, WARN)
+            levels.append(WARN)
             notes.append("commands clamped to limits")
+        level = worst(levels)
         values: dict[str, Any] = {
             "module": self.module,
             "halted": self._halted,
@@ -846,17 +849,18 @@ class JointManagerCore(Core):
 
     def _joint_status(self, j: _Joint, now: float) -> Any:
         cfg = self.config
-        level, notes = OK, []
+        levels, notes = [OK], []
         if j.seen is None or now - j.seen > cfg.stale_timeout:
-            level = STALE
+            levels.append(STALE)
             notes.append("no joint_states" if j.seen is None else f"stale {now - j.seen:.1f} s")
         if j.pin_note is not None:
-            level = max(level, WARN)
+            levels.append(WARN)
             where = "current position" if j.pin is None else f"{j.pin:.4f}"
             notes.append(f"{j.pin_note}, held at {where}")
         if max(j.last_refusal, j.last_clamp) >= now - cfg.warn_window:
-            level = max(level, WARN)
+            levels.append(WARN)
             notes.append(j.note)
+        level = worst(levels)
         values = {
             "position": _fmt(j.position),
             "velocity": _fmt(j.velocity),

@@ -28,6 +28,7 @@ from components.messages import (
     diagnostic_array,
     diagnostic_status,
     joint_state,
+    worst,
 )
 
 
@@ -237,17 +238,18 @@ class KinematicsCore(Core):
 
     def status(self, now: float) -> Any:
         """The manager's DiagnosticStatus at ``now``."""
-        level, notes = OK, []
+        levels, notes = [OK], []
         age = None if self._last_read is None else now - self._last_read
         if not self.ready:
-            level = STALE
+            levels.append(STALE)
             notes.append("waiting for joint_read of every chain joint")
         elif age is not None and age > self.config.stale_timeout:
-            level = STALE
+            levels.append(STALE)
             notes.append(f"no joint_read for {age:.1f} s")
         if now - self._last_warn <= self.config.warn_window:
-            level = max(level, WARN)
+            levels.append(WARN)
             notes.append(self._warn_note)
+        level = worst(levels)
         values: dict[str, Any] = {
             "module": self.module,
             "chain": f"{self.chain.base_link} -> {self.chain.tip_link}",
