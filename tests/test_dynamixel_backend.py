@@ -196,8 +196,8 @@ def test_velocity_mode_switch_and_effort(
     chain: EmulatedDynamixelChain, backend: DynamixelBackend
 ) -> None:
     backend.write([MotorCommand(joint(2), velocity=1.0)])
-    assert chain.register(2, "operating_mode") == 1
-    assert chain.register(2, "torque_enable") == 1
+    wait_until(lambda: chain.register(2, "operating_mode") == 1, what="velocity mode")
+    wait_until(lambda: chain.register(2, "torque_enable") == 1, what="torque back on")
     state = wait_until(lambda: (s := backend.read()[joint(2)]).velocity > 0.9 and s)
     assert state.velocity == pytest.approx(1.0, abs=0.03)
     start = state.position
@@ -210,9 +210,9 @@ def test_velocity_mode_switch_and_effort(
 
     # A position command switches back (torque off -> mode -> torque on) and holds there.
     backend.write([MotorCommand(joint(2), position=0.2)])
+    wait_until(lambda: abs(backend.read()[joint(2)].position - 0.2) < 2 * TICK)
     assert chain.register(2, "operating_mode") == 3
     assert chain.register(2, "torque_enable") == 1
-    wait_until(lambda: abs(backend.read()[joint(2)].position - 0.2) < 2 * TICK)
 
 
 def test_hardware_error_names_joint_and_bit_then_recover_clears_it(
@@ -231,10 +231,9 @@ def test_hardware_error_names_joint_and_bit_then_recover_clears_it(
     assert all(diag(backend, joint(i)).level == 0 for i in IDS if i != 2)
 
     backend.recover()
+    wait_until(lambda: diag(backend, joint(2)).level == 0, what=f"{joint(2)} OK after recover")
     assert chain.register(2, "hardware_error_status") == 0
     assert chain.register(2, "torque_enable") == 1
-    backend.read()
-    assert diag(backend, joint(2)).level == 0, diag(backend, joint(2))
 
 
 def test_over_temperature(chain: EmulatedDynamixelChain) -> None:
@@ -247,17 +246,14 @@ def test_over_temperature(chain: EmulatedDynamixelChain) -> None:
         chain.set_temperature(1, 85)
         # Past the module data's tighter limit only: the backend's own threshold.
         chain.set_temperature(2, 65)
-        states = dxl.read()
-        assert states[joint(1)].temperature == 85.0
-        overheated = diag(dxl, joint(1))
-        assert overheated.level == 2 and "overheating" in overheated.message
-        over_limit = diag(dxl, joint(2))
-        assert over_limit.level == 2 and "over temperature: 65 °C (limit 60 °C)" in (
-            over_limit.message
-        )
+        wait_until(lambda: dxl.read()[joint(1)].temperature == 85.0, what="85 °C read")
+        overheated = wait_until(lambda: (d := diag(dxl, joint(1))).level == 2 and d)
+        assert "overheating" in overheated.message
+        over_limit = wait_until(lambda: (d := diag(dxl, joint(2))).level == 2 and d)
+        assert "over temperature: 65 °C (limit 60 °C)" in over_limit.message
         chain.set_temperature(2, 57)
-        dxl.read()
-        assert diag(dxl, joint(2)).level == 1  # hot: within 5 °C of the limit
+        # Hot: within 5 °C of the limit.
+        wait_until(lambda: diag(dxl, joint(2)).level == 1, what="WARN at 57 °C")
 
 
 def test_silent_servo_is_reported_alone_and_picked_up_again(
@@ -267,8 +263,8 @@ def test_silent_servo_is_reported_alone_and_picked_up_again(
     silenced_at = time.monotonic()
 
     def reported():
-        states = backend.read()
         d = diag(backend, joint(3))
+        states = backend.read()  # as of the same cycle or a later one
         return d.level == 2 and (states, d)
 
     states, d = wait_until(reported, timeout=1.5)
@@ -296,10 +292,17 @@ def test_servo_silencing_the_rest_of_a_sync_read_does_not_blind_the_chain() -> N
         ) as dxl,
     ):
         strict.silence(2)
-        # Ids 3..5 miss the group reply too; individual reads still get them in this cycle.
+        # Ids 3..5 miss the group reply too; individual reads still get them in the same
+        # cycle, so they are never reported silent.
+        levels = [0, 2, 0, 0, 0]
+        seen = wait_until(lambda: (d := [d.level for d in dxl.diagnostics()[1:]])[1] == 2 and d)
+        assert seen == levels
         assert sorted(dxl.read()) == [joint(i) for i in IDS if i != 2]
-        assert [d.level for d in dxl.diagnostics()[1:]] == [0, 2, 0, 0, 0]
-        assert sorted(dxl.read()) == [joint(i) for i in IDS if i != 2]
+        for _ in range(5):  # cycle after cycle: a fresh reading of id 5 each time
+            stamp = dxl.read()[joint(5)].stamp
+            wait_until(lambda stamp=stamp: dxl.read()[joint(5)].stamp > stamp, what="a cycle")
+            assert [d.level for d in dxl.diagnostics()[1:]] == levels
+            assert sorted(dxl.read()) == [joint(i) for i in IDS if i != 2]
 
 
 def test_servo_absent_at_open_does_not_raise(chain: EmulatedDynamixelChain) -> None:
@@ -409,6 +412,7 @@ DRIVER = textwrap.dedent(
 )
 
 
+@pytest.mark.e2e
 def test_servo_stops_by_itself_when_the_driving_process_is_killed(
     chain: EmulatedDynamixelChain,
 ) -> None:
@@ -444,19 +448,23 @@ def test_servo_stops_by_itself_when_the_driving_process_is_killed(
 def test_backend_abandoned_without_close_lets_the_servo_stop(
     chain: EmulatedDynamixelChain,
 ) -> None:
-    dxl = DynamixelBackend(chain.port, [MotorSpec(joint(1), 1, "XM430-W350")], OPTIONS)
+    # No reopen within the test: the port stays gone.
+    options = {**OPTIONS, "reopen_interval_s": 60.0}
+    dxl = DynamixelBackend(chain.port, [MotorSpec(joint(1), 1, "XM430-W350")], options)
     dxl.open()
     try:
         dxl.write([MotorCommand(joint(1), velocity=-1.5)])
         wait_until(lambda: dxl.read()[joint(1)].velocity < -1.4)
-        # The process "dies": the port goes without the graceful close path.
+        # The process "dies": the port goes without the graceful close path, and the caller
+        # keeps calling as if nothing happened.
         dxl._port.closePort()  # a crash, not the API
         dropped_at = time.monotonic()
-        wait_until(lambda: chain.register(1, "present_velocity") == 0, timeout=1.0)
+        wait_until(
+            lambda: not dxl.read() and chain.register(1, "present_velocity") == 0, timeout=1.0
+        )
         assert time.monotonic() - dropped_at < WATCHDOG_S + WATCHDOG_SLACK_S + 0.1
         assert chain.register(1, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
     finally:
-        dxl._port = None
         dxl.close()
 
 
@@ -468,16 +476,17 @@ def test_pause_longer_than_the_watchdog_is_reported_and_rearmed(
     assert chain.register(2, "bus_watchdog") == 5
     assert diag(backend, joint(2)).values["bus_watchdog"] == "100 ms"
 
-    time.sleep(3 * WATCHDOG_S)  # the process stalls: no read, no write
+    # The caller stalls: no read, no write. The I/O thread goes on, but stops talking to the
+    # armed servo (as if the whole process had stalled), so its watchdog stops it.
+    time.sleep(3 * WATCHDOG_S)
+    wait_until(lambda: chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED, 2.0, "expiry")
     assert chain.register(2, "present_velocity") == 0
-    assert chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
     heard_at, expired_at, _ = chain.watchdog(2)
     assert expired_at is not None and expired_at - heard_at == pytest.approx(WATCHDOG_S)
 
-    # Back: the first read finds the expiry, clears it, re-arms, and says which joint.
+    # Back: the next cycle finds the expiry, clears it, re-arms, and says which joint.
     backend.read()
-    d = diag(backend, joint(2))
-    assert d.level == 1
+    d = wait_until(lambda: (d := diag(backend, joint(2))).level == 1 and d, what="WARN")
     assert d.message == (
         "limb1_joint2: servo id 2 stopped by its bus watchdog (no command for 100 ms); re-armed"
     )
@@ -499,15 +508,15 @@ def test_write_after_a_pause_is_not_swallowed_by_the_expired_watchdog(
 ) -> None:
     backend.write([MotorCommand(joint(3), velocity=1.0)])
     wait_until(lambda: chain.register(3, "present_velocity") > 35)
-    time.sleep(2 * WATCHDOG_S)
-    assert chain.register(3, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
+    # The caller stalls until the watchdog expires.
+    wait_until(lambda: chain.register(3, "bus_watchdog") == BUS_WATCHDOG_EXPIRED, 2.0, "expiry")
     # A write comes first after the pause: the goal must land, not be refused.
     backend.write([MotorCommand(joint(3), velocity=0.7)])
     wait_until(
         lambda: chain.register(3, "goal_velocity") == JointUnits(XM430, 1.0).velocity_units(0.7)
     )
     assert chain.register(3, "bus_watchdog") == 5
-    assert "bus watchdog" in diag(backend, joint(3)).message
+    wait_until(lambda: "bus watchdog" in diag(backend, joint(3)).message, what="the report")
 
 
 def test_position_mode_and_close_leave_the_watchdog_off(chain: EmulatedDynamixelChain) -> None:
@@ -516,14 +525,15 @@ def test_position_mode_and_close_leave_the_watchdog_off(chain: EmulatedDynamixel
     dxl.open()
     assert [chain.register(i, "bus_watchdog") for i in (1, 2)] == [0, 0]
     dxl.write([MotorCommand(joint(1), velocity=1.0), MotorCommand(joint(2), position=0.3)])
-    assert chain.register(1, "bus_watchdog") == 10  # 200 ms
+    wait_until(lambda: dxl.read() and chain.register(1, "bus_watchdog") == 10)  # 200 ms
+    wait_until(lambda: abs(dxl.read()[joint(2)].position - 0.3) < 2 * TICK)
     assert chain.register(2, "bus_watchdog") == 0
     assert diag(dxl, joint(2)).values["bus_watchdog"] == "off"
     # Back to position: off again (a held position must not be dropped by a pause).
     dxl.write([MotorCommand(joint(1), position=0.0)])
-    assert chain.register(1, "bus_watchdog") == 0
+    wait_until(lambda: dxl.read() and chain.register(1, "bus_watchdog") == 0)
     dxl.write([MotorCommand(joint(1), velocity=0.5)])
-    assert chain.register(1, "bus_watchdog") == 10
+    wait_until(lambda: dxl.read() and chain.register(1, "bus_watchdog") == 10)
     dxl.close()
     wait_until(lambda: chain.register(1, "bus_watchdog") == 0)  # a reply-less SYNC_WRITE
     assert chain.register(1, "torque_enable") == 0
@@ -546,7 +556,8 @@ def test_watchdog_option_zero_disables_it(chain: EmulatedDynamixelChain) -> None
     motors = [MotorSpec(joint(1), 1, "XM430-W350")]
     with DynamixelBackend(chain.port, motors, {**OPTIONS, "bus_watchdog_ms": 0}) as dxl:
         dxl.write([MotorCommand(joint(1), velocity=1.0)])
-        time.sleep(2 * WATCHDOG_S)
+        wait_until(lambda: chain.register(1, "present_velocity") > 35, what="turning")
+        time.sleep(2 * WATCHDOG_S)  # the caller is silent longer than a watchdog would allow
         assert chain.register(1, "bus_watchdog") == 0
         assert chain.register(1, "present_velocity") > 35
     with pytest.raises(MotorError, match=r"bus_watchdog_ms"):
@@ -565,13 +576,14 @@ def test_slow_paths_keep_feeding_armed_servos(chain: EmulatedDynamixelChain) -> 
         for i in (2, 3, 5):
             chain.silence(i)
         chain.set_hardware_error(4, 1 << 5)
-        deadline = time.monotonic() + 1.0
-        while time.monotonic() < deadline:
-            dxl.read()
-        assert [diag(dxl, joint(i)).level for i in (2, 3, 5)] == [2, 2, 2]
+        # The caller keeps calling (read every 20 ms) while the thread works through it all.
+        wait_until(
+            lambda: dxl.read() and [diag(dxl, joint(i)).level for i in (2, 3, 4, 5)] == [2] * 4,
+            5.0,
+            "silent servos and the hardware error reported",
+        )
         dxl.recover()
-        dxl.read()
-        assert diag(dxl, joint(4)).level == 0
+        wait_until(lambda: dxl.read() and diag(dxl, joint(4)).level == 0, 5.0, "id 4 rebooted")
         assert chain.register(1, "bus_watchdog") == 10
         assert chain.watchdog(1)[2] == 0
         assert chain.register(1, "present_velocity") > 35

@@ -22,23 +22,27 @@ class RecordingBackend(MotorBackend):
         self.written: list[MotorCommand] = []
         self.fail_open = fail_open
         self.opened = 0
+        self.halts = 0
 
-    def open(self) -> None:
+    def _open(self) -> None:
         if self.fail_open:
             self.fail_open -= 1
             raise MotorError("fake0: no such bus")
         self.opened += 1
 
-    def close(self) -> None:
+    def _close(self) -> None:
         pass
 
-    def read(self) -> dict[str, MotorState]:
+    def _read(self) -> dict[str, MotorState]:
         return {m.joint: MotorState(m.joint, 0.1, 0.0, 0.0) for m in self.motors}
 
-    def write(self, commands: list[MotorCommand]) -> None:
+    def _write(self, commands: list[MotorCommand]) -> None:
         self.written.extend(commands)
 
-    def diagnostics(self) -> list[MotorDiagnostic]:
+    def _halt(self) -> None:
+        self.halts += 1
+
+    def _diagnostics(self) -> list[MotorDiagnostic]:
         return []
 
 

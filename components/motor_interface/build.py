@@ -9,27 +9,41 @@ from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
 from components.motor_interface.core import MotorInterfaceCore
 from components.motor_interface.interface import MOTOR_INTERFACE
-from components.motors.base import MotorError, backend_class
+from components.motors.base import MotorError
+from components.motors.options import backend_info, parse_options
 
 
 def build(
     plan: ComponentPlan, assembly: ResolvedAssembly, options: Mapping[str, Any]
 ) -> BuiltComponent:
-    """A MotorInterfaceCore on the module's bus (CANopen, Dynamixel...)."""
+    """A MotorInterfaceCore on the module's bus (CANopen, Dynamixel...).
+
+    ``options`` may override the bus for this run: ``channel`` (e.g. an emulator's) and
+    ``bus_options`` (keys of the backend's options type, over the module data's).
+
+    Raises:
+        BuildError: If the bus kind is unknown, an option or the channel is invalid for it,
+            or the backend cannot be loaded; the message names the component and the key.
+    """
     if plan.module is None:
         raise BuildError(f"{plan.name}: a motor interface needs a module")
     module = assembly.module(plan.module)
     bus = module.bus
-    bus_options: dict[str, Any] = dict(bus.options)
-    if bus.bitrate is not None:
-        bus_options.setdefault("bitrate", bus.bitrate)
-    if bus.baudrate is not None:
-        bus_options.setdefault("baudrate", bus.baudrate)
-    bus_options.update(options.get("bus_options", {}))
+    overrides: dict[str, Any] = dict(options.get("bus_options", {}))
     channel = options.get("channel", bus.channel)
     try:
-        backend = backend_class(bus.kind)(channel, module.motor_specs(), bus_options)
+        info = backend_info(bus.kind)
+        # bus.bitrate / bus.baudrate go through the same typed options as the rest, unless
+        # this run overrides them.
+        typed = parse_options(
+            bus.kind,
+            {**bus.options, **overrides},
+            bitrate=None if "bitrate" in overrides else bus.bitrate,
+            baudrate=None if "baudrate" in overrides else bus.baudrate,
+        )
+        info.check_channel(channel)
+        backend = info.load_class()(channel, module.motor_specs(), typed)
     except MotorError as exc:
-        raise BuildError(f"{plan.name}: {exc}") from exc
+        raise BuildError(f"{plan.name}: bus of module {plan.module}: {exc}") from exc
     core = MotorInterfaceCore(plan.name, module.slot, backend)
     return BuiltComponent(core, MOTOR_INTERFACE, module.namespace, "motor_interface", [backend])

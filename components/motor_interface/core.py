@@ -23,7 +23,7 @@ from components.messages import (
     joint_samples,
     joint_state,
 )
-from components.motors.base import MotorBackend, MotorCommand, MotorError
+from components.motors.base import FAULT_KEY, MotorBackend, MotorCommand, MotorError
 
 
 @dataclass(frozen=True)
@@ -151,10 +151,15 @@ class MotorInterfaceCore(Core):
         reported = set()
         for diag in self.backend.diagnostics():
             full = self._to_full.get(diag.joint, diag.joint)
+            if not full:
+                # The bus itself, or exceptions the backend let out (a status of their own,
+                # so they do not hide the bus's).
+                backend = FAULT_KEY in diag.values
+                full = f"{self.module}/{'motor_backend' if backend else 'bus'}"
             reported.add(full)
             statuses.append(
                 diagnostic_status(
-                    full or f"{self.module}/bus",
+                    full,
                     diag.level,
                     diag.message,
                     hardware_id=self.backend.channel,

@@ -28,15 +28,14 @@ torque) and SI joint units lives in :class:`_Conversion`.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import can
 import canopen
@@ -44,6 +43,9 @@ from canopen.emcy import EmcyError
 from canopen.pdo import PdoMap
 
 from components.motors.base import (
+    ERROR,
+    OK,
+    WARN,
     MotorBackend,
     MotorCommand,
     MotorDiagnostic,
@@ -51,13 +53,12 @@ from components.motors.base import (
     MotorSpec,
     MotorState,
 )
+from components.motors.options import CanopenOptions
 
 logger = logging.getLogger(__name__)
 
 #: The minimal CiA 402 object dictionary shipped with msctl (a vendor EDS may replace it).
 DEFAULT_EDS = Path(__file__).resolve().with_name("cia402_drive.eds")
-
-OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
 MODE_PROFILE_POSITION = 1
 MODE_PROFILE_VELOCITY = 3
@@ -226,34 +227,6 @@ def _clamp_int(value: float, lower: int, upper: int) -> int:
     return max(lower, min(upper, round(value)))
 
 
-_Method = TypeVar("_Method", bound=Callable[..., Any])
-
-
-def _never_raises(fallback: Callable[[], Any]) -> Callable[[_Method], _Method]:
-    """Last safety net of the executor-facing methods: log a bug, return ``fallback()``.
-
-    Bus and drive faults are handled inside and become diagnostics; this only catches what
-    nobody foresaw, so that it cannot take the executor down.
-    """
-
-    def wrap(method: _Method) -> _Method:
-        @functools.wraps(method)
-        def guarded(self: Any, *args: Any, **kwargs: Any) -> Any:
-            try:
-                return method(self, *args, **kwargs)
-            except Exception:
-                logger.exception("canopen backend on %s: %s failed", self.channel, method.__name__)
-                return fallback()
-
-        return guarded  # type: ignore[return-value]
-
-    return wrap
-
-
-def _internal_error() -> list[MotorDiagnostic]:
-    return [MotorDiagnostic("", ERROR, "canopen backend internal error; see the log")]
-
-
 # PDO layouts (index, subindex) per map number; see the module docstring.
 _TPDO_LAYOUT = {
     1: [(0x6041, 0), (0x6061, 0), (0x603F, 0)],
@@ -343,40 +316,37 @@ class CanopenBackend(MotorBackend):
             ``profile_velocity`` (rad/s of a position move without its own speed, default 1),
             ``profile_acceleration`` (rad/s², default 10), ``effort_source`` (``torque``
             reads 0x6077, ``current`` reads 0x6078; default ``torque``).
-        options: ``interface`` (python-can interface, default ``socketcan``), ``bitrate``
-            (default 1 000 000), ``heartbeat_timeout`` (s, default 0.5), ``heartbeat_ms``
-            (drive heartbeat period, default a quarter of the timeout), ``sync_period``
-            (s; when set the backend produces SYNC and feedback TPDOs follow it),
-            ``pdo_period`` (s, event timer of feedback TPDOs when there is no SYNC, default
-            0.01), ``master_node_id`` (heartbeat id of this process, default 127, 0 turns
-            the drives' master watchdog off), ``eds`` (object dictionary file, default the
-            shipped minimal one), ``temperature_object`` (e.g. ``0x2100``: an INTEGER16 in
-            0.1 °C mapped to TPDO4), ``sdo_timeout`` (s, default 0.3), ``enable_timeout``
-            (s ``open()`` waits for drives to enable, default 2).
+        options: :class:`~components.motors.options.CanopenOptions` (or a mapping of its
+            keys): every key, default and meaning is documented there.
     """
+
+    backend_name = "canopen"
+    options: CanopenOptions
 
     _LOOP_PERIOD = 0.02  # supervisor period: enable steps and liveness checks
     _CONFIG_RETRY = 1.0  # seconds between configuration attempts of a silent drive
     _RECONNECT_PERIOD = 1.0
     _SETPOINT_TIMEOUT = 0.5
 
-    def __init__(self, channel: str, motors: list[MotorSpec], options: dict[str, Any]):
+    def __init__(
+        self,
+        channel: str,
+        motors: list[MotorSpec],
+        options: CanopenOptions | dict[str, Any] | None = None,
+    ):
         super().__init__(channel, motors, options)
         opts = self.options
-        self.interface = str(opts.get("interface", "socketcan"))
-        self.bitrate = int(opts.get("bitrate", 1_000_000))
-        self.heartbeat_timeout = float(opts.get("heartbeat_timeout", 0.5))
-        default_hb_ms = max(10, round(self.heartbeat_timeout * 1000 / 4))
-        self.heartbeat_ms = int(opts.get("heartbeat_ms", default_hb_ms))
-        sync = opts.get("sync_period")
-        self.sync_period = float(sync) if sync else None
-        self.pdo_period = float(opts.get("pdo_period", self.sync_period or 0.01))
-        self.master_node_id = int(opts.get("master_node_id", 127))
-        self.eds = str(opts.get("eds", DEFAULT_EDS))
-        temperature = opts.get("temperature_object")
-        self.temperature_object = int(str(temperature), 0) if temperature is not None else None
-        self.sdo_timeout = float(opts.get("sdo_timeout", 0.3))
-        self.enable_timeout = float(opts.get("enable_timeout", 2.0))
+        self.interface = opts.interface
+        self.bitrate = opts.bitrate
+        self.heartbeat_timeout = opts.heartbeat_timeout
+        self.heartbeat_ms = opts.drive_heartbeat_ms
+        self.sync_period = opts.sync_period
+        self.pdo_period = opts.feedback_period
+        self.master_node_id = opts.master_node_id
+        self.eds = opts.eds or str(DEFAULT_EDS)
+        self.temperature_object = opts.temperature_object
+        self.sdo_timeout = opts.sdo_timeout
+        self.enable_timeout = opts.enable_timeout
         seen: dict[int, str] = {}
         for spec in self.motors:
             if not 1 <= spec.motor_id <= 127:
@@ -396,21 +366,17 @@ class CanopenBackend(MotorBackend):
         self._master_heartbeat: Any = None
         self._bus_error: str | None = None
         self._next_reconnect = 0.0
-        self._closed = False
 
     # ------------------------------------------------------------------------ lifecycle
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Connect, configure and enable every drive that answers (holding position).
 
         Raises:
             MotorError: If the CAN bus itself cannot be opened.
         """
-        if self._network is not None:
-            return
-        self._closed = False
         network = canopen.Network()
-        network.listeners.append(_BusErrorListener(self._note_bus_error))
+        network.listeners.append(_BusErrorListener(_weak_method(self._note_bus_error)))
         try:
             network.connect(interface=self.interface, channel=self.channel, bitrate=self.bitrate)
         except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
@@ -426,8 +392,13 @@ class CanopenBackend(MotorBackend):
             _quietly(network.disconnect)
             raise MotorError(f"CAN bus {self.channel}: cannot set up CANopen: {exc}") from exc
         self._stop.clear()
+        # The thread and every callback hold this backend weakly, so one dropped while open
+        # is collected (and the base class warns and closes it).
         self._supervisor = threading.Thread(
-            target=self._supervise_forever, name=f"canopen-{self.channel}", daemon=True
+            target=_supervise_forever,
+            args=(weakref.ref(self), self._stop, self._LOOP_PERIOD),
+            name=f"canopen-{self.channel}",
+            daemon=True,
         )
         self._supervisor.start()
         # Give the drives a moment to come up so the first read() already has them; drives
@@ -444,16 +415,14 @@ class CanopenBackend(MotorBackend):
                 break
             time.sleep(0.01)
 
-    def close(self) -> None:
-        """Halt, disable operation, disarm the drives' watchdog and release the bus. Idempotent."""
-        if self._closed or self._network is None:
-            self._closed = True
+    def _close(self) -> None:
+        """Halt, disable operation, disarm the drives' watchdog and release the bus."""
+        if self._network is None:
             return
-        self._closed = True
         self._stop.set()
-        if self._supervisor is not None:
-            self._supervisor.join(timeout=5.0)
-            self._supervisor = None
+        supervisor, self._supervisor = self._supervisor, None
+        if supervisor is not None and supervisor is not threading.current_thread():
+            supervisor.join(timeout=5.0)
         now = time.monotonic()
         with self._lock:
             alive = [d for d in self._drives.values() if d.alive(now, self.heartbeat_timeout)]
@@ -478,9 +447,8 @@ class CanopenBackend(MotorBackend):
 
     # ---------------------------------------------------------------------- data path
 
-    @_never_raises(dict)
-    def read(self) -> dict[str, MotorState]:
-        """Latest state of every drive whose heartbeat and feedback are fresh. Never raises."""
+    def _read(self) -> dict[str, MotorState]:
+        """Latest state of every drive whose heartbeat and feedback are fresh."""
         now = time.monotonic()
         states: dict[str, MotorState] = {}
         with self._lock:
@@ -501,12 +469,11 @@ class CanopenBackend(MotorBackend):
                 )
         return states
 
-    @_never_raises(lambda: None)
-    def write(self, commands: list[MotorCommand]) -> None:
+    def _write(self, commands: list[MotorCommand]) -> None:
         """Send position (profile position) or velocity (profile velocity) targets.
 
         ``effort`` becomes the drive's max torque (a limit). Commands to drives that are not
-        enabled are dropped: a drive picked up again holds where it is. Never raises.
+        enabled are dropped: a drive picked up again holds where it is.
         """
         now = time.monotonic()
         with self._lock:
@@ -541,14 +508,11 @@ class CanopenBackend(MotorBackend):
                     self._send_rpdo3(d)
                     self._send_rpdo1(d)
 
-    @_never_raises(_internal_error)
-    def diagnostics(self) -> list[MotorDiagnostic]:
+    def _diagnostics(self) -> list[MotorDiagnostic]:
         """Bus health first (``joint`` empty), then one entry per drive."""
         now = time.monotonic()
         out: list[MotorDiagnostic] = []
         with self._lock:
-            if self._network is None:
-                return [MotorDiagnostic("", STALE, f"CAN bus {self.channel}: not open")]
             if self._bus_error:
                 out.append(MotorDiagnostic("", ERROR, self._bus_error, {"channel": self.channel}))
             else:
@@ -558,8 +522,7 @@ class CanopenBackend(MotorBackend):
                 out.append(self._drive_diagnostic(d, now))
         return out
 
-    @_never_raises(lambda: None)
-    def halt(self) -> None:
+    def _halt(self) -> None:
         """Stop every drive now with the halt bit (velocity targets zero, positions held)."""
         now = time.monotonic()
         with self._lock:
@@ -573,9 +536,8 @@ class CanopenBackend(MotorBackend):
                 self._send_rpdo3(d, force=True)
                 self._send_rpdo1(d)
 
-    @_never_raises(lambda: None)
-    def recover(self) -> None:
-        """Forget reported emergencies, fault-reset and re-enable every drive. Never raises."""
+    def _recover(self) -> None:
+        """Forget reported emergencies, fault-reset and re-enable every drive."""
         with self._lock:
             for d in self._drives.values():
                 d.emcys.clear()
@@ -616,10 +578,13 @@ class CanopenBackend(MotorBackend):
             ),
             acceleration=conv.acceleration_units(float(params.get("profile_acceleration", 10.0))),
         )
-        node.nmt.add_heartbeat_callback(lambda state, d=d: self._on_heartbeat(d, state))
-        node.emcy.add_callback(lambda emcy, d=d: self._on_emcy(d, emcy))
+        on_heartbeat = _weak_method(self._on_heartbeat)
+        on_emcy = _weak_method(self._on_emcy)
+        on_tpdo = _weak_method(self._on_tpdo)
+        node.nmt.add_heartbeat_callback(lambda state, d=d: on_heartbeat(d, state))
+        node.emcy.add_callback(lambda emcy, d=d: on_emcy(d, emcy))
         for number in (1, 2, 3, 4):
-            node.tpdo[number].add_callback(lambda pdo, d=d, n=number: self._on_tpdo(d, n, pdo))
+            node.tpdo[number].add_callback(lambda pdo, d=d, n=number: on_tpdo(d, n, pdo))
         return d
 
     def _start_producers(self) -> None:
@@ -840,13 +805,6 @@ class CanopenBackend(MotorBackend):
 
     # ------------------------------------------------------------------ supervisor
 
-    def _supervise_forever(self) -> None:
-        while not self._stop.wait(self._LOOP_PERIOD):
-            try:
-                self._supervise(time.monotonic())
-            except Exception:  # the supervisor must outlive any one bad moment
-                logger.exception("canopen supervisor on %s", self.channel)
-
     def _supervise(self, now: float) -> None:
         if not self._bus_ok(now):
             return
@@ -1026,3 +984,31 @@ def _quietly(action: Any) -> None:
         action()
     except Exception as exc:
         logger.debug("ignored during CANopen cleanup: %s", exc)
+
+
+def _weak_method(method: Any) -> Any:
+    """A callable running ``method`` while its object lives (a no-op after): callbacks of the
+    network and its notifier thread must not keep a dropped backend alive."""
+    ref = weakref.WeakMethod(method)
+
+    def call(*args: Any) -> None:
+        bound = ref()
+        if bound is not None:
+            bound(*args)
+
+    return call
+
+
+def _supervise_forever(
+    ref: weakref.ReferenceType[CanopenBackend], stop: threading.Event, period: float
+) -> None:
+    """The supervisor thread: one supervision step per period until stopped or dropped."""
+    while not stop.wait(period):
+        backend = ref()
+        if backend is None:
+            return
+        try:
+            backend._supervise(time.monotonic())
+        except Exception as exc:  # the supervisor must outlive any one bad moment
+            backend._report_fault("supervise", exc)
+        del backend  # hold it only while working, so it can be collected in between

@@ -4,7 +4,11 @@ Everything model-specific is data: :data:`X_SERIES_REGISTERS` (control table add
 sizes) and :data:`MODELS` (resolution, units, torque constant, limits per model). Conversion
 between register values and SI units happens only in :class:`JointUnits`.
 
-Bus traffic per :meth:`DynamixelBackend.read` is one SYNC_READ of the contiguous block
+All serial I/O runs on the backend's own I/O thread, at a steady ``cycle_period_s``
+(default 10 ms); the public methods only exchange data with it and return at once, so a slow
+or dead chain never delays the caller (the executor thread that also runs the joint manager).
+
+Bus traffic per read cycle is one SYNC_READ of the contiguous block
 ``present_current .. present_temperature`` (addresses 126..146, 21 bytes per servo). That block
 already holds temperature and input voltage, so there is no slower second cadence to schedule:
 the 11 extra bytes per servo cost about 0.1 ms at 1 Mbit/s. The hardware error register (70) is
@@ -20,21 +24,24 @@ the servo is reported not answering, left out of the group read, and pinged ever
 
 Every servo in velocity mode has its own Bus Watchdog (register 98) armed (``bus_watchdog_ms``,
 default 100 ms): if this process dies, hangs or loses the port, the servo sets its goal velocity
-to 0 by itself instead of turning on at the last command. The ~100 Hz read cycle feeds it; steps
-that can block for a whole reply timeout (retries of a silent servo, re-probes, the boot wait in
-:meth:`DynamixelBackend.recover`) are each followed by a short SYNC_READ of the armed servos, so
-no normal path stays silent towards them for longer than one reply timeout (``2 *
-latency_timer_ms + 2`` ms) plus 10 ms. A watchdog found expired (the register reads 0xFF and the
-servo ignores goals) is reported as a WARN naming the joint, cleared and re-armed; the goal
-stays 0 until the next command. Position modes and :meth:`DynamixelBackend.close` leave the
-watchdog off.
+to 0 by itself instead of turning on at the last command. The ~100 Hz read cycle feeds it, but
+only while the caller keeps calling (a hung executor must let the servos stop just as a dead
+process does). Steps that can block for a whole reply timeout (retries of a silent servo,
+re-probes, the boot wait in :meth:`DynamixelBackend.recover`) are each followed by a short
+SYNC_READ of the armed servos, so no normal path stays silent towards them for longer than one
+reply timeout (``2 * latency_timer_ms + 2`` ms) plus 10 ms. A watchdog found expired (the
+register reads 0xFF and the servo ignores goals) is reported as a WARN naming the joint,
+cleared and re-armed; the goal stays 0 until the next command. Position modes and
+:meth:`DynamixelBackend.close` leave the watchdog off.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,6 +60,9 @@ from dynamixel_sdk.protocol2_packet_handler import (
 )
 
 from components.motors.base import (
+    ERROR,
+    OK,
+    WARN,
     MotorBackend,
     MotorCommand,
     MotorDiagnostic,
@@ -60,10 +70,9 @@ from components.motors.base import (
     MotorSpec,
     MotorState,
 )
+from components.motors.options import DynamixelOptions
 
 log = logging.getLogger(__name__)
-
-OK, WARN, ERROR = 0, 1, 2
 
 #: X-series (Protocol 2.0) control table: name -> (address, size in bytes).
 X_SERIES_REGISTERS: dict[str, tuple[int, int]] = {
@@ -337,6 +346,7 @@ class _Servo:
     max_ticks: int = 2**31 - 1
     velocity_limit: int = 2**31 - 1
     state: MotorState | None = None
+    state_at: float = 0.0
     voltage: float | None = None
     model_number: int | None = None
     note: str = ""
@@ -360,6 +370,20 @@ class _Servo:
 class DynamixelBackend(MotorBackend):
     """A serial chain of Dynamixel X-series servos spoken to in Protocol 2.0.
 
+    All serial I/O runs on the backend's own I/O thread, as CANopen's supervisor does: it runs
+    the read cycle every ``cycle_period_s`` and applies what the public methods queued. Those
+    only exchange data with it under a lock and return at once, so a slow or dead chain (each
+    exchange with a silent servo waits a whole reply timeout) never delays the caller's
+    thread. :meth:`read` and :meth:`diagnostics` return what the latest cycle found;
+    :meth:`write` keeps the newest command per joint; :meth:`halt` drops the commands still
+    queued and is acted on next, even in the middle of a slow step; :meth:`recover` runs on
+    the thread.
+
+    The servos' own Bus Watchdog still guards a caller that dies or hangs: the thread talks
+    to a servo whose watchdog is armed only while the caller keeps calling (any public
+    method, at least every half watchdog period), so a hung executor lets those servos stop
+    as if this process had stopped.
+
     Args:
         channel: Serial device of the chain (``/dev/ttyUSB0``, a U2D2, or a pty slave path).
         motors: One :class:`MotorSpec` per servo. ``model`` is a key of :data:`MODELS`;
@@ -369,63 +393,71 @@ class DynamixelBackend(MotorBackend):
             Velocity Limit), ``temperature_limit`` (°C, overrides the model's) and
             ``torque_constant`` (N·m/A, overrides the model's) and ``meters_per_rad`` (a
             linear joint such as a rack-and-pinion finger: positions in m, efforts in N).
-        options: ``baudrate`` (default 1_000_000; servos ship at 57_600, so configure them
-            once with Dynamixel Wizard), ``latency_timer_ms`` (the USB adapter's latency timer,
-            default 16 as FTDI ships; 1 if ``/sys/bus/usb-serial/devices/*/latency_timer`` was
-            lowered: it sizes the reply timeout), ``retries`` (individual re-reads of a servo
-            missing from the group reply before it counts as not answering, default 1),
-            ``reprobe_interval_s`` (how often a silent servo is pinged, default 0.5),
-            ``status_interval_s`` (how often Hardware Error Status is re-read while a servo
-            keeps its alert bit set, and how often an armed Bus Watchdog is checked, default
-            0.5), ``boot_timeout_s`` (how long
-            :meth:`recover` waits for a rebooted servo, default 1.0), ``reopen_interval_s``
-            (how often a lost port is reopened, default 1.0), ``hold_on_close`` (keep torque
-            on at :meth:`close`, default False; servos in velocity mode get goal 0 first),
-            ``bus_watchdog_ms`` (the servo's own Bus Watchdog while in velocity mode: it
-            stops when it hears nothing for this long; default 100, rounded to 20 ms steps,
-            at most 2540; 0 leaves it off; keep it well above the cycle period and the reply
-            timeout ``2 * latency_timer_ms + 2``), ``protocol`` (must be 2.0 if given).
-            Other keys from module data (``return_delay_us``, ``bulk_read``) are accepted
-            and ignored.
+        options: :class:`~components.motors.options.DynamixelOptions` (or a mapping of its
+            keys): every key, default and meaning is documented there. Keep
+            ``bus_watchdog_ms`` well above the cycle period and the reply timeout
+            ``2 * latency_timer_ms + 2``.
     """
 
-    def __init__(self, channel: str, motors: list[MotorSpec], options: dict[str, Any]):
+    backend_name = "dynamixel"
+    options: DynamixelOptions
+
+    def __init__(
+        self,
+        channel: str,
+        motors: list[MotorSpec],
+        options: DynamixelOptions | dict[str, Any] | None = None,
+    ):
         super().__init__(channel, motors, options)
-        self.baudrate = int(self.options.get("baudrate", 1_000_000))
-        self.latency_timer_ms = float(self.options.get("latency_timer_ms", 16.0))
-        self.retries = int(self.options.get("retries", 1))
-        self.reprobe_interval = float(self.options.get("reprobe_interval_s", 0.5))
-        self.status_interval = float(self.options.get("status_interval_s", 0.5))
-        self.boot_timeout = float(self.options.get("boot_timeout_s", 1.0))
-        self.reopen_interval = float(self.options.get("reopen_interval_s", 1.0))
-        self.hold_on_close = bool(self.options.get("hold_on_close", False))
-        self.bus_watchdog_ms = self.options.get("bus_watchdog_ms", 100)
+        opts = self.options
+        self.baudrate = opts.baudrate
+        self.latency_timer_ms = opts.latency_timer_ms
+        self.retries = opts.retries
+        self.reprobe_interval = opts.reprobe_interval_s
+        self.status_interval = opts.status_interval_s
+        self.boot_timeout = opts.boot_timeout_s
+        self.reopen_interval = opts.reopen_interval_s
+        self.hold_on_close = opts.hold_on_close
+        self.bus_watchdog_ms = opts.bus_watchdog_ms
+        self.cycle_period = opts.cycle_period_s
+        self.stale_after = opts.stale_after_s
+        # Everything below the lock is owned by the I/O thread (by the caller only before
+        # the thread starts and after it ends).
         self._watchdog_units = 0
         self._port: PortHandler | None = None
         self._packet = PacketHandler(2.0)
         self._servos: list[_Servo] = []
         self._by_joint: dict[str, _Servo] = {}
         self._by_id: dict[int, _Servo] = {}
-        self._opened = False
         self._bus_error = ""
         self._next_reopen = 0.0
+        self._next_cycle = 0.0
+        self._halts = 0
+        self._recent_pause = 0.0
+        self._bus_shut = True
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        # Exchanged with the I/O thread under _io_lock.
+        self._io_lock = threading.Lock()
+        self._pending: dict[str, MotorCommand] = {}
+        self._halt_asked = False
+        self._recover_asked = False
+        self._last_call = 0.0
+        self._caller_pause = 0.0
+        self._states: dict[str, tuple[float, MotorState]] = {}
+        self._diags: list[MotorDiagnostic] = []
+        self._published_at = 0.0
 
-    # -- lifecycle ------------------------------------------------------------------------
+    # -- lifecycle (caller's thread) ------------------------------------------------------
 
-    def open(self) -> None:
-        """Open the port, ping every servo, set its operating mode, hold position, enable torque.
+    def _open(self) -> None:
+        """Open the port, ping every servo, set its operating mode, hold position, enable
+        torque, read the chain once, then start the I/O thread.
 
         Raises:
             MotorError: If a motor's model is unknown or the serial port cannot be opened.
         """
-        if self._opened:
-            return
-        protocol = float(self.options.get("protocol", 2.0))
-        if protocol != 2.0:
-            raise MotorError(
-                f"{self.channel}: Dynamixel protocol {protocol:g} is not supported; this backend "
-                "speaks Protocol 2.0 (X-series): set the bus's protocol to 2.0 in module data"
-            )
         self._watchdog_units = self._bus_watchdog_units()
         self._servos = [self._make_servo(spec) for spec in self.motors]
         self._by_joint = {s.joint: s for s in self._servos}
@@ -436,7 +468,6 @@ class DynamixelBackend(MotorBackend):
             raise
         except Exception as exc:
             raise MotorError(self._port_error_text(exc)) from exc
-        self._opened = True
         now = time.monotonic()
         try:
             for servo in self._servos:
@@ -447,19 +478,56 @@ class DynamixelBackend(MotorBackend):
                         break
         except Exception as exc:
             # The device opened but is not a working serial line (or vanished at once).
-            self._opened = False
             self._close_port()
             raise MotorError(self._port_error_text(exc)) from exc
+        self._bus_shut = False
+        with self._io_lock:
+            self._pending.clear()
+            self._halt_asked = self._recover_asked = False
+            self._last_call = time.monotonic()
+            self._caller_pause = 0.0
+        # The first cycle here, so the first read() after open already has every servo.
+        try:
+            self._read_cycle(time.monotonic())
+        except Exception as exc:
+            self._bus_lost(exc)
+        self._publish()
+        self._next_cycle = time.monotonic() + self.cycle_period
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        # The thread holds the backend weakly, so one dropped while open is collected (and
+        # the base class warns and closes it).
+        self._thread = threading.Thread(
+            target=_run_io,
+            args=(weakref.ref(self), self._stop, self._wake),
+            name=f"dynamixel-io {self.channel}",
+            daemon=True,
+        )
+        self._thread.start()
 
-    def close(self) -> None:
-        """Torque off every answering servo and release the port. Idempotent, never raises.
-
-        With the ``hold_on_close`` option the servos keep holding their last goal instead (a
-        limb that must not sag under gravity while its process restarts).
-        """
-        if not self._opened:
+    def _close(self) -> None:
+        """Stop the I/O thread, which torques off every answering servo (or holds, with
+        ``hold_on_close``) and releases the port."""
+        self._stop.set()
+        self._wake.set()
+        thread, self._thread = self._thread, None
+        if thread is None or thread is threading.current_thread() or not thread.is_alive():
+            self._shutdown_bus()  # no thread left to do it (or this is it, collecting us)
             return
-        self._opened = False
+        # Bounded by the slowest step: a boot wait plus a reply timeout per servo.
+        thread.join(timeout=self.boot_timeout + 2.0 + len(self._servos) * self._reply_timeout())
+        if thread.is_alive():
+            log.warning(
+                "%s: the I/O thread is still in a slow step; it stops the servos and closes "
+                "the port when that step ends",
+                self.channel,
+            )
+
+    def _shutdown_bus(self) -> None:
+        """Torque off (or hold) every answering servo and release the port. Once per open."""
+        if self._bus_shut:
+            return
+        self._bus_shut = True
         answering = [s for s in self._servos if s.answering]
         try:
             if self._port is not None and self._port.is_open:
@@ -482,129 +550,240 @@ class DynamixelBackend(MotorBackend):
                 servo.torque_on = False
         self._close_port()
 
-    # -- the cycle ------------------------------------------------------------------------
+    # -- the public side: exchange with the I/O thread, never wait on the bus -------------
 
-    def read(self) -> dict[str, MotorState]:
-        """One sync read of current/velocity/position/voltage/temperature; never raises.
+    def _note_call(self) -> None:
+        """The caller is alive: armed servos may keep hearing from the I/O thread."""
+        now = time.monotonic()
+        with self._io_lock:
+            silent = now - self._last_call
+            if silent > self._caller_timeout():
+                self._caller_pause = max(self._caller_pause, silent)
+            self._last_call = now
 
-        Also pings silent servos whose re-probe time has come and brings back those that
-        answer, and re-opens a lost port.
+    def _read(self) -> dict[str, MotorState]:
+        """The state of every answering servo from the latest cycle (none older than
+        ``stale_after_s``: a stalled chain's last reading is not passed off as fresh)."""
+        self._note_call()
+        now = time.monotonic()
+        with self._io_lock:
+            return {
+                joint: state
+                for joint, (at, state) in self._states.items()
+                if now - at <= self.stale_after
+            }
+
+    def _write(self, commands: list[MotorCommand]) -> None:
+        """Queue goal positions and goal velocities (the newest per joint wins).
+
+        The I/O thread sync-writes them. A joint commanded by velocity while in a position
+        mode (or the reverse) is switched first: torque off, Operating Mode, the new goal,
+        torque on (the servo refuses mode writes while torque is on). ``effort`` is ignored:
+        X-series take a current goal only in current-based position mode, which needs gains
+        tuned per joint.
         """
-        if not self._opened:
-            return {}
-        try:
-            self._read_cycle(time.monotonic())
-        except Exception as exc:
-            self._bus_lost(exc)
-        return {s.joint: s.state for s in self._servos if s.answering and s.state is not None}
+        self._note_call()
+        with self._io_lock:
+            for command in commands:
+                self._pending[command.joint] = command
+        self._wake.set()
 
-    def write(self, commands: list[MotorCommand]) -> None:
-        """Sync-write goal positions and goal velocities; never raises.
+    def _halt(self) -> None:
+        """Hold where each servo is now (goal position = present, goal velocity 0).
 
-        A joint commanded by velocity while in a position mode (or the reverse) is switched
-        first: torque off, Operating Mode, the new goal, torque on (the servo refuses mode
-        writes while torque is on). ``effort`` is ignored: X-series take a current goal only
-        in current-based position mode, which needs gains tuned per joint.
+        Commands still queued are dropped (the halt wins over them); the I/O thread acts on
+        the halt next, between two exchanges even in the middle of a slow step.
         """
-        if not self._opened or self._port is None:
-            return
-        try:
-            self._write_commands(commands)
-        except Exception as exc:
-            self._bus_lost(exc)
+        self._note_call()
+        with self._io_lock:
+            self._pending.clear()
+            self._halt_asked = True
+        self._wake.set()
 
-    def halt(self) -> None:
-        """Hold where each servo is now: goal position = present, goal velocity 0."""
-        if not self._opened or self._port is None:
-            return
-        try:
-            self._read_cycle(time.monotonic())
-            positions: dict[int, int] = {}
-            velocities: dict[int, int] = {}
-            for servo in self._servos:
-                if not servo.answering:
-                    continue
-                if servo.mode == VELOCITY_MODE:
-                    velocities[servo.sid] = 0
-                elif servo.state is not None and servo.state.position is not None:
-                    positions[servo.sid] = self._clamp_ticks(
-                        servo, servo.units.position_ticks(servo.state.position)
-                    )
-            self._sync_write("goal_velocity", velocities)
-            self._sync_write("goal_position", positions)
-        except Exception as exc:
-            self._bus_lost(exc)
-
-    def recover(self) -> None:
+    def _recover(self) -> None:
         """Reboot servos with hardware errors, then restore their mode, goal and torque.
 
-        Servos that are silent are pinged now rather than at their next re-probe time.
+        Servos that are silent are pinged now rather than at their next re-probe time; a
+        lost port is reopened now. Runs on the I/O thread.
         """
-        if not self._opened:
-            return
+        self._note_call()
+        with self._io_lock:
+            self._recover_asked = True
+        self._wake.set()
+
+    def _diagnostics(self) -> list[MotorDiagnostic]:
+        """One entry for the bus (``joint == ""``) and one per joint, as of the last cycle."""
+        self._note_call()
+        now = time.monotonic()
+        with self._io_lock:
+            diags = list(self._diags)
+            silent = now - self._published_at
+        if silent > self._stall_after():
+            values = {"channel": self.channel, "stalled_s": f"{silent:.1f}"}
+            diags.insert(
+                0,
+                MotorDiagnostic(
+                    "",
+                    ERROR,
+                    f"dynamixel bus {self.channel}: the I/O thread has not finished a step for "
+                    f"{silent:.1f} s; readings are stale (check the USB adapter)",
+                    values,
+                ),
+            )
+        return diags
+
+    # -- the I/O thread -------------------------------------------------------------------
+
+    def _reply_timeout(self) -> float:
+        """Seconds one exchange with a silent servo waits (the port's packet timeout)."""
+        return (2.0 * self.latency_timer_ms + 2.0) / 1000.0
+
+    def _caller_timeout(self) -> float:
+        """Caller silence after which armed servos stop hearing from the I/O thread."""
+        if not self._watchdog_units:
+            return math.inf
+        return self._watchdog_units * BUS_WATCHDOG_UNIT_MS / 1000.0 / 2.0
+
+    def _stall_after(self) -> float:
+        """How long one step may take before diagnostics call the I/O thread stalled: well
+        beyond the slowest normal step (a boot wait, every servo silent with retries)."""
+        per_round = len(self._servos) * (2 + max(self.retries, 0)) * self._reply_timeout()
+        return 2.0 + self.boot_timeout + 2.0 * per_round
+
+    def _caller_live(self) -> bool:
+        # A float read without the lock: the writer replaces it whole.
+        return time.monotonic() - self._last_call <= self._caller_timeout()
+
+    def _talks_to(self, servo: _Servo) -> bool:
+        """Whether the thread may send to ``servo`` now: a servo with an armed watchdog only
+        hears from this backend while the caller is alive, so a hung caller lets it stop."""
+        return not servo.watchdog_units or self._caller_live()
+
+    def _io_step(self) -> None:
+        """One turn of the I/O thread: a halt, the queued writes, a recover, then the read
+        cycle when it is due; then publish what the caller may see."""
+        now = time.monotonic()
+        with self._io_lock:
+            halt, self._halt_asked = self._halt_asked, False
+            writes = list(self._pending.values())
+            self._pending.clear()
+            recover, self._recover_asked = self._recover_asked, False
+            pause, self._caller_pause = self._caller_pause, 0.0
+        self._recent_pause = max(self._recent_pause, pause)
         try:
-            now = time.monotonic()
-            if self._port is None:
-                self._try_reopen(now, force=True)
-                return
-            rebooted: list[_Servo] = []
-            for servo in self._servos:
-                if servo.answering and servo.hardware_error:
-                    servo.sent_at = time.monotonic()
-                    result, _ = self._packet.reboot(self._port, servo.sid)
-                    self._release()
-                    log.info(
-                        "%s: reboot servo id %d -> %s",
-                        servo.joint,
-                        servo.sid,
-                        self._packet.getTxRxResult(result),
-                    )
-                    rebooted.append(servo)
-            deadline = time.monotonic() + self.boot_timeout
-            for servo in rebooted:
-                servo.hardware_error = 0
-                servo.answering = False
-                servo.watchdog_units = 0  # a reboot resets RAM, the watchdog included
-                while not self._probe(servo, time.monotonic()) and time.monotonic() < deadline:
-                    self._feed_watchdogs()  # the boot wait must not starve the other servos
-                    time.sleep(0.02)
-                self._feed_watchdogs()
-            rebooted_ids = {s.sid for s in rebooted}
-            for servo in self._servos:
-                if not servo.answering and servo.sid not in rebooted_ids:
-                    self._probe(servo, time.monotonic())
-                elif servo.answering and not servo.torque_on:
-                    self._bring_up_or_drop(servo, time.monotonic())
-                self._feed_watchdogs()
+            if halt:
+                self._do_halt()
+            if writes and self._port is not None:
+                self._write_commands(writes)
+            if recover:
+                self._do_recover(time.monotonic())
+            if now >= self._next_cycle:
+                # Steady period; after a slow step, start again from now rather than burst.
+                self._next_cycle = max(self._next_cycle + self.cycle_period, now)
+                self._read_cycle(now)
         except Exception as exc:
             self._bus_lost(exc)
+        self._publish()
 
-    def diagnostics(self) -> list[MotorDiagnostic]:
-        """One entry for the bus (``joint == ""``) and one per joint, as of the last cycle."""
+    def _halt_if_asked(self) -> None:
+        """Act on a halt queued while the thread is busy (called between exchanges)."""
+        if not self._halt_asked:  # read without the lock: a halt seen next time is fine
+            return
+        with self._io_lock:
+            halt, self._halt_asked = self._halt_asked, False
+        if halt:
+            self._do_halt()
+
+    def _do_halt(self) -> None:
+        """Velocity servos to goal 0 at once, position servos to where they are now."""
+        self._halts += 1
+        if self._port is None:
+            return
+        answering = [s for s in self._servos if s.answering]
+        self._sync_write("goal_velocity", {s.sid: 0 for s in answering if s.mode == VELOCITY_MODE})
+        holding = [s for s in answering if s.mode != VELOCITY_MODE]
+        replies = self._sync_read_block(holding)
+        stamp = time.time()
+        positions: dict[int, int] = {}
+        for servo in holding:
+            if servo.sid in replies:
+                self._decode(servo, replies[servo.sid][0], stamp)
+            if servo.state is not None and servo.state.position is not None:
+                positions[servo.sid] = self._clamp_ticks(
+                    servo, servo.units.position_ticks(servo.state.position)
+                )
+        self._sync_write("goal_position", positions)
+
+    def _do_recover(self, now: float) -> None:
+        if self._port is None:
+            self._try_reopen(now, force=True)
+            return
+        rebooted: list[_Servo] = []
+        for servo in self._servos:
+            if servo.answering and servo.hardware_error:
+                servo.sent_at = time.monotonic()
+                result, _ = self._packet.reboot(self._port, servo.sid)
+                self._release()
+                log.info(
+                    "%s: reboot servo id %d -> %s",
+                    servo.joint,
+                    servo.sid,
+                    self._packet.getTxRxResult(result),
+                )
+                rebooted.append(servo)
+        deadline = time.monotonic() + self.boot_timeout
+        for servo in rebooted:
+            servo.hardware_error = 0
+            servo.answering = False
+            servo.watchdog_units = 0  # a reboot resets RAM, the watchdog included
+            while not self._probe(servo, time.monotonic()) and time.monotonic() < deadline:
+                self._feed_watchdogs()  # the boot wait must not starve the other servos
+                if self._stop.wait(0.02):
+                    return
+            self._feed_watchdogs()
+        rebooted_ids = {s.sid for s in rebooted}
+        for servo in self._servos:
+            if not servo.answering and servo.sid not in rebooted_ids:
+                if self._talks_to(servo):
+                    self._probe(servo, time.monotonic())
+            elif servo.answering and not servo.torque_on:
+                self._bring_up_or_drop(servo, time.monotonic())
+            self._feed_watchdogs()
+
+    def _publish(self) -> None:
+        """Hand the caller this step's readings and health (new objects: never shared)."""
+        states = {
+            s.joint: (s.state_at, s.state)
+            for s in self._servos
+            if s.answering and s.state is not None
+        }
+        diags = [self._bus_diagnostic()] + [self._servo_diagnostic(s) for s in self._servos]
+        with self._io_lock:
+            self._states = states
+            self._diags = diags
+            self._published_at = time.monotonic()
+
+    def _bus_diagnostic(self) -> MotorDiagnostic:
         answering = sum(s.answering for s in self._servos)
         bus_values = {"channel": self.channel, "baudrate": str(self.baudrate)}
-        if not self._opened:
-            bus = MotorDiagnostic("", ERROR, f"dynamixel bus {self.channel} closed", bus_values)
-        elif self._bus_error:
-            bus = MotorDiagnostic(
+        if self._bus_error:
+            return MotorDiagnostic(
                 "",
                 ERROR,
                 f"dynamixel bus {self.channel} lost ({self._bus_error}); reopening every "
                 f"{self.reopen_interval:g} s: check the USB cable and adapter power",
                 bus_values,
             )
-        elif answering < len(self._servos):
-            bus = MotorDiagnostic(
+        if answering < len(self._servos):
+            return MotorDiagnostic(
                 "",
                 WARN,
                 f"dynamixel bus {self.channel}: {answering}/{len(self._servos)} servos answering",
                 bus_values,
             )
-        else:
-            bus = MotorDiagnostic(
-                "", OK, f"dynamixel bus {self.channel}: {answering} servos answering", bus_values
-            )
-        return [bus] + [self._servo_diagnostic(s) for s in self._servos]
+        return MotorDiagnostic(
+            "", OK, f"dynamixel bus {self.channel}: {answering} servos answering", bus_values
+        )
 
     # -- construction helpers -------------------------------------------------------------
 
@@ -638,18 +817,8 @@ class DynamixelBackend(MotorBackend):
         )
 
     def _bus_watchdog_units(self) -> int:
-        """``bus_watchdog_ms`` as Bus Watchdog units (0 = off); raises MotorError if invalid."""
-        limit_ms = BUS_WATCHDOG_MAX_UNITS * BUS_WATCHDOG_UNIT_MS
-        try:
-            ms = float(self.bus_watchdog_ms)
-        except (TypeError, ValueError):
-            ms = math.nan
-        if not 0.0 <= ms <= limit_ms:
-            raise MotorError(
-                f"{self.channel}: bus_watchdog_ms {self.bus_watchdog_ms!r} is out of range; use "
-                f"0 (off) or {BUS_WATCHDOG_UNIT_MS}..{limit_ms} (ms, in steps of "
-                f"{BUS_WATCHDOG_UNIT_MS}) in the bus options of the module data"
-            )
+        """``bus_watchdog_ms`` (range-checked by its options type) as Bus Watchdog units."""
+        ms = self.bus_watchdog_ms
         if ms == 0.0:
             return 0
         units = max(1, round(ms / BUS_WATCHDOG_UNIT_MS))
@@ -711,7 +880,8 @@ class DynamixelBackend(MotorBackend):
             self._bus_error = str(exc)
             return
         for servo in self._servos:
-            self._probe(servo, now)
+            if self._talks_to(servo):
+                self._probe(servo, now)
             self._feed_watchdogs()
 
     # -- low-level exchanges --------------------------------------------------------------
@@ -913,10 +1083,15 @@ class DynamixelBackend(MotorBackend):
         ignores SYNC_WRITE goals silently.
         """
         suspect_after = 0.8 * self._watchdog_units * BUS_WATCHDOG_UNIT_MS / 1000.0
+        if not self._caller_live():
+            return  # the caller is silent: let the armed servos' watchdogs run out
+        # The silence as this side saw it includes a pause of the caller, during which this
+        # thread stopped talking to the armed servos on purpose.
+        pause, self._recent_pause = self._recent_pause, 0.0
         for servo in self._servos:
             if not (servo.answering and servo.watchdog_units):
                 continue
-            gap = now - servo.sent_at
+            gap = max(now - servo.sent_at, pause)
             if gap < suspect_after and now < servo.next_watchdog_check:
                 continue
             servo.next_watchdog_check = now + self.status_interval
@@ -947,7 +1122,8 @@ class DynamixelBackend(MotorBackend):
         this between them keeps every armed servo's silence to about one timeout (plus
         :data:`FEED_AFTER_S`) instead of their sum. After a normal step it sends nothing.
         """
-        if self._port is None or not self._watchdog_units:
+        self._halt_if_asked()  # between two slow exchanges: the halt goes first
+        if self._port is None or not self._watchdog_units or not self._caller_live():
             return
         now = time.monotonic()
         period = self._watchdog_units * BUS_WATCHDOG_UNIT_MS / 1000.0
@@ -985,7 +1161,7 @@ class DynamixelBackend(MotorBackend):
             self._try_reopen(now)
             return
         self._check_watchdogs(now)
-        live = [s for s in self._servos if s.answering]
+        live = [s for s in self._servos if s.answering and self._talks_to(s)]
         replies = self._sync_read_block(live)
         for servo in live:
             if servo.sid in replies:
@@ -1009,7 +1185,7 @@ class DynamixelBackend(MotorBackend):
                 self._track_alert(servo, error, now)
                 self._feed_watchdogs()
         for servo in self._servos:
-            if not servo.answering and now >= servo.next_probe:
+            if not servo.answering and now >= servo.next_probe and self._talks_to(servo):
                 self._feed_watchdogs()
                 if self._probe(servo, now):
                     reply = self._read_block_single(servo)
@@ -1028,6 +1204,7 @@ class DynamixelBackend(MotorBackend):
             return to_signed(value, size) if name in SIGNED_REGISTERS else value
 
         servo.voltage = field_value("present_input_voltage") * 0.1
+        servo.state_at = time.monotonic()
         units = servo.units
         servo.state = MotorState(
             joint=servo.joint,
@@ -1069,9 +1246,12 @@ class DynamixelBackend(MotorBackend):
     def _write_commands(self, commands: list[MotorCommand]) -> None:
         # Before the goals: a servo whose watchdog expired would drop them without a word.
         self._check_watchdogs(time.monotonic())
+        halts = self._halts
         positions: dict[int, int] = {}
         velocities: dict[int, int] = {}
         for command in commands:
+            if self._halts != halts:
+                return  # a halt came in between two mode switches: it wins over the rest
             servo = self._by_joint.get(command.joint)
             if servo is None or not servo.answering:
                 continue
@@ -1093,6 +1273,8 @@ class DynamixelBackend(MotorBackend):
                     self._feed_watchdogs()
                     continue
                 velocities[servo.sid] = units
+        if self._halts != halts:
+            return
         self._sync_write("goal_position", positions)
         self._sync_write("goal_velocity", velocities)
 
@@ -1117,8 +1299,6 @@ class DynamixelBackend(MotorBackend):
         if servo.watchdog_gap is not None:
             values["bus_watchdog_last_gap_ms"] = f"{servo.watchdog_gap * 1000:.0f}"
         prefix = f"{servo.joint}: servo id {servo.sid}"
-        if not self._opened:
-            return MotorDiagnostic(servo.joint, ERROR, f"{prefix} bus closed", values)
         if not servo.answering:
             hint = "" if servo.ever_answered else " (check id, baud rate and cable)"
             return MotorDiagnostic(servo.joint, ERROR, f"{prefix} not answering{hint}", values)
@@ -1182,3 +1362,28 @@ class _LatencyAwarePort(PortHandler):
         self.packet_timeout = (
             self.tx_time_per_byte * packet_length + 2.0 * self.latency_timer_ms + 2.0
         )
+
+
+def _run_io(
+    ref: weakref.ReferenceType[DynamixelBackend], stop: threading.Event, wake: threading.Event
+) -> None:
+    """The I/O thread: a step per cycle period (or at once when the caller queued something)
+    until stopped, then stop the servos and release the port."""
+    while True:
+        wake.clear()  # before the step takes the requests: a later one wakes the next wait
+        if stop.is_set():
+            break
+        backend = ref()
+        if backend is None:
+            return
+        try:
+            backend._io_step()
+        except Exception as exc:  # the thread must outlive any one bad moment
+            backend._report_fault("I/O step", exc)
+        delay = backend._next_cycle - time.monotonic()
+        del backend  # held only while working, so a dropped backend can be collected
+        if delay > 0:
+            wake.wait(delay)
+    backend = ref()
+    if backend is not None:
+        backend._shutdown_bus()
