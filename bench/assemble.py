@@ -44,9 +44,9 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as home:
         # Never touch the operator's real resolution.
         os.environ["MSCTL_HOME"] = home
-        from components.assembly import LOCK_NAME, URDF_NAME
+        from components.assembly import LOCK_NAME, URDF_NAME, encode_lock
         from msctl.assembler import data, resolve
-        from msctl.assembler.store import lock_text, write_assembly
+        from msctl.assembler.store import write_assembly
 
         def floor(name: str) -> None:
             template = tomllib.loads((data.assemblies_dir() / f"{name}.toml").read_text())
@@ -65,7 +65,7 @@ def main() -> int:
             resolution = resolve(name)
             write_assembly(
                 Path(home) / "assembly",
-                {URDF_NAME: resolution.urdf, LOCK_NAME: lock_text(resolution.document)},
+                {URDF_NAME: resolution.urdf, LOCK_NAME: encode_lock(resolution.lock)},
             )
 
         resolutions = {name: resolve(name) for name in TEMPLATES}  # warm imports and caches

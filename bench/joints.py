@@ -57,8 +57,8 @@ TEMPLATES = ("minimal", "dragon", "dragon_x4")
 # ---------------------------------------------------------------------------- server side
 def serve(assembly_dir: str, endpoint: str, speed: float, echo: bool) -> None:
     """Run the assembly's joint managers and the simulator until SIGTERM (server process)."""
-    from components.assembly import ComponentPlan, load_assembly
-    from components.build import build_component
+    from components.assembly import load_assembly
+    from components.build import build_component, simulator_plan
     from components.executor.executor import Executor
 
     assembly = load_assembly(Path(assembly_dir))
@@ -67,7 +67,7 @@ def serve(assembly_dir: str, endpoint: str, speed: float, echo: bool) -> None:
     built = [build_component(c, assembly) for c in assembly.components if c.kind == "joint_manager"]
     built.append(
         build_component(
-            ComponentPlan("sim", "simulator", "localhost", None, "/sim"),
+            simulator_plan("simulator"),
             assembly,
             {"speed": speed},
         )

@@ -42,6 +42,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench._common import free_port, print_table
+from components import kinds
 from msctl.launcher.state import process_group_alive
 
 HOST = "bench-laptop"  # none of the robots' computers: the whole assembly runs here, simulated
@@ -201,8 +202,10 @@ def _run_template(template: str) -> Result:
         assembly = load_assembly(home / "assembly")
         plan = plan_host(assembly, HOST, sim=True)
         result.planned = len(assembly.components)
-        result.started = sum(c.kind != "simulator" for c in plan.components)
-        result.simulated_motors = sum(c.kind == "motor_interface" for c in assembly.components)
+        result.started = sum(not kinds.get(c.kind).stands_in_for for c in plan.components)
+        result.simulated_motors = sum(
+            kinds.replaced_in_simulation(c.kind) for c in assembly.components
+        )
         result.not_built = list(plan.not_built)
         document = _state(home)
         pgids |= {p["pgid"] for p in document["processes"] if p["pgid"]}

@@ -10,8 +10,9 @@
 The lock file is the single source of truth: which unit sits in which slot, every module's bus,
 joints (limits, calibration, motor), kinematic chains, and every component with the host it runs
 on. The launcher, simulator, kinematics, TUI and teleop read it through :func:`load_assembly` and
-nothing else. This module is pure data (standard library plus two small project dataclasses) so
-it loads in a few milliseconds anywhere.
+nothing else. The dataclasses below are the lock file's schema: msgspec encodes and decodes
+them (no hand-written reading or writing), checks every type and range, and names the path of
+a bad value (``$.modules[2].joints[0].max_velocity``).
 
 Joint and link names are assembly-unique: ``<slot>_<name>`` (``limb1_joint3``); each module's
 ROS namespace is ``/<slot>``.
@@ -19,35 +20,29 @@ ROS namespace is ``/<slot>``.
 
 from __future__ import annotations
 
-import json
 import math
 import os
-from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
+
+import msgspec
+from msgspec import Meta
 
 from components.joints import JointCalibration, JointSpec
 from components.motors.base import MotorSpec
 
 #: Lock file format version; bumped on incompatible changes.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 LOCK_NAME = "assembly.lock.json"
 URDF_NAME = "assembly.urdf"
 MJCF_NAME = "assembly.mjcf.xml"
 
-#: The component kinds the assembler plans (later issues implement them).
-COMPONENT_KINDS = (
-    "motor_interface",
-    "joint_manager",
-    "health_monitor",
-    "location_publisher",
-    "kinematics_manager",
-    "human_operator",
-    "autonomous_operator",
-    "data_monitor",
-    "data_archiver",
-)
+#: Constraints the lock's numbers obey (the assembler checks its inputs more closely).
+Positive = Annotated[float, Meta(gt=0)]
+NonNegative = Annotated[float, Meta(ge=0)]
+Direction = Literal[1, -1]
 
 
 class AssemblyError(Exception):
@@ -81,28 +76,34 @@ class BusPlan:
     """The bus a module's motors hang on.
 
     Attributes:
-        kind: ``"canopen"`` or ``"dynamixel"`` (a motor backend name).
+        kind: A motor backend name (``canopen``, ``dynamixel``).
         channel: CAN interface (``can0``) or serial port (``/dev/ttyUSB0``).
         bitrate: CAN bitrate in bit/s (CANopen only).
         baudrate: Serial baud rate (Dynamixel only).
-        options: Backend options from module data (protocol, sync period...).
+        options: Backend options from module data (checked against the backend's options).
     """
 
     kind: str
     channel: str
     bitrate: int | None = None
     baudrate: int | None = None
-    options: Mapping[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class JointPlan:
-    """One joint of a module: static spec, this unit's calibration, and its motor.
+    """One joint of a module: limits, this unit's calibration, and its motor.
 
     Attributes:
-        spec: Limits in calibrated (URDF) space; ``spec.name`` is the assembly name.
-        calibration: This unit's zero offset and direction.
+        name: Assembly-unique joint name (``limb1_joint3``).
         raw_name: The joint's name inside its module (``joint3``), as motor backends know it.
+        type: ``revolute``, ``continuous`` or ``prismatic``.
+        lower: Lower limit in calibrated (URDF) space; ``None`` when unbounded.
+        upper: Upper limit in calibrated space; ``None`` when unbounded.
+        max_velocity: Largest commanded speed (rad/s or m/s).
+        max_effort: Largest commanded effort (N·m or N).
+        zero_offset: This unit's raw position of calibrated zero.
+        direction: This unit's sign between raw and calibrated.
         motor_id: CANopen node id or Dynamixel id.
         motor_model: Motor model key (``cia402``, ``XM430-W350``).
         motor_params: Extra per-motor constants (gear ratio, counts per revolution...).
@@ -111,20 +112,38 @@ class JointPlan:
         armature: Reflected rotor inertia, for simulation (kg·m² or kg).
     """
 
-    spec: JointSpec
-    calibration: JointCalibration
+    name: str
     raw_name: str
+    type: Literal["revolute", "continuous", "prismatic"]
+    max_velocity: Positive
+    max_effort: Positive
+    lower: float | None = None
+    upper: float | None = None
+    zero_offset: float = 0.0
+    direction: Direction = 1
     motor_id: int | None = None
     motor_model: str | None = None
-    motor_params: Mapping[str, Any] = field(default_factory=dict)
+    motor_params: dict[str, Any] = field(default_factory=dict)
     actuated: bool = True
-    control: str = "position"
-    armature: float = 0.0
+    control: Literal["position", "velocity"] = "position"
+    armature: NonNegative = 0.0
 
-    @property
-    def name(self) -> str:
-        """Assembly-unique joint name (``limb1_joint3``)."""
-        return self.spec.name
+    @cached_property
+    def spec(self) -> JointSpec:
+        """Limits in calibrated (URDF) space, unbounded ends as infinities."""
+        return JointSpec(
+            name=self.name,
+            type=self.type,
+            lower=-math.inf if self.lower is None else self.lower,
+            upper=math.inf if self.upper is None else self.upper,
+            max_velocity=self.max_velocity,
+            max_effort=self.max_effort,
+        )
+
+    @cached_property
+    def calibration(self) -> JointCalibration:
+        """This unit's zero offset and direction."""
+        return JointCalibration(zero_offset=self.zero_offset, direction=self.direction)
 
 
 @dataclass(frozen=True)
@@ -161,11 +180,10 @@ class ModulePlan:
         joints: Movable joints (actuated or not), in module order.
         chains: Kinematic chains (limbs).
         interesting_links: Links location publishers and UIs care about (assembly names).
-        injections: ``{"name": ..., **params}`` for the joint manager (module, then unit data).
-        overrides: ``{"name": ..., **params}`` for the joint manager (module, then unit data).
-        health: Health monitor thresholds.
+        health: Health monitor thresholds (module data, then unit data).
         root_link: The module's root link (assembly name).
         connectors: Connector name -> connector link (assembly name).
+        calibration_file: The unit's calibration file (where a runtime re-zero saves).
     """
 
     slot: str
@@ -180,11 +198,10 @@ class ModulePlan:
     joints: tuple[JointPlan, ...] = ()
     chains: tuple[ChainPlan, ...] = ()
     interesting_links: tuple[str, ...] = ()
-    injections: tuple[Mapping[str, Any], ...] = ()
-    overrides: tuple[Mapping[str, Any], ...] = ()
-    health: Mapping[str, Any] = field(default_factory=dict)
+    health: dict[str, Any] = field(default_factory=dict)
     root_link: str = ""
-    connectors: Mapping[str, str] = field(default_factory=dict)
+    connectors: dict[str, str] = field(default_factory=dict)
+    calibration_file: str = ""
 
     def joint(self, name: str) -> JointPlan:
         """A joint by assembly name (``limb1_joint3``) or module name (``joint3``).
@@ -193,7 +210,7 @@ class ModulePlan:
             KeyError: If the module has no such joint.
         """
         for plan in self.joints:
-            if name in (plan.spec.name, plan.raw_name):
+            if name in (plan.name, plan.raw_name):
                 return plan
         raise KeyError(f"module {self.slot} has no joint {name!r}")
 
@@ -222,11 +239,12 @@ class ComponentPlan:
 
     Attributes:
         name: Assembly-unique name (``limb1/joint_manager``, ``gc1/human_operator``).
-        kind: One of :data:`COMPONENT_KINDS`.
+        kind: A kind of :mod:`components.kinds`.
         host: Hostname it runs on.
         module: Slot of the module it belongs to, or ``None`` for ground-station components.
         namespace: ROS namespace (``/limb1``, ``/gc1``).
-        params: Kind-specific parameters (joints, links, chain, injections, overrides...).
+        params: Kind-specific parameters (joints, links, chain, injections, overrides...),
+            checked against the kind at ``msctl assemble``.
     """
 
     name: str
@@ -234,7 +252,102 @@ class ComponentPlan:
     host: str
     module: str | None
     namespace: str
-    params: Mapping[str, Any] = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class HostRole:
+    """What one computer does for the assembly (for listings)."""
+
+    role: Literal["robot", "ground"]
+    modules: list[str] = field(default_factory=list)
+    components: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class RobotPlacement:
+    """One robot (a connected group of modules): its root and where it stands."""
+
+    root: str
+    root_link: str
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Connection:
+    """``parent`` slot's connector carries ``child`` slot's connector through ``joint``."""
+
+    parent: str
+    child: str
+    joint: str
+    angle: float = 0.0
+
+
+@dataclass(frozen=True)
+class Sources:
+    """The files an assembly was resolved from."""
+
+    template: str
+    module_types: dict[str, str] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Artifacts:
+    """Generated files, relative to the lock file."""
+
+    urdf: str = URDF_NAME
+    mjcf: str = MJCF_NAME
+
+
+@dataclass(frozen=True)
+class LockDocument:
+    """The lock file, field for field: written and read only through msgspec.
+
+    Attributes:
+        schema: :data:`SCHEMA_VERSION` of the writer.
+        template: Template name (``dragon``).
+        description: The template's description.
+        mobile: Whether the assembly moves (floating base in simulation).
+        units: Slot -> unit serial, in template order.
+        modules: One plan per slot, in template order.
+        components: Every component, robot side then ground stations.
+        hosts: Every hostname with something to run, in first-use order.
+        host_plans: What each host does.
+        component_counts: Kind -> how many components.
+        root_links: Root link of each robot.
+        robots: Each robot's root and place.
+        connections: How modules are joined.
+        artifacts: Generated files.
+        sources: The input files.
+    """
+
+    schema: int
+    template: str
+    mobile: bool
+    units: dict[str, str]
+    modules: tuple[ModulePlan, ...]
+    components: tuple[ComponentPlan, ...]
+    hosts: tuple[str, ...]
+    description: str = ""
+    host_plans: dict[str, HostRole] = field(default_factory=dict)
+    component_counts: dict[str, int] = field(default_factory=dict)
+    root_links: tuple[str, ...] = ()
+    robots: tuple[RobotPlacement, ...] = ()
+    connections: tuple[Connection, ...] = ()
+    artifacts: Artifacts = field(default_factory=Artifacts)
+    sources: Sources | None = None
+
+
+def encode_lock(lock: LockDocument) -> str:
+    """The lock file's text: indented JSON in field order, so two resolutions diff cleanly."""
+    return msgspec.json.format(msgspec.json.encode(lock), indent=2).decode() + "\n"
+
+
+def to_builtins(lock: LockDocument) -> dict[str, Any]:
+    """The lock as plain JSON-ready data (for ``--json`` listings and the MJCF writer)."""
+    return msgspec.to_builtins(lock)
 
 
 @dataclass(frozen=True)
@@ -242,32 +355,61 @@ class ResolvedAssembly:
     """A template resolved with physical units: the one thing downstream tools read.
 
     Attributes:
-        template: Template name (``dragon``).
-        units: Slot -> unit serial, in template order.
-        modules: One plan per slot, in template order.
-        components: Every component, robot side then ground stations.
-        hosts: Every hostname with something to run, in first-use order.
+        lock: The lock document.
         urdf_path: The composed URDF.
         mjcf_path: The MuJoCo model.
-        mobile: Whether the assembly moves (floating base in simulation).
-        root_links: Root link of each robot (one per connected group of modules).
-        connections: How modules are joined (``{"parent", "child", "joint", "angle"}``).
         lock_path: The lock file this was read from.
-        document: The raw lock document.
     """
 
-    template: str
-    units: Mapping[str, str]
-    modules: tuple[ModulePlan, ...]
-    components: tuple[ComponentPlan, ...]
-    hosts: tuple[str, ...]
+    lock: LockDocument
     urdf_path: Path
     mjcf_path: Path
-    mobile: bool
-    root_links: tuple[str, ...] = ()
-    connections: tuple[Mapping[str, Any], ...] = ()
     lock_path: Path | None = None
-    document: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def template(self) -> str:
+        """Template name."""
+        return self.lock.template
+
+    @property
+    def units(self) -> dict[str, str]:
+        """Slot -> unit serial."""
+        return self.lock.units
+
+    @property
+    def modules(self) -> tuple[ModulePlan, ...]:
+        """One plan per slot, in template order."""
+        return self.lock.modules
+
+    @property
+    def components(self) -> tuple[ComponentPlan, ...]:
+        """Every component, robot side then ground stations."""
+        return self.lock.components
+
+    @property
+    def hosts(self) -> tuple[str, ...]:
+        """Every hostname with something to run."""
+        return self.lock.hosts
+
+    @property
+    def mobile(self) -> bool:
+        """Whether the assembly moves."""
+        return self.lock.mobile
+
+    @property
+    def root_links(self) -> tuple[str, ...]:
+        """Root link of each robot."""
+        return self.lock.root_links
+
+    @property
+    def connections(self) -> tuple[Connection, ...]:
+        """How modules are joined."""
+        return self.lock.connections
+
+    @cached_property
+    def document(self) -> dict[str, Any]:
+        """The lock as plain data (listings)."""
+        return to_builtins(self.lock)
 
     def module(self, slot: str) -> ModulePlan:
         """The module in ``slot``.
@@ -308,7 +450,7 @@ class ResolvedAssembly:
         """
         for module in self.modules:
             for plan in module.joints:
-                if plan.spec.name == name:
+                if plan.name == name:
                     return plan
         raise KeyError(f"no joint {name!r} in {self.template}")
 
@@ -320,8 +462,8 @@ def load_assembly(path: Path | None = None) -> ResolvedAssembly:
         path: The lock file, or the directory holding it; defaults to :func:`lock_path`.
 
     Raises:
-        AssemblyError: If nothing was resolved yet, or the lock file is unreadable or from an
-            incompatible version (the message says what to run).
+        AssemblyError: If nothing was resolved yet, or the lock file is unreadable, invalid
+            or from an incompatible version (the message names the field and what to run).
     """
     if path is None:
         path = lock_path()
@@ -329,7 +471,7 @@ def load_assembly(path: Path | None = None) -> ResolvedAssembly:
     if path.is_dir():
         path = path / LOCK_NAME
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_bytes()
     except FileNotFoundError:
         raise AssemblyError(
             f"no resolved assembly at {path}: run `msctl assemble dragon` (or another "
@@ -337,126 +479,62 @@ def load_assembly(path: Path | None = None) -> ResolvedAssembly:
         ) from None
     except OSError as exc:
         raise AssemblyError(f"cannot read {path}: {exc}") from exc
-    try:
-        document = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise AssemblyError(
-            f"{path} is not valid JSON (line {exc.lineno}): run `msctl assemble <template>` again"
-        ) from exc
-    return from_document(document, path)
+    return decode_lock(text, path)
 
 
-def from_document(document: Mapping[str, Any], path: Path | None = None) -> ResolvedAssembly:
-    """Build a :class:`ResolvedAssembly` from a lock document (as written by the assembler).
+class _Schema(msgspec.Struct):
+    schema: Any = None
+
+
+def decode_lock(text: bytes | str, path: Path | None = None) -> ResolvedAssembly:
+    """A :class:`ResolvedAssembly` from lock file text, checked against the schema.
 
     Raises:
-        AssemblyError: If the document is from another schema version or lacks a field.
+        AssemblyError: If the text is not JSON, is from another schema version, or a field
+            is missing or invalid (naming its path, e.g. ``$.modules[0].joints[2].lower``).
     """
     where = str(path) if path else "lock document"
-    schema = document.get("schema")
+    again = "run `msctl assemble <template>` again"
+    try:
+        schema = msgspec.json.decode(text, type=_Schema).schema
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise AssemblyError(f"{where} is not a lock file ({exc}): {again}") from None
     if schema != SCHEMA_VERSION:
+        raise AssemblyError(
+            f"{where} has schema {schema!r}, this msctl reads {SCHEMA_VERSION}: {again}"
+        )
+    try:
+        lock = msgspec.json.decode(text, type=LockDocument)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise AssemblyError(f"{where} is invalid: {exc}: {again}") from None
+    return _bound(lock, path)
+
+
+def from_document(document: Any, path: Path | None = None) -> ResolvedAssembly:
+    """A :class:`ResolvedAssembly` from a lock document already parsed (an agent's request).
+
+    Raises:
+        AssemblyError: As :func:`decode_lock`.
+    """
+    where = str(path) if path else "lock document"
+    if not isinstance(document, dict) or document.get("schema") != SCHEMA_VERSION:
+        schema = document.get("schema") if isinstance(document, dict) else None
         raise AssemblyError(
             f"{where} has schema {schema!r}, this msctl reads {SCHEMA_VERSION}: run "
             "`msctl assemble <template>` again"
         )
-    base = path.parent if path else Path(".")
     try:
-        modules = tuple(_module(m) for m in document["modules"])
-        components = tuple(
-            ComponentPlan(
-                name=c["name"],
-                kind=c["kind"],
-                host=c["host"],
-                module=c.get("module"),
-                namespace=c["namespace"],
-                params=c.get("params", {}),
-            )
-            for c in document["components"]
-        )
-        artifacts = document["artifacts"]
-        return ResolvedAssembly(
-            template=document["template"],
-            units=dict(document["units"]),
-            modules=modules,
-            components=components,
-            hosts=tuple(document["hosts"]),
-            urdf_path=base / artifacts["urdf"],
-            mjcf_path=base / artifacts["mjcf"],
-            mobile=bool(document["mobile"]),
-            root_links=tuple(document.get("root_links", ())),
-            connections=tuple(document.get("connections", ())),
-            lock_path=path,
-            document=document,
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise AssemblyError(
-            f"{where} is incomplete ({type(exc).__name__}: {exc}): run "
-            "`msctl assemble <template>` again"
-        ) from exc
+        lock = msgspec.convert(document, type=LockDocument)
+    except msgspec.ValidationError as exc:
+        raise AssemblyError(f"{where} is invalid: {exc}") from None
+    return _bound(lock, path)
 
 
-def _limit(value: float | None, default: float) -> float:
-    # JSON has no infinity: the lock writes unbounded limits as null.
-    return default if value is None else float(value)
-
-
-def _module(m: Mapping[str, Any]) -> ModulePlan:
-    bus = m["bus"]
-    joints = tuple(
-        JointPlan(
-            spec=JointSpec(
-                name=j["name"],
-                type=j["type"],
-                lower=_limit(j.get("lower"), -math.inf),
-                upper=_limit(j.get("upper"), math.inf),
-                max_velocity=float(j["max_velocity"]),
-                max_effort=float(j["max_effort"]),
-            ),
-            calibration=JointCalibration(
-                zero_offset=float(j.get("zero_offset", 0.0)),
-                direction=int(j.get("direction", 1)),
-            ),
-            raw_name=j["raw_name"],
-            motor_id=j.get("motor_id"),
-            motor_model=j.get("motor_model"),
-            motor_params=j.get("motor_params", {}),
-            actuated=bool(j.get("actuated", True)),
-            control=j.get("control", "position"),
-            armature=float(j.get("armature", 0.0)),
-        )
-        for j in m["joints"]
-    )
-    chains = tuple(
-        ChainPlan(
-            name=c["name"],
-            base_link=c["base_link"],
-            tip_link=c["tip_link"],
-            joints=tuple(c.get("joints", ())),
-        )
-        for c in m.get("chains", ())
-    )
-    return ModulePlan(
-        slot=m["slot"],
-        namespace=m["namespace"],
-        module_type=m["module_type"],
-        family=m["family"],
-        kind=m["kind"],
-        revision=int(m["revision"]),
-        unit=m["unit"],
-        host=m["host"],
-        bus=BusPlan(
-            kind=bus["kind"],
-            channel=bus["channel"],
-            bitrate=bus.get("bitrate"),
-            baudrate=bus.get("baudrate"),
-            options=bus.get("options", {}),
-        ),
-        joints=joints,
-        chains=chains,
-        interesting_links=tuple(m.get("interesting_links", ())),
-        injections=tuple(m.get("injections", ())),
-        overrides=tuple(m.get("overrides", ())),
-        health=m.get("health", {}),
-        root_link=m.get("root_link", ""),
-        connectors=m.get("connectors", {}),
+def _bound(lock: LockDocument, path: Path | None) -> ResolvedAssembly:
+    base = path.parent if path else Path(".")
+    return ResolvedAssembly(
+        lock=lock,
+        urdf_path=base / lock.artifacts.urdf,
+        mjcf_path=base / lock.artifacts.mjcf,
+        lock_path=path,
     )

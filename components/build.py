@@ -1,13 +1,12 @@
-"""Building components from the resolved assembly: kind name -> builder, looked up lazily.
+"""Building components from the resolved assembly: each kind's builder, looked up lazily.
 
 A builder turns one planned component (``ComponentPlan``) of a resolved assembly into a Core
-and the Interface it is bound with. The launcher and tests build through here, so a new
-component kind is one module and one line in :data:`BUILDERS`, never an ``if kind == ...``.
+and the Interface it is bound with. The launcher and tests build through here; which builder
+a kind has is its entry in :mod:`components.kinds`, never an ``if kind == ...``.
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -18,42 +17,6 @@ if TYPE_CHECKING:
     from components.executor.executor import Component, Executor
     from components.executor.interface import InterfaceSpec
 
-#: Component kind -> "module:function" building it. Kinds without an entry are not built
-#: yet; the launcher reports them instead of starting a placeholder.
-BUILDERS: dict[str, str] = {
-    "joint_manager": "components.joint_manager.build:build",
-    "motor_interface": "components.motor_interface.build:build",
-    "simulator": "components.simulator.build:build",
-    "health_monitor": "components.health.build:build",
-    "kinematics_manager": "components.kinematics.build:build",
-    "location_publisher": "components.location.build:build",
-}
-
-
-@dataclass(frozen=True)
-class KindInfo:
-    """How a running component of a kind shows itself on the data plane.
-
-    Attributes:
-        first_output: A topic it publishes soon after starting (relative to its namespace,
-            or absolute), which the launcher waits for to call it healthy.
-    """
-
-    first_output: str
-
-
-#: The launcher's view of each kind, so it can judge health without building anything.
-KINDS: dict[str, KindInfo] = {
-    "joint_manager": KindInfo("diagnostics"),
-    "motor_interface": KindInfo("joint_states"),
-    "simulator": KindInfo("/sim/diagnostics"),
-    "health_monitor": KindInfo("health"),
-    # Diagnostics go out at start, before any joint_read; tip_pose needs joint angles first.
-    "kinematics_manager": KindInfo("diagnostics"),
-    # Every location publisher writes tf (the root-link one at start, from static edges).
-    "location_publisher": KindInfo("tf"),
-}
-
 
 def node_name(component: str) -> str:
     """The node a component runs as, in its module's namespace: the last part of its name.
@@ -63,10 +26,6 @@ def node_name(component: str) -> str:
     node's name from the plan alone, and two components of one kind never share a node.
     """
     return component.rsplit("/", 1)[-1].replace("-", "_")
-
-
-#: The one simulated world that replaces every motor interface off-robot.
-SIMULATOR_COMPONENT = "sim/simulator"
 
 
 class BuildError(ValueError):
@@ -88,6 +47,8 @@ class BuiltComponent:
             its :meth:`~components.executor.executor.Executor.call_soon` (the health
             monitor's graph watcher). What it opens goes into ``resources``. Whoever runs
             built components calls it: :func:`components.executor.runner.run_built` does.
+        extension_defaults: Extension name -> parameters the builder knows better than the
+            data (the unit file a re-zero saves to), given to the extension unless set.
     """
 
     core: Core
@@ -96,6 +57,7 @@ class BuiltComponent:
     node_name: str
     resources: list[Any] = field(default_factory=list)
     on_bound: Callable[[Executor, Component], None] | None = None
+    extension_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def close(self) -> None:
         """Release the resources (idempotent where they are)."""
@@ -110,13 +72,16 @@ Builder = Callable[["ComponentPlan", "ResolvedAssembly", Mapping[str, Any]], Bui
 
 
 def buildable(kind: str) -> bool:
-    """Whether a builder exists for ``kind`` (checked without importing it: fast)."""
+    """Whether code runs ``kind``: a registered kind with a builder that can be found
+    (checked without importing it: fast)."""
     import importlib.util
 
-    target = BUILDERS.get(kind)
-    if target is None:
+    from components import kinds
+
+    entry = kinds.registry().get(kind)
+    if entry is None or not entry.runnable or entry.builder is None:
         return False
-    module_name = target.partition(":")[0]
+    module_name = entry.builder.partition(":")[0]
     try:
         return importlib.util.find_spec(module_name) is not None
     except ModuleNotFoundError:
@@ -124,24 +89,31 @@ def buildable(kind: str) -> bool:
 
 
 def _builder(kind: str) -> Builder:
+    from components import kinds
+
     try:
-        target = BUILDERS[kind]
-    except KeyError:
-        raise BuildError(f"no builder for component kind {kind!r}") from None
-    module_name, _, function = target.partition(":")
+        entry = kinds.get(kind)
+    except kinds.KindError as exc:
+        raise BuildError(str(exc)) from None
+    if entry.builder is None:
+        raise BuildError(f"component kind {kind!r} is not implemented yet")
+    module_name = entry.builder.partition(":")[0]
     try:
-        module = importlib.import_module(module_name)
+        return kinds.resolve(entry.builder)
     except ModuleNotFoundError as exc:
         if exc.name == module_name or (exc.name and module_name.startswith(exc.name + ".")):
             raise BuildError(f"component kind {kind!r} is not implemented yet") from None
         raise
-    return getattr(module, function)
 
 
 def build_component(
     plan: ComponentPlan, assembly: ResolvedAssembly, options: Mapping[str, Any] | None = None
 ) -> BuiltComponent:
-    """Build one planned component.
+    """Build one planned component, then apply its injections and overrides.
+
+    The assembler put each kind's injections and overrides in its plan's params (module
+    data, then unit data) and checked them against the registry; they are applied here, to
+    every kind alike, so one aimed at a kind is never silently dropped.
 
     Args:
         plan: The component's entry in the resolved assembly.
@@ -149,6 +121,30 @@ def build_component(
         options: Run-time choices (e.g. ``{"sim": True, "speed": 1.0}``).
 
     Raises:
-        BuildError: If the kind has no builder or the plan is inconsistent.
+        BuildError: If the kind has no builder, the plan is inconsistent, or an injection
+            or override does not apply.
     """
-    return _builder(plan.kind)(plan, assembly, options or {})
+    from components.executor.registry import RegistryError, apply_all
+
+    built = _builder(plan.kind)(plan, assembly, options or {})
+    defaults = built.extension_defaults
+    injections = [{**defaults.get(i["name"], {}), **i} for i in plan.params.get("injections", ())]
+    overrides = [{**defaults.get(o["name"], {}), **o} for o in plan.params.get("overrides", ())]
+    if injections or overrides:
+        try:
+            apply_all(built.core, plan.kind, injections, overrides)
+        except (RegistryError, ValueError) as exc:
+            built.close()
+            raise BuildError(f"{plan.name}: {exc}") from exc
+    return built
+
+
+def simulator_plan(kind: str) -> ComponentPlan:
+    """The plan of an assembly-wide stand-in (the simulator), which no lock file lists."""
+    from components import kinds
+    from components.assembly import ComponentPlan
+
+    entry = kinds.get(kind)
+    return ComponentPlan(
+        name=entry.component_name, kind=kind, host="", module=None, namespace=entry.namespace
+    )

@@ -1,15 +1,83 @@
-"""Shared fixtures: real Zenoh routers and sessions on 127.0.0.1, random ports, no multicast."""
+"""Shared fixtures: real Zenoh routers and sessions on 127.0.0.1, random ports, no multicast.
+
+Also the session-wide setup of ``pyzeros``' codec compiler (see :func:`pytest_configure`).
+"""
 
 from __future__ import annotations
 
+import getpass
+import os
 import socket
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from components.comm.session import SessionSettings, open_session
+
+# --------------------------------------------------------------------------- pyzeros' codecs
+#: Where ``cydr`` (the codec compiler under ``pyzeros``) keeps what it compiles. By default it
+#: is ``./.cydr_cache`` (in the repository), filled the first time a message is serialized,
+#: inside whichever test did it and under that test's timeout: on a loaded machine the
+#: compile alone outlasted it. A per-user directory under the system's temporary directory
+#: instead, shared by sessions (cydr locks its builds), so it is compiled once per machine.
+CODEC_CACHE_ENV = "CYDR_CACHE_DIR"
+
+
+def codec_cache_dir() -> Path:
+    """The directory cydr compiles into: ``$CYDR_CACHE_DIR`` when set, else a per-user one
+    under the system's temporary directory."""
+    given = os.environ.get(CODEC_CACHE_ENV)
+    if given:
+        return Path(given)
+    user = os.getuid() if hasattr(os, "getuid") else getpass.getuser()
+    return Path(tempfile.gettempdir()) / f"msctl-test-cydr-{user}"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Point cydr at :func:`codec_cache_dir` before any test module imports it.
+
+    cydr reads ``CYDR_CACHE_DIR`` once, when it is imported (at collection, by the test
+    modules that import ``pyzeros``), and creates ``./.cydr_cache`` otherwise.
+    """
+    cache = codec_cache_dir()
+    cache.mkdir(parents=True, exist_ok=True)
+    os.environ[CODEC_CACHE_ENV] = str(cache)  # subprocesses inherit it too
+    runtime = sys.modules.get("cydr._runtime")
+    if runtime is not None:  # imported before us (a plugin): redirect it all the same
+        runtime.CYDR_CACHE_DIR = cache
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Compile the codecs the selected tests use, once, before the first test runs.
+
+    This hook runs outside every test's timeout. Only sessions that selected a test from a
+    module using ``pyzeros`` pay for it (a few seconds when cached, tens of seconds to
+    compile on a busy machine).
+    """
+    if not any(_uses_pyzeros(item) for item in session.items):
+        return
+    from pyzeros.builtin_msgs import Attachment
+
+    # The one cydr type the tests serialize: pyzeros' rmw_zenoh attachment (their messages
+    # are ros2_pyterfaces' cyclone types, which need no compiling).
+    encoded = Attachment(sequence_number=1, source_timestamp=2).serialize()
+    assert Attachment.deserialize(encoded).sequence_number == 1
+
+
+def _uses_pyzeros(item: pytest.Item) -> bool:
+    module = getattr(item, "module", None)
+    if module is None:
+        return False
+    for value in vars(module).values():
+        origin = getattr(value, "__module__", None) or getattr(value, "__name__", "")
+        if isinstance(origin, str) and origin.split(".")[0] == "pyzeros":
+            return True
+    return False
 
 
 def free_port() -> int:

@@ -28,6 +28,8 @@ from components.api import connect
 from components.api.ik_syncer import straightness
 from components.comm.session import SessionSettings
 
+pytestmark = pytest.mark.e2e
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -26,6 +26,8 @@ from components.api.planner import (
 from components.api.syncer import JointSyncer
 from components.messages import joint_samples, joint_state
 
+pytestmark = pytest.mark.e2e
+
 DT = 0.025
 
 

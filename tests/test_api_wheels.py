@@ -18,6 +18,8 @@ from components.api.joints import JointHandler, JointInfo
 from components.api.wheels import WheelDrive, WheelSteering
 from components.messages import joint_samples
 
+pytestmark = pytest.mark.e2e
+
 LIMBS = ("limb1", "limb2")
 WHEELS = {s: (f"{s}_wheel_left", f"{s}_wheel_right") for s in ("wheel1", "wheel2")}
 # The example's poses: rolled a quarter turn at joint1 and back at joint7, then bent flat.

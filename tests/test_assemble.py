@@ -15,11 +15,12 @@ from components.assembly import (
     URDF_NAME,
     AssemblyError,
     ResolvedAssembly,
+    encode_lock,
     from_document,
     load_assembly,
 )
 from msctl.assembler import data, resolve
-from msctl.assembler.store import lock_text, write_assembly
+from msctl.assembler.store import write_assembly
 
 TEMPLATES = ["minimal", "dragon", "dragon_x4", "tricycle", "two_dragons"]
 
@@ -50,7 +51,7 @@ def resolved(tmp_path_factory: pytest.TempPathFactory):
                 {
                     URDF_NAME: resolution.urdf,
                     MJCF_NAME: mjcf,
-                    LOCK_NAME: lock_text(resolution.document),
+                    LOCK_NAME: encode_lock(resolution.lock),
                 },
             )
             _written[name] = (load_assembly(target), mjcf)
@@ -192,7 +193,7 @@ def test_loader_exposes_the_per_host_plan(resolved) -> None:
     specs = limb.motor_specs()
     assert [s.joint for s in specs] == [j.raw_name for j in limb.joints]
     assert [s.motor_id for s in specs] == list(range(1, 10))
-    assert limb.injections == ({"name": "rezero"},)
+    assert limb.calibration_file.endswith(f"{limb.unit}.toml")
     (chain,) = limb.chains
     assert (chain.base_link, chain.tip_link) == ("limb1_base_link", "limb1_tip_link")
     assert chain.joints == tuple(f"limb1_joint{i}" for i in range(1, 8))
@@ -212,9 +213,11 @@ def test_loader_exposes_the_per_host_plan(resolved) -> None:
 def test_unit_overrides_reach_the_joint_manager() -> None:
     resolution = resolve("dragon", {"limb1": "hlv1-limb-03"})
     assembly = from_document(resolution.document)
-    lock = {"name": "lock_joint", "joint": "limb1_joint5", "position": 0.0}
-    assert assembly.module("limb1").overrides == (lock,)
+    lock = {"name": "locked_joint", "joint": "limb1_joint5", "position": 0.0}
     assert assembly.component("limb1/joint_manager").params["overrides"] == [lock]
+    # Overrides live only with the component that applies them.
+    others = [c for c in assembly.components_on("hl-limb-03") if c.kind != "joint_manager"]
+    assert others and not any("overrides" in c.params for c in others)
 
 
 def test_g_line_dragon_shares_one_computer() -> None:
@@ -319,7 +322,7 @@ def test_module_families_as_specified() -> None:
 
 def test_urdf_is_deterministic_and_well_formed() -> None:
     a, b = resolve("dragon"), resolve("dragon")
-    assert a.urdf == b.urdf and lock_text(a.document) == lock_text(b.document)
+    assert a.urdf == b.urdf and encode_lock(a.lock) == encode_lock(b.lock)
     root = ET.fromstring(a.urdf)
     names = [e.get("name") for e in root if e.tag in ("link", "joint")]
     assert len(names) == len(set(names))

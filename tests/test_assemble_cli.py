@@ -12,6 +12,8 @@ import pytest
 
 from components.assembly import load_assembly
 
+pytestmark = pytest.mark.e2e
+
 
 @pytest.fixture
 def env(tmp_path: Path) -> dict[str, str]:
@@ -52,16 +54,24 @@ def test_resolve_swap_and_show(env: dict[str, str]) -> None:
     for before, after in zip(first["modules"], second["modules"], strict=True):
         assert (before == after) == (before["slot"] != "wheel2")
 
-    # Resolving again keeps the swap; show reads the resolution back.
-    msctl(env, "dragon")
+    # Resolving again keeps the swap, and says it is not the default; show reads it back.
+    again = msctl(env, "dragon")
+    assert "not the defaults: wheel2=hlv2-wheel-03 (default hlv1-wheel-02)" in again.stderr
+    assert "--defaults" in again.stderr
     shown = json.loads(msctl(env, "show", "--json").stdout)
     assert shown["units"]["wheel2"] == "hlv2-wheel-03"
+
     table = msctl(env, "show").stdout
     assert "hlv2-wheel-03" in table and "per-host plan" in table
 
     assembly = load_assembly(home)
     assert assembly.module("wheel2").module_type == "hl_wheel_v2"
     assert assembly.urdf_path.read_text() == msctl(env, "urdf").stdout
+
+    # --defaults puts every slot back on the template's default.
+    reset = msctl(env, "dragon", "--defaults", "--json")
+    assert json.loads(reset.stdout)["units"] == first["units"]
+    assert "changed: wheel2" in reset.stderr and "not the defaults" not in reset.stderr
 
 
 def test_models_to_stdout_or_file(env: dict[str, str], tmp_path: Path) -> None:

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME
+from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME, encode_lock
 from msctl.assembler import resolve
-from msctl.assembler.store import lock_text, write_assembly
+from msctl.assembler.store import write_assembly
 from msctl.errors import InputError, NotFoundError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,7 +44,7 @@ def world(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Path]:
     good = resolve("dragon")
     write_assembly(
         home / "assembly",
-        {URDF_NAME: good.urdf, MJCF_NAME: "<mujoco/>", LOCK_NAME: lock_text(good.document)},
+        {URDF_NAME: good.urdf, MJCF_NAME: "<mujoco/>", LOCK_NAME: encode_lock(good.lock)},
     )
     return {"assemblies": assemblies, "calibration": calibration, "home": home}
 
@@ -122,7 +122,14 @@ CASES = {
         nothing,
         ["dragon", "--use", "limb1=hlv9-limb-99"],
         4,
-        ["unknown unit 'hlv9-limb-99'", "--use limb1=", "units that fit limb1:", "hlv1-limb-04"],
+        [
+            "unknown unit 'hlv9-limb-99'",
+            "--use limb1=",
+            "units that fit limb1:",
+            "hlv1-limb-04",
+            "units are read from {calibration}",
+            "MSCTL_CALIBRATION_DIR",
+        ],
     ),
     "unit of the wrong type": (
         nothing,
@@ -184,7 +191,28 @@ CASES = {
         edit("calibration/hlv1-limb-03.toml", 'joint = "joint5"', 'joint = "joint12"'),
         ["dragon", "--use", "limb1=hlv1-limb-03"],
         2,
-        ["hlv1-limb-03.toml: field overrides[0] (lock_joint)", "no joint 'joint12'"],
+        ["hlv1-limb-03.toml: field overrides[0] (locked_joint)", "no joint 'joint12'"],
+    ),
+    "NaN in a module (was an internal error naming no file)": (
+        edit("assemblies/modules/hl_limb_v1.toml", "lower = -3.05", "lower = nan"),
+        ["dragon"],
+        2,
+        ["hl_limb_v1.toml: field joints[0].lower is nan", "finite"],
+    ),
+    "the README tour's unit with its override misspelt": (
+        edit("calibration/hlv1-limb-03.toml", 'name = "locked_joint"', 'name = "lock_joint"'),
+        ["dragon", "--use", "limb1=hlv1-limb-03"],
+        2,
+        [
+            "hlv1-limb-03.toml: field overrides[0].name",
+            "no override named 'lock_joint' for joint_manager; known: locked_joint",
+        ],
+    ),
+    "a station asking for 100,000,000 components": (
+        edit("assemblies/dragon.toml", "human_operator = 1", "human_operator = 100000000"),
+        ["dragon"],
+        2,
+        ["dragon.toml: field stations[0].components.human_operator is 100000000", "0 to 64"],
     ),
     "malformed template TOML": (
         edit("assemblies/dragon.toml", "mobile = true", "mobile = yes"),
@@ -237,6 +265,7 @@ CASES = {
 
 
 def _expand(text: str, world: dict[str, Path]) -> str:
+    text = text.replace("{calibration}", str(world["calibration"]))
     return re.sub(
         r"\{line:([^:]+):([^}]+)\}", lambda m: str(line_of(world, m.group(1), m.group(2))), text
     )
@@ -251,6 +280,7 @@ def _snapshot(home: Path) -> dict[str, bytes]:
     }
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("case", list(CASES))
 def test_bad_input_is_one_clear_line_and_writes_nothing(case: str, world: dict[str, Path]) -> None:
     mutate, args, code, expected = CASES[case]

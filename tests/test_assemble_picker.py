@@ -13,6 +13,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 import assemblies
 
 
@@ -32,6 +34,7 @@ def _read_until(fd: int, needle: bytes, timeout: float) -> bytes:
     return seen
 
 
+@pytest.mark.e2e
 def test_terminal_operator_picks_a_unit_from_the_list(tmp_path: Path) -> None:
     # The shipped templates name a default unit for every slot; take it away from one.
     data = tmp_path / "assemblies"

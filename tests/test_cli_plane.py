@@ -29,6 +29,8 @@ from components.comm.session import SessionSettings
 from components.comm.types import registry
 from components.messages import msg
 
+pytestmark = pytest.mark.e2e
+
 MSCTL = shutil.which("msctl") or str(Path(sys.executable).with_name("msctl"))
 STRING = "std_msgs/msg/String"
 ADD = "example_interfaces/srv/AddTwoInts"

@@ -321,6 +321,7 @@ SIGTERM_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.e2e
 def test_sigterm_ends_the_process_promptly_with_sessions_closed(
     zenoh_env: dict[str, str], open_sessions: Callable[[], Any], tmp_path: Path
 ) -> None:

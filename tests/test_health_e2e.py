@@ -30,6 +30,8 @@ from components.executor.runner import run_built
 from components.messages import DIAGNOSTIC_ARRAY, ERROR, OK, STALE
 from msctl.assembler import resolve
 
+pytestmark = pytest.mark.e2e
+
 
 class _Recorder(Core):
     def __init__(self) -> None:

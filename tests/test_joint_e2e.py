@@ -25,6 +25,8 @@ from components.comm.session import SessionSettings
 from components.executor.executor import Executor
 from components.messages import JOINT_STATE, joint_samples
 
+pytestmark = pytest.mark.e2e
+
 pyzeros = pytest.importorskip("pyzeros")
 all_msgs = pytest.importorskip("ros2_pyterfaces.cyclone.all_msgs")
 

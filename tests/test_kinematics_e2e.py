@@ -28,6 +28,8 @@ from components.executor.executor import Executor
 from components.kinematics.poses import pose_stamped
 from components.messages import POSE_STAMPED
 
+pytestmark = pytest.mark.e2e
+
 
 @pytest.fixture(scope="module")
 def minimal(tmp_path_factory: pytest.TempPathFactory) -> ResolvedAssembly:

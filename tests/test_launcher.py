@@ -17,8 +17,9 @@ from pathlib import Path
 import pytest
 from conftest import wait_until
 
+from components import kinds
 from components.assembly import ResolvedAssembly, from_document
-from components.build import SIMULATOR_COMPONENT, buildable
+from components.build import buildable
 from msctl.assembler import resolve
 from msctl.launcher.control import RequestError, host_namespace, parse_request
 from msctl.launcher.plan import plan_host
@@ -56,6 +57,8 @@ if sys.argv[1] == "exit":
     sys.exit(1)
 time.sleep(60)
 """
+
+SIMULATOR_COMPONENT = kinds.get("simulator").component_name
 
 
 def group_gone(pgid: int) -> bool:
@@ -131,6 +134,7 @@ def log_has(sup: Supervisor, name: str, line: str) -> bool:
 
 
 # ------------------------------------------------------------------------------ restart policy
+@pytest.mark.e2e
 def test_crash_loop_backs_off_doubling_then_fails_with_the_last_error(supervisor) -> None:
     process = supervisor.add("crasher", [PY, "-c", CRASH], components=["x/crasher"])
     supervisor.start("crasher")
@@ -161,6 +165,7 @@ def test_crash_loop_backs_off_doubling_then_fails_with_the_last_error(supervisor
     assert process.state is ProcessState.FAILED and process.popen is None
 
 
+@pytest.mark.e2e
 def test_restarts_outside_the_window_are_forgotten(tmp_path: Path) -> None:
     sup = Supervisor(
         tmp_path, RestartPolicy(max_restarts=1, window=0.3, backoff_initial=0.01, backoff_max=0.01)
@@ -175,6 +180,7 @@ def test_restarts_outside_the_window_are_forgotten(tmp_path: Path) -> None:
         sup.shutdown()
 
 
+@pytest.mark.e2e
 def test_backoff_resets_once_alive_long_enough_even_without_components(tmp_path: Path) -> None:
     sup = Supervisor(tmp_path, RestartPolicy(backoff_initial=0.05, stable_after=0.3))
     process = sup.add("router", [PY, "-c", SLEEP])  # no components: never marked RUNNING
@@ -188,6 +194,7 @@ def test_backoff_resets_once_alive_long_enough_even_without_components(tmp_path:
         sup.shutdown()
 
 
+@pytest.mark.e2e
 def test_stop_keeps_it_stopped(supervisor) -> None:
     process = supervisor.add("sleeper", [PY, "-c", SLEEP])
     supervisor.start("sleeper")
@@ -207,6 +214,7 @@ def test_stop_keeps_it_stopped(supervisor) -> None:
     assert process.state is ProcessState.STARTING and process.pid is not None
 
 
+@pytest.mark.e2e
 def test_start_of_a_live_process_starts_no_second_copy(supervisor) -> None:
     # `start` (an AgentRequest verb) of a running process spawned a second copy and dropped
     # the first from view: two workers driving the same motors, and one left after `down`.
@@ -221,6 +229,7 @@ def test_start_of_a_live_process_starts_no_second_copy(supervisor) -> None:
     assert group_gone(first)
 
 
+@pytest.mark.e2e
 def test_restart_replaces_the_process_and_counts(supervisor) -> None:
     process = supervisor.add("sleeper", [PY, "-c", SLEEP])
     supervisor.start("sleeper")
@@ -239,6 +248,7 @@ def test_restart_replaces_the_process_and_counts(supervisor) -> None:
     assert process.state is ProcessState.STARTING  # a requested restart is no crash
 
 
+@pytest.mark.e2e
 def test_killed_process_is_restarted_as_starting(supervisor) -> None:
     process = supervisor.add("sleeper", [PY, "-c", SLEEP])
     supervisor.start("sleeper")
@@ -253,6 +263,7 @@ def test_killed_process_is_restarted_as_starting(supervisor) -> None:
 
 
 # ------------------------------------------------------------------------------ shutdown
+@pytest.mark.e2e
 def test_shutdown_escalates_sigint_sigterm_sigkill_within_the_policy(tmp_path: Path) -> None:
     policy = ShutdownPolicy()  # the real one
     sup = Supervisor(tmp_path / "logs", shutdown=policy)
@@ -277,6 +288,7 @@ def test_shutdown_escalates_sigint_sigterm_sigkill_within_the_policy(tmp_path: P
     assert process.state is ProcessState.STOPPED
 
 
+@pytest.mark.e2e
 def test_polite_process_stops_at_sigint_at_once(supervisor) -> None:
     process = supervisor.add("sleeper", [PY, "-c", SLEEP])
     supervisor.start("sleeper")
@@ -287,6 +299,7 @@ def test_polite_process_stops_at_sigint_at_once(supervisor) -> None:
     assert process.state is ProcessState.STOPPED
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("how", ["shutdown", "exit"])
 def test_grandchildren_go_with_their_group(supervisor, how: str) -> None:
     """Shutdown kills the whole group; so does the leader dying on its own (no orphans)."""
@@ -327,6 +340,7 @@ def test_log_rotates_past_max_bytes_and_keeps_the_tail(tmp_path: Path) -> None:
     assert list(log.tail) == lines[-5:]
 
 
+@pytest.mark.e2e
 def test_supervised_output_goes_to_the_process_log(supervisor) -> None:
     process = supervisor.add("limb1", [PY, "-c", CRASH])
     supervisor.start("limb1")
@@ -470,26 +484,23 @@ def test_ground_station_components_run_one_process_per_role(monkeypatch) -> None
     """Ground-control kinds are not built yet; made buildable for the plan alone, a station's
     components group one process per role, the modules one per module."""
     import msctl.launcher.plan as plan_module
-    from components.build import KINDS, KindInfo
 
     two = from_document(resolve("two_dragons").document)
-    roles = {c.kind for c in two.components if c.module is None}
+    station_kinds = {k.name for k in kinds.placed(kinds.Placement.STATION)}
     monkeypatch.setattr(plan_module, "buildable", lambda kind: True)
-    monkeypatch.setattr(
-        plan_module, "KINDS", {**KINDS, **{k: KindInfo("diagnostics") for k in roles}}
-    )
     plan = plan_host(two, "a-laptop")
-    ground = [p for p in plan.processes if not any(c.kind in KINDS for c in p.components)]
+    ground = [p for p in plan.processes if {c.kind for c in p.components} <= station_kinds]
     assert ground, "two_dragons has ground stations"
     for process in ground:
-        kinds = {c.kind for c in process.components}
+        roles = {c.kind for c in process.components}
         stations = {c.name.split("/")[0] for c in process.components}
-        assert len(kinds) == 1 and len(stations) == 1, process
-        assert process.name == f"{stations.pop()}_{kinds.pop()}"
+        assert len(roles) == 1 and len(stations) == 1, process
+        assert process.name == f"{stations.pop()}_{roles.pop()}"
     modules = {c.module for c in two.components if c.module}
     assert {p.name for p in plan.processes} >= modules
 
 
+@pytest.mark.e2e
 def test_a_stale_state_file_never_blocks_up_nor_kills_strangers(tmp_path: Path) -> None:
     """After a reboot the state file's ids may belong to other programs: `up` must not be
     refused because of them, and `down` must not kill them."""

@@ -31,6 +31,8 @@ from components.messages import JOINT_STATE
 from msctl.launcher.plan import plan_host
 from msctl.launcher.state import process_group_alive
 
+pytestmark = pytest.mark.e2e
+
 
 @dataclass
 class Run:
@@ -263,8 +265,8 @@ def test_component_that_crashes_on_every_start_ends_failed_with_its_error(run: R
     # more, so every start of its process exits 3 naming the override.
     lock = run.home / "assembly" / "assembly.lock.json"
     document = json.loads(lock.read_text())
-    module = next(m for m in document["modules"] if m["slot"] == "limb2")
-    module["overrides"] = [{"name": "no_such_override"}]
+    manager = next(c for c in document["components"] if c["name"] == "limb2/joint_manager")
+    manager["params"]["overrides"] = [{"name": "no_such_override"}]
     lock.write_text(json.dumps(document))
     result = run.msctl("restart", "limb2/joint_manager")
     assert result.returncode == 0, result.stderr
@@ -327,10 +329,32 @@ def test_foreground_up_for_runs_its_time_then_stops_clean(tmp_path: Path) -> Non
         current.kill_everything()
     assert process.returncode == 0, stderr
     assert "dragon up in" in stderr and "dragon stopped" in stderr
-    assert 5.0 <= elapsed < 12.0, elapsed
+    assert elapsed >= 5.0, elapsed  # it ran its time (no upper bound: a busy machine is slow)
     document = current.state()
     assert document["state"] == "stopped"
     assert all(p["state"] == "stopped" for p in document["processes"])
     assert len(current.pgids) >= 7  # supervisor, router, simulator, four modules
     for pgid in current.pgids:
         assert not process_group_alive(pgid), pgid
+
+
+def test_the_readme_tour_unit_comes_up_all_healthy(tmp_path: Path) -> None:
+    """`msctl up dragon` after the README's `--use limb1=hlv1-limb-03` (a unit with an
+    override): every component healthy, and a later `up` says the unit is not the default."""
+    current = make_run(tmp_path)
+    try:
+        assembled = current.msctl("assemble", "dragon", "--use", "limb1=hlv1-limb-03")
+        assert assembled.returncode == 0, assembled.stderr
+        result = current.msctl("up", "--detach", timeout=90.0)
+        current.state()
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "not the defaults: limb1=hlv1-limb-03 (default hlv1-limb-01)" in result.stderr
+        assert f"{len(current.planned())} components healthy" in result.stderr
+        document = current.state()
+        assert all(c["state"] == "running" for c in document["components"])
+        assert all(c["restarts"] == 0 for c in document["components"]), document["components"]
+    finally:
+        if (current.home / "run" / "state.json").exists():
+            current.state()
+        current.msctl("down", timeout=30.0)
+        current.kill_everything()

@@ -15,6 +15,7 @@ are printed (run with ``-s``).
 
 from __future__ import annotations
 
+import itertools
 import statistics
 import threading
 import time
@@ -106,8 +107,9 @@ def test_a_dead_chain_never_delays_the_joint_manager_tick(
                 return {d.joint: d.level for d in backend.diagnostics() if d.joint}
 
             wait_until(
-                lambda: set(levels()) == {j.raw_name for j in joints}
-                and set(levels().values()) == {0},
+                lambda: (
+                    set(levels()) == {j.raw_name for j in joints} and set(levels().values()) == {0}
+                ),
                 15.0,
                 "every servo OK",
             )
@@ -130,7 +132,7 @@ def test_a_dead_chain_never_delays_the_joint_manager_tick(
         assert not runner.is_alive(), "the executor did not stop"
         assert not failures, failures
 
-    gaps = [b - a for a, b in zip(observed, observed[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(observed)]
     assert gaps, f"no joint manager tick in {OBSERVE_S} s with a dead chain"
     p50, p99 = statistics.median(gaps), percentile(gaps, 0.99)
     print(

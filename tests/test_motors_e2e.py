@@ -51,6 +51,8 @@ from components.messages import (
 from components.motors.emulation.cia402 import EmulatedCia402Bus
 from components.motors.emulation.dynamixel import EmulatedDynamixelChain
 
+pytestmark = pytest.mark.e2e
+
 SLOT = "limb1"
 UNITS = {"canopen": "hlv1-limb-01", "dynamixel": "gl-limb-01"}
 #: The emulated servo chain is a Python thread: size the serial reply timeout as for a slow

@@ -16,6 +16,8 @@ from conftest import free_port, wait_until
 
 from msctl.launcher.state import process_group_alive
 
+pytestmark = pytest.mark.e2e
+
 
 class Home:
     """One MSCTL_HOME and router endpoint; remembers every process group it saw started."""

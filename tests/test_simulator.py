@@ -28,6 +28,8 @@ from components.simulator.core import SimulatorConfig, SimulatorCore
 from components.simulator.interface import simulator_interface
 from components.simulator.world import SimulationError, SimWorld, max_real_time_factor
 
+pytestmark = pytest.mark.e2e
+
 
 @pytest.fixture(scope="module")
 def assembly(tmp_path_factory: pytest.TempPathFactory):

@@ -5,10 +5,13 @@ at runtime, telemetry). An *Override* alters a core for one robot (a locked join
 with a reversed encoder). Both are chosen by the assembler from module and unit data and
 applied here by name, never by ``if robot == ...`` in a core.
 
-Registering::
+Registering, with the parameters the assembler type-checks at ``msctl assemble``::
 
-    @injection("joint_manager", "rezero")
+    @injection("joint_manager", "rezero", params={"joints": list, "service": str})
     def rezero(core: JointManagerCore, params: dict) -> None: ...
+
+Which modules register a kind's injections and overrides is that kind's entry
+(``extensions``) in :mod:`components.kinds`.
 
 Applying (the component builder does this)::
 
@@ -29,58 +32,75 @@ class RegistryError(LookupError):
     """An injection or override named in data does not exist for that core kind."""
 
 
+#: A parameter's accepted Python types (TOML values), e.g. ``str`` or ``(list, str)``.
+ParamTypes = type | tuple[type, ...]
+
+
 @dataclass(frozen=True)
 class _Entry:
     kind: str
     name: str
     apply: Applier
     doc: str
+    params: Mapping[str, ParamTypes]
+    required: tuple[str, ...]
 
 
 _INJECTIONS: dict[tuple[str, str], _Entry] = {}
 _OVERRIDES: dict[tuple[str, str], _Entry] = {}
 
-#: Modules that register injections/overrides, imported on first lookup so registration
-#: needs no import side effect elsewhere.
-PROVIDERS: list[str] = [
-    "components.joint_manager.injections",
-    "components.overrides",
-]
 _loaded = False
 
 
 def _load_providers() -> None:
+    """Import every kind's extension modules (its entry's ``extensions``), once."""
     global _loaded
     if _loaded:
         return
     _loaded = True
-    for module in PROVIDERS:
-        try:
+    from components import kinds
+
+    for kind in kinds.registry().values():
+        for module in kind.extensions:
             importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
 
 
-def _register(table: dict[tuple[str, str], _Entry], kind: str, name: str) -> Callable:
+def _register(
+    table: dict[tuple[str, str], _Entry],
+    kind: str,
+    name: str,
+    params: Mapping[str, ParamTypes],
+    required: Iterable[str],
+) -> Callable:
     def decorate(fn: Applier) -> Applier:
         key = (kind, name)
         if key in table and table[key].apply is not fn:
             raise ValueError(f"{kind}/{name} is registered twice")
-        table[key] = _Entry(kind, name, fn, (fn.__doc__ or "").strip().split("\n")[0])
+        doc = (fn.__doc__ or "").strip().split("\n")[0]
+        table[key] = _Entry(kind, name, fn, doc, dict(params), tuple(required))
         return fn
 
     return decorate
 
 
-def injection(kind: str, name: str) -> Callable[[Applier], Applier]:
-    """Register an injection ``name`` for cores of ``kind``."""
-    return _register(_INJECTIONS, kind, name)
+def injection(
+    kind: str,
+    name: str,
+    params: Mapping[str, ParamTypes] | None = None,
+    required: Iterable[str] = (),
+) -> Callable[[Applier], Applier]:
+    """Register an injection ``name`` for cores of ``kind``, taking ``params``."""
+    return _register(_INJECTIONS, kind, name, params or {}, required)
 
 
-def override(kind: str, name: str) -> Callable[[Applier], Applier]:
-    """Register an override ``name`` for cores of ``kind``."""
-    return _register(_OVERRIDES, kind, name)
+def override(
+    kind: str,
+    name: str,
+    params: Mapping[str, ParamTypes] | None = None,
+    required: Iterable[str] = (),
+) -> Callable[[Applier], Applier]:
+    """Register an override ``name`` for cores of ``kind``, taking ``params``."""
+    return _register(_OVERRIDES, kind, name, params or {}, required)
 
 
 def available(kind: str | None = None) -> dict[str, list[tuple[str, str]]]:
@@ -105,6 +125,38 @@ def _lookup(table: dict[tuple[str, str], _Entry], what: str, kind: str, name: st
         raise RegistryError(
             f"no {what} named {name!r} for {kind}; known: {', '.join(known) or 'none'}"
         ) from None
+
+
+def check(what: str, kind: str, spec: Mapping[str, Any]) -> None:
+    """Check one ``{"name": ..., **params}`` entry of data against the registry.
+
+    Args:
+        what: ``"injection"`` or ``"override"``.
+        kind: The component kind it targets.
+        spec: The entry.
+
+    Raises:
+        RegistryError: If no such extension exists for ``kind``, or a parameter is unknown,
+            missing or of the wrong type (the message lists what is accepted).
+    """
+    table = _INJECTIONS if what == "injection" else _OVERRIDES
+    entry = _lookup(table, what, kind, str(spec.get("name")))
+    params = {k: v for k, v in spec.items() if k != "name"}
+    accepted = ", ".join(sorted(entry.params)) or "none"
+    for key, value in params.items():
+        types = entry.params.get(key)
+        if types is None:
+            raise RegistryError(f"{what} {entry.name} has no parameter {key!r}; known: {accepted}")
+        allowed = types if isinstance(types, tuple) else (types,)
+        number = float in allowed and isinstance(value, int)
+        if (isinstance(value, bool) and bool not in allowed) or not (
+            isinstance(value, allowed) or number
+        ):
+            names = " or ".join(t.__name__ for t in allowed)
+            raise RegistryError(f"{what} {entry.name}: {key} is {value!r}, it must be a {names}")
+    for key in entry.required:
+        if key not in params:
+            raise RegistryError(f"{what} {entry.name} needs parameter {key!r}")
 
 
 def apply_all(

@@ -17,8 +17,9 @@ import os
 import sys
 from pathlib import Path
 
-from components.assembly import AssemblyError, ComponentPlan, load_assembly
-from components.build import SIMULATOR_COMPONENT, BuildError, build_component
+from components import kinds
+from components.assembly import AssemblyError, load_assembly
+from components.build import BuildError, build_component, simulator_plan
 from components.comm.session import SessionConfigError
 
 
@@ -43,14 +44,14 @@ def main(argv: list[str] | None = None) -> int:
     except AssemblyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3
-    options = {"sim": SIMULATOR_COMPONENT in args.component, "speed": args.speed}
+    # Assembly-wide stand-ins (the simulator) are in no lock file: the launcher names them.
+    stand_ins = {k.component_name: k.name for k in kinds.simulators()}
+    options = {"sim": any(name in stand_ins for name in args.component), "speed": args.speed}
     built = []
     try:
         for name in args.component:
-            if name == SIMULATOR_COMPONENT:
-                plan = ComponentPlan(
-                    name=name, kind="simulator", host="", module=None, namespace="/sim"
-                )
+            if name in stand_ins:
+                plan = simulator_plan(stand_ins[name])
             else:
                 plan = assembly.component(name)
             built.append(build_component(plan, assembly, options))

@@ -19,8 +19,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
+from components import kinds
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import KINDS, BuildError, BuiltComponent, buildable
+from components.build import BuildError, BuiltComponent, buildable
 from components.build import node_name as component_node_name
 from components.comm.liveliness import Entity, EntityKind
 from components.health.core import (
@@ -36,8 +37,10 @@ if TYPE_CHECKING:
     from components.comm.graph import Graph
     from components.executor.executor import Component, Executor
 
-#: The node that stands in for every module's motor interface in simulation.
-SIMULATOR_NODE = "/sim/simulator"
+
+def stand_in_node(kind: kinds.ComponentKind) -> str:
+    """The node of an assembly-wide stand-in (``/sim/simulator``)."""
+    return f"{kind.namespace.rstrip('/')}/{kind.name}"
 
 
 def node_name(plan: ComponentPlan) -> str:
@@ -53,13 +56,14 @@ def expected_components(
 
     With ``options["launched"]`` (names of the components the launcher started), exactly
     those of the module; otherwise every component of the module whose kind the launcher
-    starts (a builder and a ``KINDS`` entry: other kinds are never started, so expecting
-    them would be a false alarm). Components sharing a node name make one item expecting
-    that many instances.
+    starts (a runnable kind: other kinds are never started, so expecting them would be a
+    false alarm). Components sharing a node name make one item expecting that many
+    instances.
 
-    The motor interface is satisfied by the simulator node: only by it with
-    ``options["sim"]``; by either otherwise, because the launcher runs the simulator in
-    another process than the module's components, whose ``sim`` option cannot tell.
+    A component whose kind something stands in for in simulation (the motor interface, for
+    the simulator: see :mod:`components.kinds`) is satisfied by the stand-in's node: only by
+    it with ``options["sim"]``; by either otherwise, because the launcher runs the simulator
+    in another process than the module's components, whose ``sim`` option cannot tell.
     """
     launched = options.get("launched")
     launched_names = None if launched is None else set(launched)
@@ -71,15 +75,16 @@ def expected_components(
         if launched_names is not None:
             if other.name not in launched_names:
                 continue
-        elif other.kind not in KINDS or not buildable(other.kind):
+        elif not buildable(other.kind):
             continue
         node = f"{other.namespace.rstrip('/')}/{node_name(other)}"
         alternatives: tuple[str, ...] = ()
-        if other.kind == "motor_interface":
+        stand_ins = tuple(stand_in_node(k) for k in kinds.stand_ins(other.kind))
+        if stand_ins:
             if sim:
-                node = SIMULATOR_NODE
+                node, alternatives = stand_ins[0], stand_ins[1:]
             else:
-                alternatives = (SIMULATOR_NODE,)
+                alternatives = stand_ins
         known = by_node.get(node)
         if known is not None:
             by_node[node] = replace(known, count=known.count + 1)

@@ -7,7 +7,6 @@ from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
-from components.executor.registry import RegistryError, apply_all
 from components.joint_manager.core import JointManagerConfig, JointManagerCore
 from components.joint_manager.interface import JOINT_MANAGER
 
@@ -39,15 +38,8 @@ def build(
         )
     except ValueError as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
-    injections = [dict(i) for i in module.injections]
-    # The rezero injection saves new offsets back to the unit's own calibration file,
-    # which the assembler recorded among the lock file's sources.
-    unit_file = assembly.document.get("sources", {}).get("units", {}).get(module.unit)
-    for injection in injections:
-        if injection.get("name") == "rezero" and unit_file:
-            injection.setdefault("calibration_file", unit_file)
-    try:
-        apply_all(core, "joint_manager", injections, [dict(o) for o in module.overrides])
-    except (RegistryError, ValueError) as exc:
-        raise BuildError(f"{plan.name}: {exc}") from exc
-    return BuiltComponent(core, JOINT_MANAGER, module.namespace, "joint_manager")
+    built = BuiltComponent(core, JOINT_MANAGER, module.namespace, "joint_manager")
+    # The rezero injection saves new offsets back to the unit's own calibration file.
+    if module.calibration_file:
+        built.extension_defaults = {"rezero": {"calibration_file": module.calibration_file}}
+    return built

@@ -19,7 +19,11 @@ from components.messages import TRIGGER, trigger_response
 _REZERO_PARAMS = {"joints", "calibration_file", "service"}
 
 
-@injection("joint_manager", "rezero")
+@injection(
+    "joint_manager",
+    "rezero",
+    params={"joints": (list, str), "calibration_file": str, "service": str},
+)
 def rezero(core: JointManagerCore, params: dict[str, Any]) -> None:
     """Re-zero joints at runtime from a Trigger service and save the offsets to the unit file.
 

@@ -56,10 +56,11 @@ def build(
 def _joint_manager_margin(assembly: ResolvedAssembly, slot: str) -> float | None:
     """The ``position_margin`` the module's joint manager is planned with, if the plan says.
 
-    Without one the joint manager uses its default, which :class:`IkSettings` mirrors.
+    Without one the joint manager uses its default, which :class:`IkSettings` mirrors. Only
+    the joint manager's parameters have that name (its config), so no kind is named here.
     """
     for component in assembly.components:
-        if component.kind == "joint_manager" and component.module == slot:
+        if component.module == slot and "position_margin" in component.params:
             margin = component.params.get("position_margin")
             return None if margin is None else float(margin)
     return None

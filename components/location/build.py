@@ -43,7 +43,7 @@ def build(
     except OSError as exc:
         raise BuildError(f"{plan.name}: cannot read {assembly.urdf_path}: {exc}") from exc
     root = module.root_link or f"{module.slot}_base_link"
-    mounts = [str(c.get("joint")) for c in assembly.connections]
+    mounts = [c.joint for c in assembly.connections]
     try:
         model = module_model(urdf, root, f"{module.slot}_", stop_joints=mounts)
         edges: list[StaticEdge] = []

@@ -166,7 +166,8 @@ class MotorInterfaceCore(Core):
                     values=diag.values,
                 )
             )
-        if not statuses:
+        if f"{self.module}/bus" not in reported:
+            # The bus always has a status of its own: a backend fault must not stand in for it.
             statuses.append(
                 diagnostic_status(f"{self.module}/bus", OK, "ok", hardware_id=self.backend.channel)
             )

@@ -156,6 +156,9 @@ class MotorBackend(ABC):
         self._fault_lock = threading.Lock()
         #: (operation, exception text) -> [count, first exception]: faults to report.
         self._faults: dict[tuple[str, str], list[Any]] = {}
+        # Faults already logged: a fault repeating every cycle is logged once, until a report
+        # comes back clean.
+        self._logged: set[tuple[str, str]] = set()
 
     def _typed_options(self, options: Mapping[str, Any] | Any) -> Any:
         if not self.backend_name:
@@ -285,7 +288,7 @@ class MotorBackend(ABC):
         """Note an exception a backend did not handle; the next diagnostics() reports it.
 
         Thread-safe: a backend's own I/O thread reports what it could not handle here too.
-        Repeats of the same fault are counted, and logged once per report.
+        Repeats of the same fault are counted, and logged once until a report comes back clean.
         """
         key = (operation, f"{type(exc).__name__}: {exc}")
         with self._fault_lock:
@@ -294,7 +297,9 @@ class MotorBackend(ABC):
                 self._faults[key] = [1, exc]
             else:
                 seen[0] += 1
-        if seen is None:
+            first = key not in self._logged
+            self._logged.add(key)
+        if first:
             log.error(
                 "%s bus %s: %s failed",
                 self.name,
@@ -307,6 +312,8 @@ class MotorBackend(ABC):
         """The faults since the last call as one ERROR entry (none if there were none)."""
         with self._fault_lock:
             faults, self._faults = self._faults, {}
+            if not faults:
+                self._logged.clear()
         if not faults:
             return []
         parts = []

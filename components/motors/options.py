@@ -336,9 +336,11 @@ def _parse(backend: str, options_type: type, mapping: Mapping[str, Any]) -> Any:
         if raw is None and meta.get("optional"):
             values[key] = None
             continue
-        rule = meta["rule"]
+        # Fields declared with _option have a kind and a rule; a plain field of another
+        # package's options type takes the value as it is.
+        kind, rule = meta.get("kind"), meta.get("rule")
         try:
-            value = meta["kind"](raw)
+            value = raw if kind is None else kind(raw)
             if rule is not None and not rule.test(value):
                 raise _Invalid(rule.text)
         except _Invalid as bad:

@@ -16,7 +16,9 @@ from components.messages import JointSample
 _PARAMS = {"joint", "position"}
 
 
-@override("joint_manager", "locked_joint")
+@override(
+    "joint_manager", "locked_joint", params={"joint": str, "position": float}, required=("joint",)
+)
 def locked_joint(core: JointManagerCore, params: dict[str, Any]) -> None:
     """Hold one joint at a fixed position and refuse every command to it (WARN, counted).
 

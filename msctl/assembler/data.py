@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from components.assembly import COMPONENT_KINDS
+from components import kinds
+from components.assembly import BusPlan
 from msctl.assembler import transforms as tf
 from msctl.assembler.urdf import MOVABLE, ModuleUrdf, parse_module_urdf
 from msctl.errors import InputError, NotFoundError
@@ -31,8 +32,19 @@ T = TypeVar("T")
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 #: Unit serials are file names: no path separators, no leading dot.
 SERIAL_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
-BUS_KINDS = ("canopen", "dynamixel")
 CONTROL_MODES = ("position", "velocity")
+#: A host name as RFC 1123 allows it: it reaches ssh, systemd units and argument lists.
+HOST_RE = re.compile(
+    r"^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+    r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$"
+)
+#: Widest position limits a joint type allows (a revolute joint turning further is
+#: continuous; a module's linear joint travels at most this far).
+TYPE_TRAVEL = {"revolute": 2 * math.pi, "prismatic": 10.0}
+#: Largest plausible max_velocity (rad/s or m/s) and max_effort (N·m or N) of a module's
+#: joint: beyond these a number is a typo, and a limit that large limits nothing.
+MAX_VELOCITY = 100.0
+MAX_EFFORT = 10_000.0
 
 
 def _package_dir(package: str) -> Path:
@@ -94,7 +106,7 @@ def read_toml(path: Path) -> dict[str, Any]:
     """
     try:
         with path.open("rb") as fh:
-            return tomllib.load(fh)
+            document = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         text = str(exc)
         match = re.search(r"line (\d+)", text)
@@ -102,6 +114,24 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise InputError(f"{where}: malformed TOML: {text}", hint="fix the syntax there") from None
     except UnicodeDecodeError:
         raise InputError(f"{path}: not UTF-8 text", hint="save it as UTF-8") from None
+    _check_finite(path, document, "")
+    return document
+
+
+def _check_finite(path: Path, value: Any, where: str) -> None:
+    """Every number in a data file is finite: nan and inf are never a limit, an offset or
+    a gain, and downstream (MuJoCo, JSON, the motors) cannot take them."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise InputError(
+            f"{path}: field {where or '(root)'} is {value}: every number must be finite",
+            hint="write a finite number (an unbounded joint is type continuous)",
+        )
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _check_finite(path, item, f"{where}.{key}" if where else str(key))
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_finite(path, item, f"{where}[{i}]")
 
 
 # ---------------------------------------------------------------------------- field checking
@@ -284,19 +314,18 @@ def load_module_type(key: str, *, referrer: str = "") -> ModuleType:
 def _parse_module_type(path: Path) -> ModuleType:
     f = _Fields(path, read_toml(path))
     urdf_rel = f.get("urdf", str, what="a path relative to the module file")
-    urdf_path = (path.parent / urdf_rel).resolve()
+    urdf_path = _confined(path.parent, urdf_rel, f.where("urdf"))
     if not urdf_path.is_file():
         raise InputError(
             f"{f.where('urdf')}: {urdf_path} does not exist", hint="fix the path or add the URDF"
         )
+    _check_meshes(urdf_path, path.parent, f.where("urdf"))
     urdf = _cached("urdf", urdf_path, parse_module_urdf)
     kind = f.name("kind")
     bus = f.sub("bus")
     bus_kind = bus.get("kind", str)
-    if bus_kind not in BUS_KINDS:
-        raise InputError(
-            f"{bus.where('kind')} is {bus_kind!r}", hint=f"use {' or '.join(BUS_KINDS)}"
-        )
+    backend = _backend(bus_kind, bus.where("kind"))
+    _check_bus_options(backend, bus.table, bus.where("options"))
 
     joints: dict[str, JointDef] = {}
     for i, raw in enumerate(f.get("joints", list, [], "a list of joints tables")):
@@ -320,6 +349,27 @@ def _parse_module_type(path: Path) -> ModuleType:
         upper = j.number("upper") if bounded else math.inf
         if lower >= upper:
             raise InputError(f"{j.where('lower')} ({lower}) is not below upper ({upper})")
+        travel = TYPE_TRAVEL.get(jtype, math.inf)
+        for key, value in (("lower", lower), ("upper", upper)):
+            if bounded and abs(value) > travel:
+                raise InputError(
+                    f"{j.where(key)} is {value}: outside what a {jtype} joint allows (±{travel:g})",
+                    hint="give the joint's real travel (a joint turning further is continuous)",
+                )
+        max_velocity = j.number("max_velocity")
+        max_effort = j.number("max_effort")
+        for key, value, largest in (
+            ("max_velocity", max_velocity, MAX_VELOCITY),
+            ("max_effort", max_effort, MAX_EFFORT),
+        ):
+            if not 0 < value <= largest:
+                raise InputError(
+                    f"{j.where(key)} is {value}: it must be > 0 and at most {largest:g}",
+                    hint="give the joint's rated limit (a command's magnitude is clamped to it)",
+                )
+        armature = j.number("armature", 0.0)
+        if armature < 0:
+            raise InputError(f"{j.where('armature')} is {armature}", hint="it must be >= 0")
         control = j.get("control", str, "position")
         if control not in CONTROL_MODES:
             raise InputError(
@@ -336,15 +386,18 @@ def _parse_module_type(path: Path) -> ModuleType:
             type=jtype,
             lower=lower,
             upper=upper,
-            max_velocity=j.number("max_velocity"),
-            max_effort=j.number("max_effort"),
+            max_velocity=max_velocity,
+            max_effort=max_effort,
             motor=motor,
-            motor_id=j.get("motor_id", int, None),
+            motor_id=_motor_id(backend, j, "motor_id"),
             control=control,
             actuated=actuated,
-            armature=j.number("armature", 0.0),
+            armature=armature,
             motor_params=dict(j.get("motor_params", dict, {})),
         )
+    _check_unique_ids(
+        {n: jd.motor_id for n, jd in joints.items() if jd.actuated}, f"{path}: field joints"
+    )
     missing = [n for n in _movable(urdf) if n not in joints]
     if missing:
         raise InputError(
@@ -402,17 +455,19 @@ def _parse_module_type(path: Path) -> ModuleType:
     for i, link in enumerate(module.interesting_links):
         if not isinstance(link, str) or not module.has_link(link):
             raise InputError(f"{path}: field interesting_links[{i}]: {link!r} is not a link")
-    _check_joint_params(module, module.overrides, f"{path}: field overrides")
-    _check_joint_params(module, module.injections, f"{path}: field injections")
 
     components = []
     for i, raw in enumerate(f.get("components", list, [], "a list of components tables")):
         c = _Fields(path, raw, f"components[{i}].")
         ckind = c.get("kind", str)
-        if ckind not in COMPONENT_KINDS:
+        module_kinds = [k.name for k in kinds.placed(kinds.Placement.MODULE)]
+        if ckind not in module_kinds:
             raise InputError(
-                f"{c.where('kind')} is {ckind!r}", hint=f"use one of {', '.join(COMPONENT_KINDS)}"
+                f"{c.where('kind')} is {ckind!r}",
+                hint=f"a module runs one of {', '.join(module_kinds)}",
             )
+        params = dict(c.get("params", dict, {}))
+        _check_kind_params(ckind, params, c.where("params"))
         link = c.get("link", str, None)
         if link is not None and not module.has_link(link):
             raise InputError(
@@ -424,9 +479,7 @@ def _parse_module_type(path: Path) -> ModuleType:
                 f"{c.where('chain')}: no chain {chain!r}",
                 hint=f"chains: {', '.join(chains) or 'none'}",
             )
-        components.append(
-            ComponentDef(ckind, c.name("name", ckind), link, chain, dict(c.get("params", dict, {})))
-        )
+        components.append(ComponentDef(ckind, c.name("name", ckind), link, chain, params))
     names = [c.name for c in components]
     for name in names:
         if names.count(name) > 1:
@@ -434,7 +487,143 @@ def _parse_module_type(path: Path) -> ModuleType:
                 f"{path}: field components: two components are named {name!r}",
                 hint="give each a distinct name",
             )
-    return _replace(module, components=tuple(components))
+    module = _replace(module, components=tuple(components))
+    _check_health(module, module.health, f"{path}: field health")
+    _check_extensions(module, module.injections, module.overrides, str(path))
+    return module
+
+
+def _check_health(module: ModuleType, health: dict[str, Any], where: str) -> None:
+    """The ``[health]`` table, as each kind the module runs that reads it checks it."""
+    for kind in {c.kind for c in module.components}:
+        if "thresholds" in kinds.get(kind).module_facts:
+            _check_kind_params(kind, {"thresholds": health}, where)
+
+
+def _confined(folder: Path, relative: str, where: str) -> Path:
+    """``folder / relative``, refused unless it stays inside ``folder`` (no ``../../etc``)."""
+    resolved = (folder / relative).resolve()
+    if not resolved.is_relative_to(folder.resolve()):
+        raise InputError(
+            f"{where} is {relative!r}: it leaves {folder}",
+            hint="keep a module's files in its folder (a path relative to it, without ..)",
+        )
+    return resolved
+
+
+def _check_meshes(urdf_path: Path, folder: Path, where: str) -> None:
+    """Every mesh a module URDF names stays inside the module's folder."""
+    text = urdf_path.read_text(encoding="utf-8", errors="replace")
+    inside = folder.resolve()
+    for filename in re.findall(r"<mesh\b[^>]*\bfilename\s*=\s*[\"']([^\"']*)[\"']", text):
+        name = filename.removeprefix("file://")
+        remote = "://" in name or name.startswith("/")
+        if remote or not (urdf_path.parent / name).resolve().is_relative_to(inside):
+            raise InputError(
+                f"{where}: {urdf_path} names mesh {filename!r}, which leaves {folder}",
+                hint="give meshes as paths relative to the URDF, inside the module's folder",
+            )
+
+
+def _backend(name: str, where: str) -> Any:
+    from components.motors.options import MotorOptionsError, backend_info, backend_names
+
+    try:
+        return backend_info(name)
+    except MotorOptionsError:
+        raise InputError(
+            f"{where} is {name!r}: no such motor backend",
+            hint=f"use one of {', '.join(backend_names())}",
+        ) from None
+
+
+def _check_bus_options(backend: Any, bus: dict[str, Any], where: str) -> None:
+    """The bus's options (and bitrate/baudrate) against the backend's typed options."""
+    from components.motors.options import MotorOptionsError
+
+    options = bus.get("options", {})
+    if not isinstance(options, dict):
+        raise InputError(f"{where} is {options!r}", hint="it must be a table")
+    try:
+        backend.parse_options(options, bitrate=bus.get("bitrate"), baudrate=bus.get("baudrate"))
+    except MotorOptionsError as exc:
+        raise InputError(f"{where}: {exc}", hint="fix or remove that option") from None
+
+
+def _motor_id(backend: Any, fields: _Fields, key: str) -> int | None:
+    """An optional motor id, inside the bus kind's id range."""
+    value = fields.get(key, int, None, "a motor id")
+    if value is not None and value not in backend.motor_ids:
+        ids = backend.motor_ids
+        raise InputError(
+            f"{fields.where(key)} is {value}: a {backend.name} motor id is "
+            f"{ids.start}..{ids.stop - 1}",
+            hint="use the id the motor is configured with",
+        )
+    return value
+
+
+def _check_unique_ids(ids: dict[str, int | None], where: str) -> None:
+    """No two motors of one bus share an id (they would both answer, or fight)."""
+    seen: dict[int, str] = {}
+    for joint, motor_id in ids.items():
+        if motor_id is None:
+            continue
+        if motor_id in seen:
+            raise InputError(
+                f"{where}: joints {seen[motor_id]} and {joint} both use motor id {motor_id}",
+                hint="give each motor on a bus its own id",
+            )
+        seen[motor_id] = joint
+
+
+def _check_kind_params(kind: str, params: dict[str, Any], where: str) -> None:
+    """A component's parameters against its kind's entry (names, types, ranges)."""
+    try:
+        kinds.check_params(kinds.get(kind), params)
+    except kinds.KindError as exc:
+        raise InputError(f"{where}: {exc}", hint="fix or remove that parameter") from None
+
+
+def _check_extensions(module: ModuleType, injections: Any, overrides: Any, source: str) -> None:
+    """Each injection and override targets a component the module runs, exists for that
+    kind, and its parameters type-check; joint parameters name the module's joints."""
+    from components.executor import registry
+
+    run = {c.kind for c in module.components}
+    for field_name, what, entries in (
+        ("injections", "injection", injections),
+        ("overrides", "override", overrides),
+    ):
+        for i, entry in enumerate(entries):
+            where = f"{source}: field {field_name}[{i}]"
+            target = kinds.extension_target(entry)
+            if target not in run:
+                raise InputError(
+                    f"{where}: {what} {entry.get('name')!r} targets {target!r}, which module "
+                    f"type {module.key} does not run",
+                    hint=f"its components: {', '.join(sorted(run)) or 'none'}",
+                )
+            spec = {k: v for k, v in entry.items() if k != "component"}
+            try:
+                registry.check(what, target, spec)
+            except registry.RegistryError as exc:
+                raise InputError(f"{where}.name: {exc}", hint=f"see the {what}s known") from None
+        _check_joint_params(module, entries, f"{source}: field {field_name}")
+
+
+def merged_bus(module: ModuleType, unit: Unit) -> BusPlan:
+    """A unit's bus: the module type's, with the unit's values (channel...) over it."""
+    bus = {k: v for k, v in module.bus.items() if k != "options"}
+    bus.update({k: v for k, v in unit.bus.items() if k != "options"})
+    options = {**module.bus.get("options", {}), **unit.bus.get("options", {})}
+    return BusPlan(
+        kind=bus["kind"],
+        channel=bus["channel"],
+        bitrate=bus.get("bitrate"),
+        baudrate=bus.get("baudrate"),
+        options=options,
+    )
 
 
 def _replace(module: ModuleType, **changes: Any) -> ModuleType:
@@ -638,20 +827,32 @@ def _parse_template(path: Path) -> Template:
         name = s.name("name")
         if name in slot_names or any(st.name == name for st in stations):
             raise InputError(f"{s.where('name')}: {name!r} is already a slot or station name")
-        host = s.get("host", str, what="a hostname")
+        host = _host(s, "host")
         counts = s.sub("components", {})
         params = s.sub("params", {})
+        station_kinds = [k.name for k in kinds.placed(kinds.Placement.STATION)]
         entries = []
         for kind in counts.table:
-            if kind not in COMPONENT_KINDS:
+            if kind not in station_kinds:
                 raise InputError(
-                    f"{counts.where(kind)}: unknown component kind",
-                    hint=f"use one of {', '.join(COMPONENT_KINDS)}",
+                    f"{counts.where(kind)}: {kind!r} is not a ground-station component kind",
+                    hint=f"use one of {', '.join(station_kinds)}",
                 )
             count = counts.get(kind, int, what="a count")
-            if count < 0:
-                raise InputError(f"{counts.where(kind)} is {count}", hint="counts are 0 or more")
-            entries.append((kind, count, dict(params.get(kind, dict, {}))))
+            if not 0 <= count <= kinds.MAX_PER_STATION:
+                raise InputError(
+                    f"{counts.where(kind)} is {count}",
+                    hint=f"a station runs 0 to {kinds.MAX_PER_STATION} components of one kind",
+                )
+            kind_params = dict(params.get(kind, dict, {}))
+            _check_kind_params(kind, kind_params, params.where(kind))
+            entries.append((kind, count, kind_params))
+        for kind in params.table:
+            if kind not in counts.table:
+                raise InputError(
+                    f"{params.where(kind)}: the station runs no {kind}",
+                    hint=f"add {kind} to the station's components, or remove its params",
+                )
         stations.append(StationDef(name, host, tuple(entries)))
 
     return Template(
@@ -722,6 +923,25 @@ class Unit:
     health: dict[str, Any]
 
 
+def _host(fields: _Fields, key: str) -> str:
+    """A host name field: letters, digits, - and dots, as RFC 1123 allows."""
+    host = fields.get(key, str, what="a hostname")
+    if not HOST_RE.match(host):
+        raise InputError(
+            f"{fields.where(key)} is {host!r}: not a valid host name",
+            hint="use letters, digits, - and . (e.g. hl-limb-03), as `hostname` prints it",
+        )
+    return host
+
+
+def units_searched() -> str:
+    """Where units are looked for, and how to look elsewhere (for error hints)."""
+    return (
+        f"units are read from {calibration_dir()} (set MSCTL_CALIBRATION_DIR to read another "
+        "folder, or `pip install -e .` in a checkout)"
+    )
+
+
 def unit_serials() -> list[str]:
     """Every unit serial with a calibration file, sorted."""
     return sorted(p.stem for p in calibration_dir().glob("*.toml"))
@@ -742,7 +962,7 @@ def load_unit(serial: str) -> Unit:
     if not unit_exists(serial):
         raise NotFoundError(
             f"unknown unit {serial!r}: no {calibration_dir() / (serial + '.toml')}",
-            hint="see `msctl assemble --list` for the units",
+            hint=f"see `msctl assemble --list` for the units; {units_searched()}",
         )
     unit = _cached("unit", calibration_dir() / f"{serial}.toml", _parse_unit)
     if (
@@ -768,7 +988,7 @@ def _parse_unit(path: Path) -> Unit:
         if direction not in (1, -1):
             raise InputError(f"{j.where('direction')} is {direction}", hint="use 1 or -1")
         joints[name] = JointCalibrationDef(
-            motor_id=j.get("motor_id", int, None),
+            motor_id=j.get("motor_id", int, None, "a motor id"),
             zero_offset=j.number("zero_offset", 0.0),
             direction=direction,
             lower=j.number("lower", None),
@@ -778,7 +998,7 @@ def _parse_unit(path: Path) -> Unit:
         serial=path.stem,
         path=path,
         module_type=f.get("module_type", str, what="a module type name"),
-        host=f.get("host", str, what="the onboard computer's hostname"),
+        host=_host(f, "host"),
         bus=dict(bus.table),
         joints=joints,
         injections=tuple(f.entries("injections", "injection")),
@@ -810,6 +1030,20 @@ def check_unit(unit: Unit, module: ModuleType) -> None:
                 f"[{jd.lower}, {jd.upper}]",
                 hint="a unit may only narrow a joint's range",
             )
+        # A zero offset is a small correction: within two travel spans (half a turn at least
+        # for a rotating joint), never the 100 rad of a typo.
+        span = upper - lower if math.isfinite(upper - lower) else math.inf
+        reach = min(2 * span, 2 * math.pi) if jd.type == "prismatic" else max(2 * span, math.pi)
+        if jd.type == "continuous":
+            reach = math.pi
+        if abs(cal.zero_offset) > reach:
+            raise InputError(
+                f"{where}.zero_offset is {cal.zero_offset}: outside the joint's reach "
+                f"(±{reach:g} for its travel [{lower:g}, {upper:g}])",
+                hint="a zero offset is the raw position of calibrated zero: measure it again",
+            )
+    backend = _backend(module.bus["kind"], f"{module.path}: field bus.kind")
+    ids: dict[str, int | None] = {}
     for name, jd in module.joints.items():
         cal = unit.joints.get(name)
         if jd.actuated and jd.motor_id is None and (cal is None or cal.motor_id is None):
@@ -817,5 +1051,23 @@ def check_unit(unit: Unit, module: ModuleType) -> None:
                 f"{unit.path}: field joints.{name}.motor_id is missing",
                 hint=f"module type {module.key} has no default id for {name}: add motor_id",
             )
-    _check_joint_params(module, unit.overrides, f"{unit.path}: field overrides")
-    _check_joint_params(module, unit.injections, f"{unit.path}: field injections")
+        motor_id = cal.motor_id if cal and cal.motor_id is not None else jd.motor_id
+        if jd.actuated:
+            ids[name] = motor_id
+        if motor_id is not None and motor_id not in backend.motor_ids:
+            r = backend.motor_ids
+            raise InputError(
+                f"{unit.path}: field joints.{name}.motor_id is {motor_id}: a {backend.name} "
+                f"motor id is {r.start}..{r.stop - 1}",
+                hint="use the id the motor is configured with",
+            )
+    _check_unique_ids(ids, f"{unit.path}: field joints (with {module.path}'s defaults)")
+    bus = merged_bus(module, unit)
+    try:
+        backend.check_channel(bus.channel)
+    except ValueError as exc:
+        raise InputError(f"{unit.path}: field bus.channel: {exc}") from None
+    merged = {**module.bus, **unit.bus, "options": bus.options}
+    _check_bus_options(backend, merged, f"{unit.path}: field bus.options")
+    _check_health(module, {**module.health, **unit.health}, f"{unit.path}: field health")
+    _check_extensions(module, unit.injections, unit.overrides, str(unit.path))

@@ -15,9 +15,24 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
-from components.assembly import MJCF_NAME, SCHEMA_VERSION, URDF_NAME
+from components import kinds
+from components.assembly import (
+    SCHEMA_VERSION,
+    Artifacts,
+    ChainPlan,
+    ComponentPlan,
+    Connection,
+    HostRole,
+    JointPlan,
+    LockDocument,
+    ModulePlan,
+    RobotPlacement,
+    Sources,
+    to_builtins,
+)
 from msctl.assembler import data
 from msctl.assembler import transforms as tf
 from msctl.assembler.data import ModuleType, Template, Unit
@@ -35,14 +50,19 @@ class Resolution:
     Attributes:
         template: The checked template.
         units: Slot -> the unit in it.
-        document: The lock document (JSON-ready).
+        lock: The lock document.
         urdf: The composed URDF.
     """
 
     template: Template
     units: dict[str, Unit]
-    document: dict[str, Any]
+    lock: LockDocument
     urdf: str
+
+    @cached_property
+    def document(self) -> dict[str, Any]:
+        """The lock as plain JSON-ready data."""
+        return to_builtins(self.lock)
 
     def mjcf(self) -> str:
         """The MuJoCo model (imports mujoco: ~0.1 s the first time)."""
@@ -72,6 +92,22 @@ def parse_uses(uses: Sequence[str]) -> dict[str, str]:
             )
         chosen[slot] = serial
     return chosen
+
+
+def off_defaults(template_name: str, units: Mapping[str, str]) -> list[tuple[str, str, str]]:
+    """``(slot, unit, default)`` for each slot whose unit is not the template's default.
+
+    Empty when the template can no longer be read (the caller has a lock to go by).
+    """
+    try:
+        template = data.load_template(template_name)
+    except (InputError, NotFoundError):
+        return []
+    return [
+        (slot.name, units[slot.name], slot.default)
+        for slot in template.slots
+        if slot.default is not None and units.get(slot.name, slot.default) != slot.default
+    ]
 
 
 def fitting_units(template: Template, slot: str) -> list[str]:
@@ -113,7 +149,8 @@ def choose_units(
             raise NotFoundError(
                 f"--use {slot}={serial}: unknown unit {serial!r} (no "
                 f"{data.calibration_dir() / (serial + '.toml')})",
-                hint=f"units that fit {slot}: {', '.join(fitting) or 'none'}",
+                hint=f"units that fit {slot}: {', '.join(fitting) or 'none'}; "
+                f"{data.units_searched()}",
             )
         _check_fits(template, slot, data.load_unit(serial), f"--use {slot}={serial}")
         chosen[slot] = serial
@@ -246,19 +283,42 @@ def _prefix_params(entry: Mapping[str, Any], p: str) -> dict[str, Any]:
     return out
 
 
-def _split_targets(entries: Sequence[Mapping[str, Any]], p: str) -> dict[str, list[dict]]:
-    """Group ``{"name", "component"?, ...}`` entries by the component kind they apply to."""
-    grouped: dict[str, list[dict]] = {}
+def split_targets(entries: Sequence[Mapping[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """Group ``{"name", "component"?, ...}`` entries by the component kind they apply to
+    (the joint manager when ``component`` is absent)."""
+    grouped: dict[str, list[dict[str, Any]]] = {}
     for entry in entries:
-        target = entry.get("component", "joint_manager")
+        target = kinds.extension_target(entry)
         body = {k: v for k, v in entry.items() if k != "component"}
-        grouped.setdefault(target, []).append(_prefix_params(body, p))
+        grouped.setdefault(target, []).append(body)
     return grouped
 
 
+def _joint_plan(p: str, jd: data.JointDef, cal: data.JointCalibrationDef | None) -> JointPlan:
+    lower = jd.lower if cal is None or cal.lower is None else cal.lower
+    upper = jd.upper if cal is None or cal.upper is None else cal.upper
+    return JointPlan(
+        name=p + jd.name,
+        raw_name=jd.name,
+        type=jd.type,  # type: ignore[arg-type]
+        lower=_limit(lower),
+        upper=_limit(upper),
+        max_velocity=jd.max_velocity,
+        max_effort=jd.max_effort,
+        zero_offset=cal.zero_offset if cal else 0.0,
+        direction=cal.direction if cal else 1,  # type: ignore[arg-type]
+        motor_id=cal.motor_id if cal and cal.motor_id is not None else jd.motor_id,
+        motor_model=jd.motor,
+        motor_params=dict(jd.motor_params),
+        actuated=jd.actuated,
+        control=jd.control,  # type: ignore[arg-type]
+        armature=jd.armature,
+    )
+
+
 def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
-    modules: list[dict[str, Any]] = []
-    components: list[dict[str, Any]] = []
+    modules: list[ModulePlan] = []
+    components: list[ComponentPlan] = []
     parts: list[ModulePart] = []
     types: dict[str, ModuleType] = {}
     for slot_def in template.slots:
@@ -267,77 +327,49 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
         module = template.module_types[unit.module_type]
         types[slot] = module
         p = slot + "_"
-        joints = []
-        limits = {}
-        for jd in module.joints.values():
-            cal = unit.joints.get(jd.name)
-            lower = jd.lower if cal is None or cal.lower is None else cal.lower
-            upper = jd.upper if cal is None or cal.upper is None else cal.upper
-            limits[jd.name] = (lower, upper, jd.max_effort, jd.max_velocity)
-            joints.append(
-                {
-                    "name": p + jd.name,
-                    "raw_name": jd.name,
-                    "type": jd.type,
-                    "lower": _limit(lower),
-                    "upper": _limit(upper),
-                    "max_velocity": jd.max_velocity,
-                    "max_effort": jd.max_effort,
-                    "zero_offset": cal.zero_offset if cal else 0.0,
-                    "direction": cal.direction if cal else 1,
-                    "motor_id": cal.motor_id if cal and cal.motor_id is not None else jd.motor_id,
-                    "motor_model": jd.motor,
-                    "motor_params": jd.motor_params,
-                    "actuated": jd.actuated,
-                    "control": jd.control,
-                    "armature": jd.armature,
-                }
-            )
-        bus = {k: v for k, v in module.bus.items() if k != "options"}
-        bus.update({k: v for k, v in unit.bus.items() if k != "options"})
-        bus["options"] = {**module.bus.get("options", {}), **unit.bus.get("options", {})}
-        injections = _split_targets([*module.injections, *unit.injections], p)
-        overrides = _split_targets([*module.overrides, *unit.overrides], p)
-        health = {**module.health, **unit.health}
-        chains = [
-            {
-                "name": name,
-                "base_link": p + base,
-                "tip_link": p + tip,
-                "joints": [p + j for j in js],
-            }
-            for name, (base, tip, js) in module.chains.items()
-        ]
-        modules.append(
-            {
-                "slot": slot,
-                "namespace": f"/{slot}",
-                "module_type": module.key,
-                "family": module.family,
-                "kind": module.kind,
-                "revision": module.revision,
-                "unit": unit.serial,
-                "host": unit.host,
-                "bus": bus,
-                "root_link": p + module.urdf.root_link,
-                "joints": joints,
-                "chains": chains,
-                "interesting_links": [p + link for link in module.interesting_links],
-                "connectors": {c: connector_link(slot, c) for c in module.connectors},
-                "injections": injections.get("joint_manager", []),
-                "overrides": overrides.get("joint_manager", []),
-                "health": health,
-            }
+        joints = tuple(
+            _joint_plan(p, jd, unit.joints.get(jd.name)) for jd in module.joints.values()
         )
-        actuated = [p + j.name for j in module.joints.values() if j.actuated]
+        limits = {
+            j.raw_name: (j.spec.lower, j.spec.upper, j.max_effort, j.max_velocity) for j in joints
+        }
+        bus = data.merged_bus(module, unit)
+        injections = split_targets([*module.injections, *unit.injections])
+        overrides = split_targets([*module.overrides, *unit.overrides])
+        health = {**module.health, **unit.health}
+        actuated = [j.name for j in joints if j.actuated]
+        modules.append(
+            ModulePlan(
+                slot=slot,
+                namespace=f"/{slot}",
+                module_type=module.key,
+                family=module.family,
+                kind=module.kind,
+                revision=module.revision,
+                unit=unit.serial,
+                host=unit.host,
+                bus=bus,
+                joints=joints,
+                chains=tuple(
+                    ChainPlan(name, p + base, p + tip, tuple(p + j for j in js))
+                    for name, (base, tip, js) in module.chains.items()
+                ),
+                interesting_links=tuple(p + link for link in module.interesting_links),
+                health=health,
+                root_link=p + module.urdf.root_link,
+                connectors={c: connector_link(slot, c) for c in module.connectors},
+                calibration_file=str(unit.path),
+            )
+        )
+        facts: dict[str, Any] = {
+            "joints": actuated,
+            "bus": bus.kind,
+            "channel": bus.channel,
+            "thresholds": health,
+        }
         for c in module.components:
-            params: dict[str, Any] = {}
-            if c.kind in ("motor_interface", "joint_manager", "health_monitor"):
-                params["joints"] = actuated
-            if c.kind == "motor_interface":
-                params.update(bus=bus["kind"], channel=bus["channel"])
-            if c.kind == "health_monitor":
-                params["thresholds"] = health
+            kind = kinds.get(c.kind)
+            params: dict[str, Any] = {fact: facts[fact] for fact in kind.module_facts}
             if c.link is not None:
                 params["link"] = p + c.link
             if c.chain is not None:
@@ -346,38 +378,39 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
                     chain=c.chain, base_link=p + base, tip_link=p + tip, joints=[p + j for j in js]
                 )
             params.update(_prefix_params(c.params, p))
-            if c.kind in injections:
-                params["injections"] = injections[c.kind]
-            if c.kind in overrides:
-                params["overrides"] = overrides[c.kind]
+            for key, entries in (("injections", injections), ("overrides", overrides)):
+                if c.kind in entries:
+                    params[key] = [_prefix_params(e, p) for e in entries[c.kind]]
             components.append(
-                {
-                    "name": f"{slot}/{c.name}",
-                    "kind": c.kind,
-                    "host": unit.host,
-                    "module": slot,
-                    "namespace": f"/{slot}",
-                    "params": params,
-                }
+                ComponentPlan(
+                    name=f"{slot}/{c.name}",
+                    kind=c.kind,
+                    host=unit.host,
+                    module=slot,
+                    namespace=f"/{slot}",
+                    params=params,
+                )
             )
         parts.append(ModulePart(slot, module.urdf, limits, dict(module.connectors)))
 
     for station in template.stations:
-        for kind, count, params in station.components:
+        for kind_name, count, params in station.components:
             for i in range(count):
-                name = f"{station.name}/{kind}" if count == 1 else f"{station.name}/{kind}_{i + 1}"
                 components.append(
-                    {
-                        "name": name,
-                        "kind": kind,
-                        "host": station.host,
-                        "module": None,
-                        "namespace": f"/{station.name}",
-                        "params": dict(params),
-                    }
+                    ComponentPlan(
+                        name=f"{station.name}/{kind_name}"
+                        if count == 1
+                        else f"{station.name}/{kind_name}_{i + 1}",
+                        kind=kind_name,
+                        host=station.host,
+                        module=None,
+                        namespace=f"/{station.name}",
+                        params=dict(params),
+                    )
                 )
 
-    mounts, connections = [], []
+    mounts: list[Mount] = []
+    connections: list[Connection] = []
     for c in template.connections:
         child = types[c.child]
         link, xyz, rpy = child.connectors[c.child_connector]
@@ -395,68 +428,56 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
             )
         )
         connections.append(
-            {
-                "parent": f"{c.parent}.{c.parent_connector}",
-                "child": f"{c.child}.{c.child_connector}",
-                "joint": joint,
-                "angle": c.angle,
-            }
+            Connection(
+                parent=f"{c.parent}.{c.parent_connector}",
+                child=f"{c.child}.{c.child_connector}",
+                joint=joint,
+                angle=c.angle,
+            )
         )
     roots = template.roots
     robots = []
     for root in roots:
         slot_def = template.slot(root)
         root_link = f"{root}_{types[root].urdf.root_link}"
-        robots.append(
-            {
-                "root": root,
-                "root_link": root_link,
-                "xyz": list(slot_def.place[0]),
-                "rpy": list(slot_def.place[1]),
-            }
-        )
+        robots.append(RobotPlacement(root, root_link, *slot_def.place))
         if len(roots) > 1:  # several robots: hang each from a world link at its place
             mounts.append(Mount(f"{root}_place", "world", root_link, *slot_def.place))
 
-    hosts: list[str] = []
-    host_plans: dict[str, dict[str, Any]] = {}
+    host_plans: dict[str, HostRole] = {}
     for comp in components:
-        if comp["host"] not in host_plans:
-            hosts.append(comp["host"])
-            host_plans[comp["host"]] = {
-                "role": "robot" if comp["module"] else "ground",
-                "modules": [],
-                "components": [],
-            }
-        plan = host_plans[comp["host"]]
-        plan["components"].append(comp["name"])
-        if comp["module"] and comp["module"] not in plan["modules"]:
-            plan["modules"].append(comp["module"])
-            plan["role"] = "robot"
+        plan = host_plans.setdefault(comp.host, HostRole("ground"))
+        plan.components.append(comp.name)
+        if comp.module and comp.module not in plan.modules:
+            plan.modules.append(comp.module)
+    host_plans = {
+        host: HostRole("robot" if plan.modules else "ground", plan.modules, plan.components)
+        for host, plan in host_plans.items()
+    }
     counts: dict[str, int] = {}
     for comp in components:
-        counts[comp["kind"]] = counts.get(comp["kind"], 0) + 1
+        counts[comp.kind] = counts.get(comp.kind, 0) + 1
 
-    document = {
-        "schema": SCHEMA_VERSION,
-        "template": template.name,
-        "description": template.description,
-        "mobile": template.mobile,
-        "units": {slot: units[slot].serial for slot in units},
-        "modules": modules,
-        "components": components,
-        "hosts": hosts,
-        "host_plans": host_plans,
-        "component_counts": counts,
-        "root_links": [r["root_link"] for r in robots],
-        "robots": robots,
-        "connections": connections,
-        "artifacts": {"urdf": URDF_NAME, "mjcf": MJCF_NAME},
-        "sources": {
-            "template": str(template.path),
-            "module_types": {k: str(m.path) for k, m in template.module_types.items()},
-            "units": {u.serial: str(u.path) for u in units.values()},
-        },
-    }
+    lock = LockDocument(
+        schema=SCHEMA_VERSION,
+        template=template.name,
+        description=template.description,
+        mobile=template.mobile,
+        units={slot: units[slot].serial for slot in units},
+        modules=tuple(modules),
+        components=tuple(components),
+        hosts=tuple(host_plans),
+        host_plans=host_plans,
+        component_counts=counts,
+        root_links=tuple(r.root_link for r in robots),
+        robots=tuple(robots),
+        connections=tuple(connections),
+        artifacts=Artifacts(),
+        sources=Sources(
+            template=str(template.path),
+            module_types={k: str(m.path) for k, m in template.module_types.items()},
+            units={u.serial: str(u.path) for u in units.values()},
+        ),
+    )
     urdf = compose(template.name, parts, mounts)
-    return Resolution(template=template, units=dict(units), document=document, urdf=urdf)
+    return Resolution(template=template, units=dict(units), lock=lock, urdf=urdf)

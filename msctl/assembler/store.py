@@ -8,7 +8,6 @@ switch leaves the old one untouched.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import tempfile
@@ -17,21 +16,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME
+from components.assembly import LOCK_NAME, MJCF_NAME, URDF_NAME, encode_lock
 
 #: Leftover staging directories older than this are removed (a crashed run's debris).
 _STALE_SECONDS = 300.0
 
 
-def lock_text(document: Mapping[str, Any]) -> str:
-    """The lock file's text: stable key order, so two resolutions diff cleanly."""
-    return json.dumps(document, indent=2, allow_nan=False) + "\n"
-
-
 def write_resolution(target: Path, resolution: Any, mjcf: bool = True) -> Path:
     """Atomically write a resolution's lock file and URDF (and MJCF, unless ``mjcf`` is
     False: generating it costs MuJoCo's import) into directory ``target``."""
-    files = {URDF_NAME: resolution.urdf, LOCK_NAME: lock_text(resolution.document)}
+    files = {URDF_NAME: resolution.urdf, LOCK_NAME: encode_lock(resolution.lock)}
     if mjcf:
         files[MJCF_NAME] = resolution.mjcf()
     return write_assembly(target, files)

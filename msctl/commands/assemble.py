@@ -44,6 +44,11 @@ def assemble(
         metavar="SLOT=UNIT",
         help="Put unit UNIT in slot SLOT (repeatable). Every other slot keeps its previous unit.",
     ),
+    defaults: bool = typer.Option(
+        False,
+        "--defaults",
+        help="Put every slot not named by --use back on the template's default unit.",
+    ),
     list_: bool = typer.Option(
         False, "--list", "-l", help="List templates, module types and units, with what fits where."
     ),
@@ -57,6 +62,7 @@ def assemble(
     \b
     msctl assemble dragon                       resolve (defaults, or the previous units)
     msctl assemble dragon --use limb1=hlv1-limb-04   swap one unit, keep the others
+    msctl assemble dragon --defaults            every slot back on the template's default
     msctl assemble --list                       templates, module types, units
     msctl assemble show                         the current resolution and its host plan
     msctl assemble urdf -o dragon.urdf          the composed URDF (mjcf: the MuJoCo model)
@@ -75,6 +81,7 @@ def assemble(
         )
     if target in ACTIONS:
         _refuse(bool(use), f"--use applies when resolving a template, not with {target}")
+        _refuse(defaults, f"--defaults applies when resolving a template, not with {target}")
         if target == "show":
             _refuse(output is not None, "-o applies to urdf and mjcf")
             _show(json_output)
@@ -83,7 +90,7 @@ def assemble(
             _artifact(target, output)
         return
     _refuse(output is not None, "-o applies to `msctl assemble urdf` and `mjcf`")
-    _resolve(target, use or [], json_output)
+    _resolve(target, use or [], json_output, defaults)
 
 
 def _refuse(condition: bool, message: str) -> None:
@@ -131,8 +138,15 @@ def _picker():
     return choose
 
 
-def resolve_and_write(template: str, uses: list[str]) -> tuple[dict[str, Any], Path, list[str]]:
+def resolve_and_write(
+    template: str, uses: list[str], defaults: bool = False
+) -> tuple[dict[str, Any], Path, list[str]]:
     """Resolve ``template`` (with ``--use`` choices) and write the assembly atomically.
+
+    Args:
+        template: The template to resolve.
+        uses: ``SLOT=UNIT`` choices.
+        defaults: Ignore the previous resolution: every other slot takes its default unit.
 
     Returns:
         The lock document, the directory written, and the slots whose unit changed.
@@ -144,19 +158,39 @@ def resolve_and_write(template: str, uses: list[str]) -> tuple[dict[str, Any], P
     if template in ACTIONS:  # pragma: no cover - dispatched before
         raise InputError(f"{template!r} is reserved")
     previous = _previous_units()
-    resolution = resolve(template, parse_uses(uses), previous, _picker())
+    chosen = parse_uses(uses)
+    resolution = resolve(template, chosen, {} if defaults else previous, _picker())
     target = write_resolution(assembly_dir(), resolution)
     document = resolution.document
     changed = [s for s, u in document["units"].items() if previous.get(s) not in (None, u)]
+    kept = {s: u for s, u in document["units"].items() if s not in chosen and previous.get(s) == u}
+    note_off_defaults(template, kept)
     return document, target, changed
 
 
-def _resolve(template: str, uses: list[str], json_output: bool) -> None:
+def note_off_defaults(template: str, units: dict[str, str]) -> None:
+    """Say which of ``units`` (kept from before, not chosen now) are not the template's
+    defaults: a unit swapped in for one experiment stays until told otherwise."""
+    from msctl.assembler.resolve import off_defaults
+    from msctl.console import err
+
+    differ = off_defaults(template, units)
+    if not differ:
+        return
+    slots = ", ".join(f"{slot}={unit} (default {default})" for slot, unit, default in differ)
+    err.print(
+        f"[yellow]note:[/] kept from the previous resolution, not the defaults: {slots}; "
+        f"`msctl assemble {template} --defaults` puts them back",
+        highlight=False,
+    )
+
+
+def _resolve(template: str, uses: list[str], json_output: bool, defaults: bool = False) -> None:
     from components.assembly import LOCK_NAME
     from msctl.console import err, print_json
 
     start = time.perf_counter()
-    document, target, changed = resolve_and_write(template, uses)
+    document, target, changed = resolve_and_write(template, uses, defaults)
     elapsed = (time.perf_counter() - start) * 1000
     if json_output:
         print_json(document)
@@ -198,10 +232,16 @@ def _print_summary(document: dict[str, Any]) -> None:
     )
     for column in ("slot", "unit", "type", "host", "bus", "joints"):
         units.add_column(column)
+    # Overrides now live in the parameters of the component they change (the joint manager).
+    overrides_of: dict[str, list[str]] = {}
+    for c in document["components"]:
+        if c["module"] is not None:
+            names = [o["name"] for o in c["params"].get("overrides", ())]
+            overrides_of.setdefault(c["module"], []).extend(names)
     for m in document["modules"]:
         bus = m["bus"]
         rate = bus.get("bitrate") or bus.get("baudrate")
-        overrides = ", ".join(o["name"] for o in m["overrides"])
+        overrides = ", ".join(overrides_of.get(m["slot"], ()))
         units.add_row(
             m["slot"],
             m["unit"],

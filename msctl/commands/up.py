@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import typer
@@ -18,18 +19,29 @@ COMMAND_SETTINGS = {"help": "Start this computer's part of the assembly (simulat
 _DAEMON_ENV = "MSCTL_UP_DAEMON"
 
 
-def load_resolved(template: str | None, uses: list[str]) -> Any:
-    """Resolve ``template`` first when given, then load the resolved assembly."""
+def load_resolved(template: str | None, uses: list[str], defaults: bool = False) -> Any:
+    """Resolve ``template`` first when given, then load the resolved assembly.
+
+    Without a template, say which units of the resolution in use are not the defaults (when
+    resolving, the assembler says it).
+    """
     from components.assembly import AssemblyError, load_assembly
+    from msctl.commands.assemble import note_off_defaults, resolve_and_write
 
     if template:
-        from msctl.commands.assemble import resolve_and_write
-
-        resolve_and_write(template, uses)
+        resolve_and_write(template, uses, defaults)
+    elif uses or defaults:
+        raise InputError(
+            "--use and --defaults apply when resolving: name the TEMPLATE too",
+            hint="e.g. `msctl up dragon --use limb1=hlv1-limb-03`",
+        )
     try:
-        return load_assembly()
+        assembly = load_assembly()
     except AssemblyError as exc:
         raise NotFoundError(str(exc), hint="resolve one with `msctl assemble dragon`") from exc
+    if not template:
+        note_off_defaults(assembly.template, dict(assembly.units))
+    return assembly
 
 
 def command(
@@ -40,6 +52,9 @@ def command(
     host: str = typer.Option(None, "--host", help="Act as this computer (default MSCTL_HOST)."),
     all_hosts: bool = typer.Option(False, "--all", help="Start every host's part via agents."),
     use: list[str] = typer.Option(None, "--use", help="SLOT=UNIT when resolving TEMPLATE."),
+    defaults: bool = typer.Option(
+        False, "--defaults", help="When resolving TEMPLATE: every other slot on its default unit."
+    ),
     speed: float = typer.Option(1.0, "--speed", help="Simulation speed factor."),
     timeout: float = typer.Option(60.0, "--timeout", help="Seconds to wait for all-healthy."),
 ) -> None:
@@ -52,7 +67,7 @@ def command(
     if all_hosts:
         from msctl.launcher.remote import up_all
 
-        up_all(load_resolved(template, use or []), sim, speed, timeout)
+        up_all(load_resolved(template, use or [], defaults), sim, speed, timeout)
         return
     previous = state.read_state()
     if state.supervisor_alive(previous) and os.environ.get(_DAEMON_ENV) != "1":
@@ -61,7 +76,7 @@ def command(
             f"(supervisor pid {previous.get('supervisor_pid')})",
             hint="see it with `msctl ps`, stop it with `msctl down`",
         )
-    assembly = load_resolved(template, use or [])
+    assembly = load_resolved(template, use or [], defaults)
     host = host or this_host()
     if os.environ.get(_DAEMON_ENV) != "1":
         _refuse_if_agent_serves(host)
@@ -186,17 +201,37 @@ def _print_events(launch: Any) -> None:
 
 
 def _report_failure(launch: Any, what: str) -> None:
+    """Say why the run did not come up, and raise: a FAILED process by its cause alone (once,
+    on the last line); otherwise every component not healthy yet, with its process's log."""
     from msctl.console import err
 
+    failed = [p for p in launch.supervisor.snapshot() if p["state"] == "failed"]
+    if failed:
+        for process in launch.failed():
+            if process.final_exits:
+                continue  # its one line says it all
+            # A crash loop: the lines before the cause (a traceback) are worth seeing, once.
+            context = [
+                line
+                for line in list(process.log.tail)[-8:]
+                if line.strip()
+                and not line.startswith("--- msctl:")
+                and line.strip() not in process.last_error
+            ]
+            for line in context:
+                err.print(f"    {process.name}: {line}", highlight=False, markup=False)
+        raise _failure_error(failed)
     bad = [v for v in launch.components() if v.state != "running"]
+    by_process: dict[str, list[Any]] = {}
     for view in bad:
-        process = launch.supervisor.processes[view.process]
-        why = process.last_error or (
-            "its node never appeared" if not view.node_seen else "it never published"
-        )
-        err.print(
-            f"[red]{view.name}[/] ({view.kind}, process {view.process}): {why}", highlight=False
-        )
+        by_process.setdefault(view.process, []).append(view)
+    for name, views in by_process.items():
+        process = launch.supervisor.processes[name]
+        if process.last_error:
+            err.print(f"[red]process {name}[/]: {process.last_error}", highlight=False)
+        for view in views:
+            why = "its node never appeared" if not view.node_seen else "it never published"
+            err.print(f"[red]{view.name}[/] ({view.kind}, process {name}): {why}", highlight=False)
         for line in list(process.log.tail)[-8:]:
             err.print(f"    {line}", highlight=False, markup=False)
     names = ", ".join(v.name for v in bad[:5])
@@ -204,6 +239,40 @@ def _report_failure(launch: Any, what: str) -> None:
         f"{names} {what}",
         hint=f"logs in {launch.supervisor.log_dir}; see `msctl logs <component>`",
     )
+
+
+def _names(text: str, component: str) -> bool:
+    """Whether ``text`` names ``component`` (``limb1/joint`` is not named by ``limb1/joint2``)."""
+    import re
+
+    return re.search(rf"(?<![\w/]){re.escape(component)}(?![\w/])", text) is not None
+
+
+def _failure_error(failed: list[dict[str, Any]]) -> MsctlError:
+    """The one error naming each FAILED process (rows of a run document's ``processes``), the
+    component its cause names, and the cause; the others of its process are listed first.
+
+    The cause is printed on this line only: a newcomer reads the last line first.
+    """
+    from msctl.console import err
+
+    causes = []
+    for process in failed:
+        components = list(process.get("components") or [])
+        named = [c for c in components if _names(process["last_error"], c)] or components
+        others = [c for c in components if c not in named]
+        if others:
+            err.print(
+                f"[dim]not started with it (process {process['name']}): {', '.join(others)}[/]",
+                highlight=False,
+            )
+        who = f"{', '.join(named)} (process {process['name']})" if named else process["name"]
+        causes.append(f"{who} failed: {process['last_error'] or 'no error printed'}")
+    if len(failed) == 1:
+        where = f"log {failed[0]['log']}; see `msctl logs {failed[0]['name']}`"
+    else:
+        where = f"logs in {Path(failed[0]['log']).parent}; see `msctl logs <component>`"
+    return MsctlError("; ".join(causes), hint=where, exit_code=3)
 
 
 def _print_summary(launch: Any, elapsed: float) -> None:
@@ -260,6 +329,14 @@ def _detach(
     while time.monotonic() < deadline:
         document = state.read_state()
         if daemon.poll() is not None:
+            document = state.read_state() or {}  # its last word, written as it stopped
+            failed = [
+                p
+                for p in document.get("processes", [])
+                if p["state"] == "failed" and document.get("supervisor_pid") == daemon.pid
+            ]
+            if failed:
+                raise _failure_error(failed)
             raise MsctlError(
                 f"the supervisor exited with code {daemon.returncode}",
                 hint=f"see {log_path}",

@@ -38,15 +38,14 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from components import kinds
 from components.assembly import (
-    COMPONENT_KINDS,
     LOCK_NAME,
     ResolvedAssembly,
     from_document,
     load_assembly,
     state_dir,
 )
-from components.build import SIMULATOR_COMPONENT
 from components.comm.session import SessionSettings, open_session
 from msctl.launcher.control import (
     AGENT_SRV,
@@ -110,10 +109,10 @@ def _check_names(assembly: ResolvedAssembly) -> None:
     for component in assembly.components:
         _check_name(component.name, "component name")
         _check_name(component.host, f"host of component {component.name}")
-        if component.kind not in COMPONENT_KINDS:
+        if component.kind not in kinds.registry():
             raise RequestError(
                 f"the assembly sent is refused: component {component.name} has kind "
-                f"{component.kind!r}; known kinds: {', '.join(COMPONENT_KINDS)}"
+                f"{component.kind!r}; known kinds: {', '.join(kinds.names())}"
             )
         if component.module is not None:
             _check_name(component.module, f"module of component {component.name}")
@@ -152,9 +151,22 @@ def check_assembly(document: Mapping[str, Any], host: str) -> ResolvedAssembly:
 
 
 def _same_resolution(sent: Mapping[str, Any], local: Mapping[str, Any]) -> list[str]:
-    """Top-level fields where the two documents differ (``sources`` holds local paths)."""
+    """Top-level fields where the two documents differ (file paths are each computer's own)."""
     local = json.loads(json.dumps(local))  # tuples -> lists, as the sent one went through JSON
-    return sorted(k for k in {*sent, *local} if k != "sources" and sent.get(k) != local.get(k))
+
+    def comparable(document: Mapping[str, Any]) -> dict[str, Any]:
+        out = {k: v for k, v in document.items() if k != "sources"}
+        if isinstance(out.get("modules"), list):
+            out["modules"] = [
+                {k: v for k, v in m.items() if k != "calibration_file"}
+                if isinstance(m, dict)
+                else m
+                for m in out["modules"]
+            ]
+        return out
+
+    sent, local = comparable(sent), comparable(local)
+    return sorted(k for k in {*sent, *local} if sent.get(k) != local.get(k))
 
 
 def plan_part(assembly: ResolvedAssembly, host: str, sim: bool | None) -> HostPlan:
@@ -440,7 +452,8 @@ class Agent:
             )
         plan = plan_part(sent, self.host, sim)
         # The MJCF costs ~0.5 s of MuJoCo: only where the simulated world runs.
-        simulates = any(c.name == SIMULATOR_COMPONENT for c in plan.components)
+        stand_ins = {k.component_name for k in kinds.simulators()}
+        simulates = any(c.name in stand_ins for c in plan.components)
         target = write_resolution(agent_assembly_dir(), resolution, mjcf=simulates)
         return load_assembly(target / LOCK_NAME), plan
 

@@ -18,8 +18,9 @@ import re
 import socket
 from dataclasses import dataclass, field
 
+from components import kinds
 from components.assembly import ResolvedAssembly
-from components.build import KINDS, SIMULATOR_COMPONENT, buildable, node_name
+from components.build import buildable, node_name
 
 #: What a process or component name may look like: it reaches an argument list, so nothing
 #: that could be read as an option, a path or a shell fragment.
@@ -82,13 +83,13 @@ def _qualify(namespace: str, topic: str) -> str:
 
 
 def _run(name: str, kind: str, namespace: str) -> ComponentRun:
-    info = KINDS[kind]
+    output = kinds.get(kind).healthy_output or "diagnostics"
     return ComponentRun(
         name=name,
         kind=kind,
         namespace=namespace,
         node_fqn=_qualify(namespace, node_name(name)),
-        first_output=_qualify(namespace, info.first_output),
+        first_output=_qualify(namespace, output),
     )
 
 
@@ -112,9 +113,9 @@ def plan_host(
     plan = HostPlan(host=host, simulated=simulated, off_robot=off_robot)
     groups: dict[str, list[ComponentRun]] = {}
     for component in planned:
-        if simulated and component.kind == "motor_interface":
+        if simulated and kinds.replaced_in_simulation(component.kind):
             continue  # the simulator stands in for every motor interface
-        if not buildable(component.kind) or component.kind not in KINDS:
+        if not buildable(component.kind):
             plan.not_built.append((component.name, component.kind))
             continue
         # One process per module; a ground station's components, one per role (kind).
@@ -123,9 +124,13 @@ def plan_host(
             _run(component.name, component.kind, component.namespace)
         )
     if runs_simulator:
-        if buildable("simulator"):
-            groups = {"sim": [_run(SIMULATOR_COMPONENT, "simulator", "/sim")], **groups}
-        else:
-            plan.not_built.append((SIMULATOR_COMPONENT, "simulator"))
+        stand_ins: dict[str, list[ComponentRun]] = {}
+        for kind in kinds.simulators():
+            if buildable(kind.name):
+                run = _run(kind.component_name, kind.name, kind.namespace)
+                stand_ins.setdefault(kind.namespace.strip("/"), []).append(run)
+            else:
+                plan.not_built.append((kind.component_name, kind.name))
+        groups = {**stand_ins, **groups}
     plan.processes = [ProcessPlan(name, tuple(runs)) for name, runs in groups.items()]
     return plan

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionSettings, open_session
 from msctl.launcher import state
@@ -25,6 +26,12 @@ from msctl.launcher.supervisor import ManagedProcess, ProcessState, RestartPolic
 from msctl.launcher.watch import HealthWatch
 
 ROUTER_PROCESS = "router"
+
+#: The component worker's exit codes after which a restart would fail the same way
+#: (``components/executor/worker.py``): its process is FAILED at once, with the worker's last
+#: line (``error: cannot build limb1/joint_manager: ...``) as the reason. Any other exit (a
+#: crash, a signal) is restarted with backoff.
+WORKER_FINAL_EXITS = {2: "bad arguments", 3: "a component cannot be built or configured"}
 
 
 def _tcp_refused(endpoint: str, timeout: float) -> bool:
@@ -180,9 +187,14 @@ class Launch:
             argv = [sys.executable, "-m", "components.executor.worker", "--lock", str(lock)]
             for component in process.components:
                 argv += ["--component", component.name]
-            if any(c.kind == "simulator" for c in process.components):
+            if any(kinds.get(c.kind).stands_in_for for c in process.components):
                 argv += ["--speed", repr(self.speed)]
-            self.supervisor.add(process.name, argv, components=[c.name for c in process.components])
+            self.supervisor.add(
+                process.name,
+                argv,
+                components=[c.name for c in process.components],
+                final_exits=WORKER_FINAL_EXITS,
+            )
             self.supervisor.start(process.name)
 
     def _serve_control(self) -> None:
@@ -237,8 +249,8 @@ class Launch:
         """Every process RUNNING (its components seen and publishing)."""
         return all(p.state is ProcessState.RUNNING for p in self.supervisor.processes.values())
 
-    def failed(self) -> list[Any]:
-        """Processes that gave up."""
+    def failed(self) -> list[ManagedProcess]:
+        """Processes that gave up: crashed too often, or exited saying a restart cannot help."""
         return [p for p in self.supervisor.processes.values() if p.state is ProcessState.FAILED]
 
     def run(self, duration: float | None, on_step: Callable[[Launch], None] | None = None) -> None:

@@ -3,7 +3,9 @@
 Each process runs in its own process group (so nothing it starts is orphaned), its output
 is pumped into a per-process log file with rotation (and the last lines kept for error
 messages), and it is restarted with exponential backoff when it dies, up to a maximum in a
-window, after which it is FAILED with the reason. Shutdown is SIGINT, then SIGTERM, then
+window, after which it is FAILED with the reason. A process whose exit code says a restart
+would fail the same way (its ``final_exits``: the component worker's "cannot be built") is
+FAILED at once, with the line that says why. Shutdown is SIGINT, then SIGTERM, then
 SIGKILL to the whole group, with short timeouts: never a 19-second hang.
 """
 
@@ -16,7 +18,7 @@ import subprocess
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -99,13 +101,20 @@ class RotatingLog:
 
 @dataclass
 class ManagedProcess:
-    """One supervised process and its history."""
+    """One supervised process and its history.
+
+    Attributes:
+        final_exits: Exit codes by which the program says a restart would fail the same way
+            (a configuration or build error, bad arguments), each with what it means: such an
+            exit is FAILED at once, never retried.
+    """
 
     name: str
     argv: list[str]
     env: dict[str, str]
     log: RotatingLog
     components: tuple[str, ...] = ()
+    final_exits: Mapping[int, str] = field(default_factory=dict)
     state: ProcessState = ProcessState.STOPPED
     popen: subprocess.Popen | None = None
     started_at: float = 0.0
@@ -151,14 +160,25 @@ class Supervisor:
         argv: Sequence[str],
         env: dict[str, str] | None = None,
         components: Sequence[str] = (),
+        final_exits: Mapping[int, str] | None = None,
     ) -> ManagedProcess:
-        """Register a process (not started yet)."""
+        """Register a process (not started yet).
+
+        Args:
+            name: The process's name (its log file is named after it).
+            argv: Its command line.
+            env: Variables added to this process's environment.
+            components: The components it runs.
+            final_exits: Exit codes after which it is FAILED at once, never restarted, each
+                with what it means (see :class:`ManagedProcess`).
+        """
         process = ManagedProcess(
             name=name,
             argv=list(argv),
             env={**os.environ, **(env or {})},
             log=RotatingLog(self.log_dir / f"{name.replace('/', '_')}.log"),
             components=tuple(components),
+            final_exits=dict(final_exits or {}),
         )
         self.processes[name] = process
         return process
@@ -250,10 +270,25 @@ class Supervisor:
         reason = _describe_exit(code)
         tail = _last_meaningful(process.log.tail)
         process.last_error = f"{reason}: {tail}" if tail else reason
-        process.log.write_line(f"--- msctl: {process.name} {reason}")
         if not process.wanted:
+            process.log.write_line(f"--- msctl: {process.name} {reason}")
             process.state = ProcessState.STOPPED
             return f"{process.name}: stopped"
+        meaning = process.final_exits.get(code)
+        if meaning is not None:
+            # Deterministic: every restart would print the same error again, for half a
+            # minute of backoff, and hide it among its copies.
+            process.state = ProcessState.FAILED
+            process.restart_times.clear()
+            process.backoff = 0.0
+            process.last_error = (
+                f"{process.last_error} (gave up after one try: code {code} means {meaning})"
+            )
+            process.log.write_line(
+                f"--- msctl: {process.name} {reason}; not restarted: code {code} means {meaning}"
+            )
+            return f"{process.name}: FAILED ({process.last_error})"
+        process.log.write_line(f"--- msctl: {process.name} {reason}")
         while process.restart_times and now - process.restart_times[0] > self.policy.window:
             process.restart_times.popleft()
         if len(process.restart_times) >= self.policy.max_restarts:
@@ -299,14 +334,19 @@ class Supervisor:
         process.state = ProcessState.STOPPED
 
     def shutdown(self) -> None:
-        """Stop everything: SIGINT, SIGTERM, SIGKILL to each process group."""
+        """Stop everything: SIGINT, SIGTERM, SIGKILL to each process group.
+
+        A FAILED process stays FAILED (it has nothing left to stop), so the last state file
+        still says which process failed and why.
+        """
         for process in self.processes.values():
             process.wanted = False
             process.next_start = None
         self._terminate(list(self.processes.values()))
         for process in self.processes.values():
             process.popen = None
-            process.state = ProcessState.STOPPED
+            if process.state is not ProcessState.FAILED:
+                process.state = ProcessState.STOPPED
             process.log.close()
 
     def _terminate(self, processes: list[ManagedProcess]) -> None:

@@ -1,0 +1,15 @@
+"""The kinematics manager kind: forward and inverse kinematics of one limb chain."""
+
+from components.kinds import ComponentKind, Placement
+
+KIND = ComponentKind(
+    name="kinematics_manager",
+    summary="tip pose and IK targets of one limb chain",
+    placement=Placement.MODULE,
+    config=("components.kinematics.core:KinematicsConfig", "components.kinematics.ik:IkSettings"),
+    builder="components.kinematics.build:build",
+    interface="components.kinematics.interface:KINEMATICS_MANAGER",
+    # Diagnostics go out at start, before any joint_read; tip_pose needs joint angles first.
+    healthy_output="diagnostics",
+    structural=("chain", "base_link", "tip_link", "joints"),
+)

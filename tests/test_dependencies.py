@@ -1,0 +1,76 @@
+"""Declared dependencies match the imported ones: what msctl imports is declared, what is
+declared is imported, and what only the tests use is in the test extra."""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+import tomllib
+from importlib.metadata import packages_distributions
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+OURS = {"msctl", "components", "assemblies", "calibration", "bench", "conftest", "examples"}
+#: Imported only on the optional ROS 2 path (``MSCTL_TRANSPORT=rclpy``), never installed by pip.
+OPTIONAL = {"rclpy", "rosidl_runtime_py"}
+#: Modules their distribution's metadata does not list (cmeel wheels install under a prefix).
+INSTALLED_BY = {"pinocchio": ["pin"]}
+#: Test-extra tools used as programs or plugins rather than imported.
+TOOLS = {"pytest-timeout", "ruff"}
+
+
+def _imports(*folders: str) -> set[str]:
+    found: set[str] = set()
+    for folder in folders:
+        for path in (REPO / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.Import):
+                    found |= {alias.name.split(".")[0] for alias in node.names}
+                elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                    found.add(node.module.split(".")[0])
+    return {
+        m
+        for m in found
+        if m not in sys.stdlib_module_names and m not in OURS and not m.startswith("test_")
+    }
+
+
+def _name(requirement: str) -> str:
+    return re.split(r"[<>=!~;\[ ]", requirement, maxsplit=1)[0].lower().replace("_", "-")
+
+
+def _distributions(modules: set[str]) -> dict[str, set[str]]:
+    """Module -> the distributions that may have installed it."""
+    owners = {**INSTALLED_BY, **packages_distributions()}
+    missing = sorted(m for m in modules if m not in owners)
+    assert not missing, f"imported but installed by no distribution: {missing}"
+    return {m: {d.lower().replace("_", "-") for d in owners[m]} for m in modules}
+
+
+def _undeclared(imported: dict[str, set[str]], declared: set[str]) -> list[str]:
+    return sorted(m for m, dists in imported.items() if not dists & declared)
+
+
+def _unused(declared: set[str], imported: dict[str, set[str]]) -> list[str]:
+    return sorted(declared - set().union(*imported.values()))
+
+
+def _project() -> dict:
+    return tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+
+
+def test_what_msctl_imports_is_declared_and_nothing_else() -> None:
+    declared = {_name(r) for r in _project()["dependencies"]}
+    imported = _distributions(_imports("msctl", "components") - OPTIONAL)
+    assert _undeclared(imported, declared) == [], "imported, not declared"
+    assert _unused(declared, imported) == [], "declared, never imported"
+
+
+def test_what_only_the_tests_import_is_in_the_test_extra() -> None:
+    runtime = {_name(r) for r in _project()["dependencies"]}
+    extra = {_name(r) for r in _project()["optional-dependencies"]["test"]}
+    imported = _distributions(_imports("tests") - OPTIONAL)
+    assert _undeclared(imported, runtime | extra) == [], "tests import these, undeclared"
+    assert _unused(extra - TOOLS, imported) == [], "in the test extra, never imported"
+    assert not extra & runtime
