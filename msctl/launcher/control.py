@@ -25,6 +25,12 @@ _ARG_KEYS: dict[str, set[str]] = {
     "up": {"assembly", "sim", "speed"},
 }
 _HOST_CHARS = re.compile(r"[^A-Za-z0-9_]")
+#: Bounds on a request's arguments: an assembly document is tens of kilobytes and a few
+#: levels deep; anything far past that is an attack or a bug, refused before it is parsed.
+MAX_ARGS_BYTES = 4 * 1024 * 1024
+MAX_ARGS_DEPTH = 32
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_NESTING = str.maketrans({"[": "(", "{": "(", "]": ")", "}": ")"})
 
 
 class RequestError(ValueError):
@@ -55,6 +61,12 @@ def parse_request(verb: str, args_text: str) -> Request:
     """
     if verb not in VERBS:
         raise RequestError(f"unknown verb {verb!r}; accepted: {', '.join(VERBS)}")
+    if len(args_text) > MAX_ARGS_BYTES:
+        raise RequestError(
+            f"arguments are {len(args_text)} bytes; at most {MAX_ARGS_BYTES} are accepted"
+        )
+    if _depth(args_text) > MAX_ARGS_DEPTH:
+        raise RequestError(f"arguments nest deeper than {MAX_ARGS_DEPTH} levels")
     try:
         args = json.loads(args_text) if args_text.strip() else {}
     except ValueError as exc:
@@ -78,6 +90,16 @@ def parse_request(verb: str, args_text: str) -> Request:
     if "assembly" in args and not isinstance(args["assembly"], dict):
         raise RequestError("assembly must be a resolved assembly document (a JSON object)")
     return Request(verb, args)
+
+
+def _depth(text: str) -> int:
+    """How deep JSON ``text`` nests (strings skipped), without recursing into it."""
+    brackets = "".join(ch for ch in _JSON_STRING.sub("", text).translate(_NESTING) if ch in "()")
+    depth = deepest = 0
+    for ch in brackets:
+        depth += 1 if ch == "(" else -1
+        deepest = max(deepest, depth)
+    return deepest
 
 
 def reply(pending: Any, success: bool, message: str, payload: Any = None) -> None:
