@@ -1,95 +1,74 @@
-"""The ``msctl`` command line: one typer app, one module per command group.
+"""The ``msctl`` entry point: run the app and turn every failure into one line and an exit code.
 
-Heavy imports (zenoh, mujoco, pinocchio) stay inside command bodies so ``msctl --help`` is
-instant. Every failure goes through :func:`main`, which prints one clear line.
+Nothing is imported here before :func:`main` starts, so a Ctrl-C even while the commands are
+being imported ends with one line and exit 130, not a traceback.
 """
 
 from __future__ import annotations
 
-import importlib
 import os
 import sys
 
-import typer
-
-from msctl.errors import MsctlError
-
-app = typer.Typer(
-    name="msctl",
-    help="Field operations for modular, multi-computer robots: assemble, launch, monitor, "
-    "teleoperate and record, over a ROS 2-compatible Zenoh data plane.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
-
-# Command groups and single commands, registered by module name so that adding a command is
-# adding a module. Each module exposes ``app`` (a group) or ``command`` (a single command).
-_GROUPS: dict[str, str] = {
-    "topic": "msctl.commands.topic",
-    "node": "msctl.commands.node",
-    "service": "msctl.commands.service",
-    "assemble": "msctl.commands.assemble",
-    "agent": "msctl.commands.agent",
-}
-_COMMANDS: dict[str, str] = {
-    "up": "msctl.commands.up",
-    "down": "msctl.commands.down",
-    "ps": "msctl.commands.ps",
-    "logs": "msctl.commands.logs",
-    "restart": "msctl.commands.restart",
-    "stop": "msctl.commands.stop",
-    "router": "msctl.commands.router",
-    "run": "msctl.commands.run",
-}
-
-
-def _register() -> None:
-    for name, module_name in _GROUPS.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue  # a command group not written yet
-            raise
-        app.add_typer(module.app, name=name)
-    for name, module_name in _COMMANDS.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue
-            raise
-        app.command(name=name, **getattr(module, "COMMAND_SETTINGS", {}))(module.command)
-
-
-_register()
+#: The exit status of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
+INTERRUPTED = 130
 
 
 def main() -> None:
     """Entry point: run the app and turn project errors into one red line and an exit code."""
-    from rich.markup import escape
-
-    from msctl.console import err
-
     try:
-        # Standalone mode: typer prints its own usage errors and exits with code 2.
-        app()
-    except MsctlError as exc:
-        if os.environ.get("MSCTL_DEBUG") == "1":
-            err.print_exception()
-        # Escaped: an operator's text such as "[joints.joint3]" must print as written.
-        err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
-        sys.exit(exc.exit_code)
-    except KeyboardInterrupt:
-        err.print("[yellow]interrupted[/]")
-        sys.exit(130)
-    except Exception as exc:
-        if os.environ.get("MSCTL_DEBUG") == "1":
+        from msctl.errors import MsctlError
+
+        try:
+            from msctl.app import command
+
+            # Standalone mode: typer prints its own usage errors and exits with code 2.
+            command()()
+        except MsctlError as exc:
+            from rich.markup import escape
+
+            from msctl.console import err
+
+            if os.environ.get("MSCTL_DEBUG") == "1":
+                err.print_exception()
+            # Escaped: an operator's text such as "[joints.joint3]" must print as written.
+            err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
+            sys.exit(exc.exit_code)
+        except SystemExit as exc:
+            # typer turns a Ctrl-C inside a command into a silent exit 130: say it once.
+            if exc.code == INTERRUPTED and _from_ctrl_c(exc):
+                _interrupted()
             raise
-        err.print(
-            f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))} "
-            "(run again with MSCTL_DEBUG=1 for the traceback, and report it)",
-            highlight=False,
-        )
-        sys.exit(70)
+        except Exception as exc:
+            if os.environ.get("MSCTL_DEBUG") == "1":
+                raise
+            from rich.markup import escape
+
+            from msctl.console import err
+
+            err.print(
+                f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))} "
+                "(run again with MSCTL_DEBUG=1 for the traceback, and report it)",
+                highlight=False,
+            )
+            sys.exit(70)
+    except KeyboardInterrupt:
+        _interrupted()
+        sys.exit(INTERRUPTED)
+
+
+def _from_ctrl_c(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is somewhere in ``exc``'s chain of causes."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
+def _interrupted() -> None:
+    # Plain stderr: a second Ctrl-C while rich is being imported must not print a traceback.
+    sys.stderr.write("interrupted\n")
+    sys.stderr.flush()

@@ -110,6 +110,50 @@ def find_type(node: Any, name: str, kind: str, timeout: float = 2.0) -> str:
         time.sleep(0.1)
 
 
+def topic_types(
+    node: Any, name: str, publishers_only: bool = False, timeout: float = 0.5
+) -> dict[str, set[str]]:
+    """Each type seen on topic ``name`` -> the nodes using it with that type.
+
+    One graph snapshot; empty when nobody is on the topic.
+
+    Args:
+        node: The CLI's node.
+        name: Topic name.
+        publishers_only: Only publishers (what a subscriber would receive).
+        timeout: Seconds to wait for the graph's answers.
+    """
+    from components.comm.graph import snapshot
+    from components.comm.liveliness import EntityKind
+
+    qualified = qualify_topic(name)
+    kinds = (
+        (EntityKind.PUBLISHER,)
+        if publishers_only
+        else (EntityKind.PUBLISHER, EntityKind.SUBSCRIPTION)
+    )
+    found: dict[str, set[str]] = {}
+    for entity in snapshot(node.session, node.domain, timeout=timeout).entities():
+        if entity.kind in kinds and entity.topic == qualified and entity.type_name:
+            found.setdefault(entity.type_name, set()).add(entity.node_fqn)
+    return found
+
+
+def qualify_topic(name: str) -> str:
+    """A topic name as the graph shows it (``joint_read`` -> ``/joint_read``)."""
+    from components.comm.names import qualify
+
+    return qualify(name, "/")
+
+
+def describe_types(types: dict[str, set[str]]) -> str:
+    """``sensor_msgs/msg/JointState (/limb1/joint_manager, ...)`` for an error message."""
+    return "; ".join(
+        f"{t} ({', '.join(sorted(nodes)[:3])}{', ...' if len(nodes) > 3 else ''})"
+        for t, nodes in sorted(types.items())
+    )
+
+
 def parse_values(text: str | None) -> dict[str, Any]:
     """Parse VALUES as ``ros2 topic pub`` takes them: a YAML mapping (``"{data: hi}"``).
 
@@ -156,9 +200,10 @@ def build_message(type_name: str, values: dict[str, Any], path: str = "") -> Any
     for key, value in values.items():
         where = f"{path}{key}"
         if key not in fields:
-            raise InputError(
-                f"{type_name} has no field {where!r}; its fields are: {', '.join(fields)}"
-            )
+            # An empty ROS message is generated with one placeholder member: not a field.
+            real = [f for f in fields if f != "structure_needs_at_least_one_member"]
+            listing = f"its fields are: {', '.join(real)}" if real else "it takes no fields"
+            raise InputError(f"{type_name} has no field {where!r}; {listing}")
         built[key] = _convert(fields[key], value, where, Nodetype)
     return msg(type_name, **built)
 

@@ -315,3 +315,37 @@ def test_cartesian_waypoints_stay_on_the_line_and_in_the_ball() -> None:
     far = pin.SE3(np.eye(3), np.array([0.0, 0.5, 0.0]))
     assert planner.reach(line, far, 0.025, False)[0] == progress
     assert planner.held == 1
+
+
+def test_a_resync_at_a_motions_start_is_quiet_and_a_lagging_joint_warns_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    joints = {f"limb1_joint{i}": 0.0 for i in (1, 2, 3, 9)}
+
+    async def scenario() -> None:
+        node = FakeNode()
+        syncer = JointSyncer([fake_limb(node)], SyncSettings(speed=2.0, rate=100.0))
+        limb = FollowingLimb(node, "limb1", joints)
+        follower = asyncio.create_task(run_following(limb, 10.0))
+        assert await syncer.lerp({"joint1": 0.5}).wait(timeout=5.0)
+        # Moved by hand between motions: the next motion starts from the measurement.
+        limb.positions["limb1_joint1"] = -0.5
+        limb.publish()
+        with caplog.at_level("DEBUG", logger="components.api.syncer"):
+            assert await syncer.lerp({"joint1": 0.0}).wait(timeout=5.0)
+            start_only = [r for r in caplog.records if r.name == "components.api.syncer"]
+            assert [r.levelname for r in start_only] == ["DEBUG"]
+            caplog.clear()
+            # Pushed back twice during one motion: one warning, in plain words.
+            motion = syncer.lerp({"joint1": 1.5})
+            for _ in range(2):
+                await asyncio.sleep(0.1)
+                limb.positions["limb1_joint1"] -= 0.5
+                limb.publish()
+            assert await motion.wait(timeout=5.0)
+        follower.cancel()
+        warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+        assert len(warnings) == 1, [r.getMessage() for r in caplog.records]
+        assert "the joints lag the command" in warnings[0].getMessage()
+
+    asyncio.run(scenario())

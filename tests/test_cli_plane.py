@@ -355,3 +355,70 @@ def test_bad_environment_exits_2_naming_the_variable(env: dict[str, str]) -> Non
     result = msctl("topic", "list", env={**env, "MSCTL_ZENOH_LEASE_MS": "soon"})
     assert result.returncode == 2
     assert "MSCTL_ZENOH_LEASE_MS" in one_error_line(result.stderr)
+
+
+# --------------------------------------------------------------------------- wrong types
+JOINTS = "sensor_msgs/msg/JointState"
+
+
+def test_echo_of_a_mistyped_type_names_the_nearest_and_what_the_topic_carries(
+    node: Node, env: dict[str, str]
+) -> None:
+    node.publisher("/cli/typed", JOINTS)
+    result = msctl("topic", "echo", "/cli/typed", "std_msgs/msg/Strin", "--once", env=env)
+    assert result.returncode == 4, result.stderr
+    line = one_error_line(result.stderr)
+    assert "did you mean 'std_msgs/msg/String'?" in line
+    assert f"carries {JOINTS} (/cli/probe)" in line
+    assert "a type msctl does not know" not in line
+
+
+def test_echo_of_another_known_type_says_which_type_is_published(
+    node: Node, env: dict[str, str]
+) -> None:
+    node.publisher("/cli/typed2", JOINTS)
+    result = msctl("topic", "echo", "/cli/typed2", STRING, "--once", env=env)
+    assert result.returncode == 2, result.stderr
+    line = one_error_line(result.stderr)  # no dropped-sample noise before it
+    assert f"carries {JOINTS} (/cli/probe), not {STRING}" in line
+
+
+def test_pub_onto_a_topic_of_another_type_is_refused_unless_forced(
+    node: Node, env: dict[str, str]
+) -> None:
+    node.subscription("/cli/guarded", JOINTS, lambda m: None)
+    refused = msctl("topic", "pub", "/cli/guarded", STRING, "{data: x}", "--once", env=env)
+    assert refused.returncode == 2, refused.stderr
+    line = one_error_line(refused.stderr)
+    assert JOINTS in line and "--force" in line and "publishing" not in refused.stderr
+    forced = msctl(
+        "topic", "pub", "/cli/guarded", STRING, "{data: x}", "--once", "--force", env=env
+    )
+    assert forced.returncode == 0, forced.stderr
+    assert "publishing #1 on /cli/guarded" in forced.stderr
+
+
+def test_service_call_reads_its_input_before_the_network() -> None:
+    # No router at all: a parse error must still come first, as exit 2, not 3.
+    env = {**os.environ, "MSCTL_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}"}
+    env.update(MSCTL_ZENOH_LISTEN="tcp/127.0.0.1:0", MSCTL_ZENOH_MULTICAST="0")
+    result = msctl("service", "call", "/x", "std_srvs/srv/Trigger", "{x", env=env)
+    assert result.returncode == 2, result.stderr
+    assert "VALUES is not valid YAML" in one_error_line(result.stderr)
+    typo = msctl("service", "call", "/x", "std_srvs/srv/Trigge", env=env)
+    assert typo.returncode == 4, typo.stderr
+    assert "did you mean 'std_srvs/srv/Trigger'?" in one_error_line(typo.stderr)
+
+
+def test_service_call_with_no_server_says_what_really_happened(env: dict[str, str]) -> None:
+    started = time.monotonic()
+    result = msctl("service", "call", "/cli/nope", "std_srvs/srv/Trigger", env=env)
+    elapsed = time.monotonic() - started
+    assert result.returncode == 5, result.stderr
+    line = one_error_line(result.stderr)
+    assert "/cli/nope" in line
+    # Whatever it says must be true: it claims a 3 s wait only if it waited that long.
+    if "within 3 s" in line:
+        assert elapsed >= 3.0, line
+    else:
+        assert "ended after" in line and "no server of /cli/nope" in line

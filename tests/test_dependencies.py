@@ -29,11 +29,8 @@ def _imports(*folders: str) -> set[str]:
                     found |= {alias.name.split(".")[0] for alias in node.names}
                 elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
                     found.add(node.module.split(".")[0])
-    return {
-        m
-        for m in found
-        if m not in sys.stdlib_module_names and m not in OURS and not m.startswith("test_")
-    }
+    local = {path.stem for folder in folders for path in (REPO / folder).glob("*.py")}
+    return {m for m in found if m not in sys.stdlib_module_names and m not in OURS | local}
 
 
 def _name(requirement: str) -> str:

@@ -239,6 +239,7 @@ async def connect(
     node = None
     handlers: list[JointHandler] = []
     try:
+        await _wait_for_network(session, settings, min(timeout, NETWORK_WAIT))
         node = Node(session, f"api_{os.getpid()}", "/", domain=settings.domain)
         local = _lock_for(assembly)
         expected = set(local.units) if local is not None else None
@@ -275,6 +276,30 @@ async def connect(
         raise
 
 
+#: Seconds to reach a router or peer before saying none is there (a local router answers in
+#: milliseconds; waiting the whole ``timeout`` for one that does not exist helps nobody).
+NETWORK_WAIT = 2.0
+#: Seconds with neither a module nor a supervisor on a reachable network before saying
+#: nothing runs (an ``msctl up`` that is starting already serves its supervisor).
+NOTHING_RUNS_WAIT = 2.0
+
+
+async def _wait_for_network(session: Any, settings: Any, wait: float) -> None:
+    """Fail fast when no router or peer answers at the configured endpoints."""
+    deadline = time.monotonic() + wait
+    while True:
+        info = session.info
+        if list(info.routers_zid()) or list(info.peers_zid()):
+            return
+        if time.monotonic() > deadline:
+            raise RobotNotFoundError(
+                f"no Zenoh router or peer reachable at {', '.join(settings.connect) or 'any'} "
+                f"within {wait:g} s; start the assembly with `msctl up <template>`, or point "
+                "MSCTL_ZENOH_CONNECT at its router"
+            )
+        await asyncio.sleep(0.02)
+
+
 async def _discover(
     node: Any, assembly: str | None, timeout: float, expected: set[str] | None = None
 ) -> tuple[list[str], str | None]:
@@ -286,7 +311,8 @@ async def _discover(
     """
     from components.comm.graph import snapshot
 
-    deadline = time.monotonic() + timeout
+    started = time.monotonic()
+    deadline = started + timeout
     previous: list[str] | None = None
     while True:
         graph = await asyncio.to_thread(snapshot, node.session, node.domain, 1.0)
@@ -305,6 +331,8 @@ async def _discover(
         ]
         if time.monotonic() > deadline:
             break
+        if not found and not supervisors and time.monotonic() - started > NOTHING_RUNS_WAIT:
+            break  # a router, and nothing behind it
         if expected is not None and expected <= set(found):
             break
         # Stable, and not a part of the lock file's assembly (no lock, or another one runs).
@@ -313,8 +341,9 @@ async def _discover(
         previous = found
         await asyncio.sleep(0.2)
     if not found:
+        waited = time.monotonic() - started
         raise RobotNotFoundError(
-            f"no running assembly found on the data plane within {timeout:g} s (looked for "
+            f"no running assembly found on the data plane ({waited:.1f} s; looked for "
             "joint managers' /<slot>/joints services); start one with `msctl up <template>`, "
             "and check MSCTL_ZENOH_CONNECT points at its router"
         )

@@ -251,6 +251,8 @@ class JointSyncer(Commander):
         wake = began
         target = None if mode == SPEED_SAFE else values
         velocity = values if mode == SPEED_SAFE else None
+        warned = False
+        ticks = 0
         while True:
             now = loop.time()
             # A late tick must not turn into a big step: dt is capped at two periods.
@@ -261,13 +263,21 @@ class JointSyncer(Commander):
             step = planner.step(mode, measured, dt, target=target, velocity=velocity)
             if step.resynced:
                 self.resyncs += 1
-                log.warning(
-                    "%s: last command and measurement differ by more than delta=%g; "
-                    "resynchronized from the measurement",
-                    motion.description,
-                    self.settings.delta,
-                )
+                # At a motion's start the last command is usually stale (another motion, or
+                # none): following from the measurement then is routine, not news. Later it
+                # means the joints lag (blocked, or slower than asked): say so once.
+                if ticks == 0 or warned:
+                    log.debug("%s: resynchronized from the measurement", motion.description)
+                else:
+                    warned = True
+                    log.warning(
+                        "%s: the joints lag the command by more than %g; following on from "
+                        "where they are (blocked, or asked to move faster than they can?)",
+                        motion.description,
+                        self.settings.delta,
+                    )
             self.send(names, step.command)
+            ticks += 1
             if step.arrived or (duration is not None and now - began >= duration):
                 motion.finish(True)
                 return

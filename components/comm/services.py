@@ -203,6 +203,7 @@ class ServiceClient:
 
         seq = next(self._seq)
         attachment = Attachment(seq, time.time_ns(), self.gid).encode()
+        started = time.monotonic()
         replies = self._session.get(
             self.key,
             payload=self._serialize(request),
@@ -223,6 +224,14 @@ class ServiceClient:
                 raise ServiceError(
                     f"service {self.service} sent a response that is not a {self.parts.response}"
                 ) from exc
+        waited = time.monotonic() - started
+        if waited < 0.9 * timeout:
+            # The query ended early: the network knows no server for this key at all.
+            raise ServiceTimeout(
+                f"no server of {self.service} ({self.srv_type}) on the network: the query "
+                f"ended after {waited:.1f} s with no answer; check it is running "
+                "(`msctl service list`)"
+            )
         raise ServiceTimeout(
             f"no server answered {self.service} ({self.srv_type}) within {timeout:g} s; "
             "check it is running (`msctl service list`)"

@@ -24,7 +24,7 @@ from components import kinds
 from components.assembly import BusPlan
 from msctl.assembler import transforms as tf
 from msctl.assembler.urdf import MOVABLE, ModuleUrdf, parse_module_urdf
-from msctl.errors import InputError, NotFoundError
+from msctl.errors import InputError, NotFoundError, did_you_mean
 
 T = TypeVar("T")
 
@@ -298,9 +298,11 @@ def load_module_type(key: str, *, referrer: str = "") -> ModuleType:
     path = modules_dir() / f"{key}.toml"
     if not NAME_RE.match(key) or not path.is_file():
         known = ", ".join(module_type_names()) or "none"
+        near = did_you_mean(key, module_type_names())
         raise NotFoundError(
             f"{referrer + ': ' if referrer else ''}unknown module type {key!r}",
-            hint=f"known module types: {known} (files in {modules_dir()})",
+            hint=f"{near + ' ' if near else ''}known module types: {known} "
+            f"(files in {modules_dir()})",
         )
     module = _cached("module", path, _parse_module_type)
     # The URDF has its own mtime: re-check it even when the TOML is unchanged.
@@ -729,9 +731,10 @@ def load_template(name: str) -> Template:
     """
     path = assemblies_dir() / f"{name}.toml"
     if not NAME_RE.match(name) or not path.is_file():
+        near = did_you_mean(name, template_names())
         raise NotFoundError(
             f"unknown template {name!r}",
-            hint=f"templates: {', '.join(template_names()) or 'none'} "
+            hint=f"{near + ' ' if near else ''}templates: {', '.join(template_names()) or 'none'} "
             f"(files in {assemblies_dir()}); see `msctl assemble --list`",
         )
     template = _cached("template", path, _parse_template)
@@ -960,18 +963,22 @@ def load_unit(serial: str) -> Unit:
         InputError: If the file is malformed.
     """
     if not unit_exists(serial):
+        near = did_you_mean(serial, unit_serials())
         raise NotFoundError(
             f"unknown unit {serial!r}: no {calibration_dir() / (serial + '.toml')}",
-            hint=f"see `msctl assemble --list` for the units; {units_searched()}",
+            hint=f"{near + ' ' if near else ''}see `msctl assemble --list` for the units; "
+            f"{units_searched()}",
         )
     unit = _cached("unit", calibration_dir() / f"{serial}.toml", _parse_unit)
     if (
         not NAME_RE.match(unit.module_type)
         or not (modules_dir() / f"{unit.module_type}.toml").is_file()
     ):
+        near = did_you_mean(unit.module_type, module_type_names())
         raise NotFoundError(
             f"{unit.path}: field module_type: unknown module type {unit.module_type!r}",
-            hint=f"known module types: {', '.join(module_type_names()) or 'none'}",
+            hint=f"{near + ' ' if near else ''}known module types: "
+            f"{', '.join(module_type_names()) or 'none'}",
         )
     return unit
 

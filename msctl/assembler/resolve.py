@@ -37,7 +37,7 @@ from msctl.assembler import data
 from msctl.assembler import transforms as tf
 from msctl.assembler.data import ModuleType, Template, Unit
 from msctl.assembler.urdf import ModulePart, Mount, compose, connector_link
-from msctl.errors import InputError, NotFoundError
+from msctl.errors import InputError, NotFoundError, did_you_mean
 
 #: ``choose(slot, candidate serials) -> serial``, or None when no one can be asked.
 Chooser = Callable[[str, list[str]], str]
@@ -137,7 +137,9 @@ def choose_units(
             raise InputError(
                 f"--use {slot}={serial}: template {template.name} ({template.path}) has no slot "
                 f"{slot!r}",
-                hint=f"slots: {', '.join(slots)}",
+                hint=" ".join(
+                    filter(None, (did_you_mean(slot, slots), f"slots: {', '.join(slots)}"))
+                ),
             )
         if serial in owner:
             raise InputError(
@@ -149,8 +151,10 @@ def choose_units(
             raise NotFoundError(
                 f"--use {slot}={serial}: unknown unit {serial!r} (no "
                 f"{data.calibration_dir() / (serial + '.toml')})",
-                hint=f"units that fit {slot}: {', '.join(fitting) or 'none'}; "
-                f"{data.units_searched()}",
+                hint=(
+                    f"{did_you_mean(serial, fitting)} units that fit {slot}: "
+                    f"{', '.join(fitting) or 'none'}; {data.units_searched()}"
+                ).lstrip(),
             )
         _check_fits(template, slot, data.load_unit(serial), f"--use {slot}={serial}")
         chosen[slot] = serial

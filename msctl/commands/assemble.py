@@ -60,12 +60,18 @@ def assemble(
     """Resolve an assembly: template + physical units -> lock file, URDF, MJCF, per-host plan.
 
     \b
-    msctl assemble dragon                       resolve (defaults, or the previous units)
-    msctl assemble dragon --use limb1=hlv1-limb-04   swap one unit, keep the others
-    msctl assemble dragon --defaults            every slot back on the template's default
-    msctl assemble --list                       templates, module types, units
-    msctl assemble show                         the current resolution and its host plan
-    msctl assemble urdf -o dragon.urdf          the composed URDF (mjcf: the MuJoCo model)
+    msctl assemble dragon
+        resolve (the defaults, or the previous resolution's units)
+    msctl assemble dragon --use limb1=hlv1-limb-04
+        swap one unit, keep the others
+    msctl assemble dragon --defaults
+        every slot back on the template's default unit
+    msctl assemble --list
+        templates, module types and units, and what fits where
+    msctl assemble show
+        the current resolution and its per-host plan
+    msctl assemble urdf -o /tmp/dragon.urdf
+        write the composed URDF (mjcf: the MuJoCo model)
 
     The resolution lives in $MSCTL_HOME/assembly (default ~/.local/state/msctl/assembly).
     """
@@ -157,6 +163,7 @@ def resolve_and_write(
 
     if template in ACTIONS:  # pragma: no cover - dispatched before
         raise InputError(f"{template!r} is reserved")
+    _refuse_while_running()
     previous = _previous_units()
     chosen = parse_uses(uses)
     resolution = resolve(template, chosen, {} if defaults else previous, _picker())
@@ -166,6 +173,23 @@ def resolve_and_write(
     kept = {s: u for s, u in document["units"].items() if s not in chosen and previous.get(s) == u}
     note_off_defaults(template, kept)
     return document, target, changed
+
+
+def _refuse_while_running() -> None:
+    """A running assembly's workers read the lock file when they (re)start: never replace it
+    under them."""
+    from msctl.launcher.state import read_state, supervisor_alive
+
+    running = read_state()
+    if not supervisor_alive(running):
+        return
+    assert running is not None
+    raise InputError(
+        f"assembly {running.get('template', '?')} is running (supervisor pid "
+        f"{running.get('supervisor_pid')} on {running.get('host', 'this computer')}); "
+        "resolving again now would replace the lock file under it",
+        hint="stop it with `msctl down` first, then assemble and `msctl up` again",
+    )
 
 
 def note_off_defaults(template: str, units: dict[str, str]) -> None:
@@ -281,6 +305,14 @@ def _artifact(kind: str, output: Path | None) -> None:
         sys.stdout.write(text)
         sys.stdout.flush()
         return
+    parent = output.parent if str(output.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(
+            f"-o {output}: no directory {parent}",
+            hint="create it first, or write somewhere that exists",
+        )
+    if output.is_dir():
+        raise InputError(f"-o {output} is a directory; give a file name, e.g. {output}/x.{kind}")
     try:
         write_file(output, text)
     except OSError as exc:

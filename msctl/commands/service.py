@@ -50,6 +50,18 @@ def _check_type_on_graph(node: object, service: str, type_name: str) -> None:
         )
 
 
+def _known_service_type(type_name: str) -> None:
+    from components.comm.types import registry
+    from msctl.errors import did_you_mean
+
+    known = registry().service_names()
+    if type_name not in known:
+        raise NotFoundError(
+            f"unknown service type {type_name!r}",
+            hint=did_you_mean(type_name, known) or f"known: {', '.join(known)}",
+        )
+
+
 @app.command("call")
 def call(
     service: str = typer.Argument(..., help="Service name, e.g. /limb1/halt."),
@@ -60,26 +72,30 @@ def call(
 ) -> None:
     """Call a service once and print its response."""
     from components.comm.services import ServiceError, ServiceTimeout
-    from components.comm.types import UnknownTypeError, normalize_type_name, registry
+    from components.comm.types import UnknownTypeError, normalize_type_name
     from msctl.console import out, print_json
     from msctl.plane import build_message, connected, find_type, parse_values, to_plain, to_yaml
 
-    with connected("service_call") as node:
+    if timeout <= 0 or timeout != timeout:
+        raise InputError(f"--timeout must be a positive number of seconds, not {timeout}")
+    # Input first, network after: a typo in VALUES or the type fails at once.
+    fields = parse_values(values)
+    type_name = None
+    if srv_type:
         try:
-            type_name = (
-                normalize_type_name(srv_type) if srv_type else find_type(node, service, "service")
-            )
+            type_name = normalize_type_name(srv_type)
         except UnknownTypeError as exc:
             raise InputError(str(exc)) from exc
-        if type_name not in registry().service_names():
-            raise NotFoundError(
-                f"unknown service type {type_name!r}",
-                hint=f"known: {', '.join(registry().service_names())}",
-            )
-        if srv_type:
+        _known_service_type(type_name)
+        build_message(f"{type_name}_Request", fields)
+    with connected("service_call") as node:
+        if type_name is None:
+            type_name = find_type(node, service, "service")
+            _known_service_type(type_name)
+        else:
             _check_type_on_graph(node, service, type_name)
         client = node.client(service, type_name)
-        request = build_message(client.parts.request, parse_values(values))
+        request = build_message(client.parts.request, fields)
         try:
             response = client.call(request, timeout=timeout)
         except ServiceTimeout as exc:

@@ -76,22 +76,54 @@ def list_topics(
 
 
 def _resolve_type(node: Any, topic: str, msg_type: str | None, timeout: float) -> str:
-    from components.comm.types import UnknownTypeError, normalize_type_name, registry
-    from msctl.errors import NotFoundError
+    """The type to use on ``topic``: the one given (checked against the graph), or the graph's.
+
+    Raises:
+        NotFoundError: A type msctl does not know (with the nearest known names).
+        InputError: A known type, but not the one the topic carries.
+    """
     from msctl.plane import find_type
 
+    if not msg_type:
+        return _known(find_type(node, topic, "topic", timeout), node, topic)
+    type_name = _known(msg_type, node, topic)
+    _check_against_graph(node, topic, type_name, "leave the type out to use the topic's own")
+    return type_name
+
+
+def _known(msg_type: str, node: Any, topic: str) -> str:
+    """``msg_type`` normalized, if msctl knows it; else a NotFoundError naming what is near."""
+    from components.comm.types import UnknownTypeError, normalize_type_name, registry
+    from msctl.errors import NotFoundError, did_you_mean
+    from msctl.plane import describe_types, topic_types
+
     try:
-        type_name = (
-            normalize_type_name(msg_type) if msg_type else find_type(node, topic, "topic", timeout)
-        )
+        type_name = normalize_type_name(msg_type)
     except UnknownTypeError as exc:
         raise InputError(str(exc)) from exc
-    if not registry().known(type_name):
-        raise NotFoundError(
-            f"topic {topic} carries {type_name}, a type msctl does not know",
-            hint="register its .msg definition (components.comm.types.registry().register_msg)",
+    if registry().known(type_name):
+        return type_name
+    carried = topic_types(node, topic, publishers_only=True) if node is not None else {}
+    where = f"; topic {topic} carries {describe_types(carried)}" if carried else ""
+    raise NotFoundError(
+        f"{type_name} is not a message type msctl knows{where}",
+        hint=did_you_mean(type_name, registry().message_names())
+        or "register its .msg definition (components.comm.types.registry().register_msg)",
+    )
+
+
+def _check_against_graph(
+    node: Any, topic: str, type_name: str, hint: str, publishers_only: bool = True
+) -> None:
+    """Refuse a type other than the one(s) the topic already carries."""
+    from msctl.plane import describe_types, topic_types
+
+    carried = topic_types(node, topic, publishers_only)
+    if carried and type_name not in carried:
+        raise InputError(
+            f"topic {topic} carries {describe_types(carried)}, not {type_name}",
+            hint=hint,
         )
-    return type_name
 
 
 @app.command("echo")
@@ -151,28 +183,33 @@ def pub(
         1.0, "--wait-matching", help="Seconds to wait for a subscriber before the first message."
     ),
     latched: bool = typer.Option(False, "--latched", help="Transient-local (latched) QoS."),
+    force: bool = typer.Option(
+        False, "--force", help="Publish even if the topic carries another type."
+    ),
 ) -> None:
     """Publish a message, once, N times, or at a rate until Ctrl-C."""
     from components.comm.graph import snapshot
     from components.comm.names import qualify
     from components.comm.qos import LATCHED, QoS
-    from components.comm.types import UnknownTypeError, normalize_type_name, registry
     from msctl.console import err
-    from msctl.errors import NotFoundError
     from msctl.plane import build_message, connected, parse_values
 
     if rate <= 0 or not math.isfinite(rate):
         raise InputError(f"--rate must be a positive number of messages per second, not {rate}")
-    try:
-        type_name = normalize_type_name(msg_type)
-    except UnknownTypeError as exc:
-        raise InputError(str(exc)) from exc
-    if not registry().known(type_name):
-        raise NotFoundError(f"unknown message type {msg_type!r}", hint="e.g. std_msgs/msg/String")
+    # Input first, network after: a typo in VALUES fails at once.
+    type_name = _known(msg_type, None, topic)
     message = build_message(type_name, parse_values(values))
     total = 1 if once else times
     qualified = qualify(topic, "/")
     with connected("pub") as node, _Stopper() as stop:
+        if not force:
+            _check_against_graph(
+                node,
+                topic,
+                type_name,
+                "give the topic's type, or --force to publish anyway",
+                publishers_only=False,
+            )
         publisher = node.publisher(topic, type_name, LATCHED if latched else QoS())
         deadline = time.monotonic() + wait_matching
         while time.monotonic() < deadline and not stop.is_set():
