@@ -140,3 +140,13 @@ def test_urdf_output_into_a_missing_directory_is_refused(tmp_path: Path) -> None
     assert result.returncode == 2, result.stderr
     assert f"no directory {target.parent}" in result.stderr
     assert not (tmp_path / "nonexistent").exists()
+
+
+@pytest.mark.e2e
+def test_up_with_nothing_resolved_says_what_to_run_once(tmp_path: Path) -> None:
+    result = _msctl("up", "--for", "1", env={"MSCTL_HOME": str(tmp_path / "home")})
+    assert result.returncode == 4, result.stderr
+    line = result.stderr.strip()
+    assert line.startswith("error: no resolved assembly at ") and "\n" not in line
+    assert line.count("msctl assemble dragon") == 1, line
+    assert " — " not in line, line  # no second hint repeating the first

@@ -38,7 +38,7 @@ def load_resolved(template: str | None, uses: list[str], defaults: bool = False)
     try:
         assembly = load_assembly()
     except AssemblyError as exc:
-        raise NotFoundError(str(exc), hint="resolve one with `msctl assemble dragon`") from exc
+        raise NotFoundError(str(exc)) from exc  # the message already says what to run
     if not template:
         note_off_defaults(assembly.template, dict(assembly.units))
     return assembly
