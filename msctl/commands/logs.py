@@ -39,11 +39,20 @@ def _log_file(component: str | None) -> list[Path]:
     candidate = logs / f"{component.replace('/', '_')}.log"
     if candidate.exists():
         return [candidate]
+    raise _unknown(component, document)
+
+
+def _unknown(component: str, document: dict | None) -> NotFoundError:
+    """The one wording of "no such log", with or without ``--follow``."""
+    from msctl.errors import did_you_mean
+
     known = [c["name"] for c in (document or {}).get("components", [])]
-    raise NotFoundError(
+    known += [p["name"] for p in (document or {}).get("processes", [])]
+    near = did_you_mean(component, known)
+    return NotFoundError(
         f"no log for {component!r} on this computer",
-        hint=f"known: {', '.join(known) or 'none (nothing ran here)'}; "
-        "`msctl ps` shows where it runs",
+        hint=f"{near + ' ' if near else ''}known: {', '.join(known) or 'none (nothing ran here)'}"
+        "; `msctl ps` shows where each runs",
     )
 
 
@@ -82,6 +91,8 @@ def command(
         # Not on this computer: ask the supervisor (agent) of the host that runs it.
         try:
             remote = _remote_lines(component, lines)
+        except NotFoundError:
+            raise local from None  # nobody anywhere knows it: the same words as with -f
         except NetworkError as exc:
             raise NetworkError(
                 f"{local.message}, and no other computer can be asked: {exc.message}",

@@ -29,6 +29,9 @@ def host_of(component: str, node: Any) -> str:
     # This computer's supervisor, when its answer did not arrive: let it say for itself.
     if local and state.supervisor_alive(local) and local.get("host") not in answered:
         return local["host"]
+    from msctl.errors import did_you_mean
+
+    near = did_you_mean(component, known)
     raise NotFoundError(
         f"no running supervisor knows {component!r}"
         + (
@@ -36,7 +39,7 @@ def host_of(component: str, node: Any) -> str:
             if known
             else ""
         ),
-        hint="see what runs where with `msctl ps`",
+        hint=f"{near + ' ' if near else ''}see what runs where with `msctl ps`",
     )
 
 

@@ -1,0 +1,64 @@
+"""A detached simulated assembly for end-to-end tests: ``msctl up TEMPLATE --detach`` in its
+own MSCTL_HOME, behind its own router on a free loopback port, and ``msctl down`` after."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from conftest import free_port
+
+from components.comm.session import SessionSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Up:
+    """One detached simulated assembly (every host simulated: MSCTL_HOST is no robot).
+
+    Args:
+        home: Its MSCTL_HOME.
+        template: The template to bring up.
+        extra: More ``msctl up`` arguments.
+    """
+
+    def __init__(self, home: Path, template: str, *extra: str) -> None:
+        self.home = home
+        self.template = template
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.env = {
+            **os.environ,
+            "MSCTL_HOME": str(home),
+            "MSCTL_HOST": "test-laptop",  # none of the assembly's computers: simulated
+            "MSCTL_ZENOH_CONNECT": self.endpoint,
+            "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+            "MSCTL_ZENOH_MULTICAST": "0",
+            "PYTHONPATH": str(ROOT),
+        }
+        result = self.msctl("up", template, "--detach", "--speed", "1", *extra, timeout=120.0)
+        assert result.returncode == 0, result.stdout + result.stderr
+
+    def msctl(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+        """Run one msctl command against this assembly."""
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env=self.env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            cwd=ROOT,
+            check=False,
+        )
+
+    def settings(self) -> SessionSettings:
+        """Session settings that join this assembly's router only."""
+        return SessionSettings(
+            connect=(self.endpoint,), listen=("tcp/127.0.0.1:0",), multicast=False
+        )
+
+    def down(self) -> None:
+        """``msctl down``, verified."""
+        result = self.msctl("down", timeout=60.0)
+        assert result.returncode == 0, result.stdout + result.stderr
