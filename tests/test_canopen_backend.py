@@ -9,24 +9,28 @@ from __future__ import annotations
 
 import math
 import time
-import uuid
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from conftest import wait_until
+from motor_rigs import (
+    CANOPEN_JOINTS,
+    CANOPEN_OPTIONS,
+    CANOPEN_PARAMS,
+    COUNTS_PER_RAD,
+    GEAR_RATIO,
+    RATED_TORQUE,
+    canopen_channel,
+)
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
 from components.motors.canopen_drive import CanopenBackend, _Conversion, decode_state
 from components.motors.emulation.cia402 import EmulatedCia402Bus
 
-COUNTS_PER_REV = 4096
-GEAR_RATIO = 50.0
-RATED_TORQUE = 0.5  # N·m at the motor
-COUNTS_PER_RAD = COUNTS_PER_REV * GEAR_RATIO / (2 * math.pi)
-PARAMS = {"counts_per_rev": COUNTS_PER_REV, "gear_ratio": GEAR_RATIO, "rated_torque": RATED_TORQUE}
-JOINTS = {1: "limb1_joint1", 2: "limb1_joint2"}
-OPTIONS = {"interface": "virtual", "heartbeat_timeout": 0.3, "temperature_object": "0x2100"}
+PARAMS = CANOPEN_PARAMS
+JOINTS = CANOPEN_JOINTS
+OPTIONS = CANOPEN_OPTIONS
 
 
 def diag(backend: CanopenBackend, joint: str) -> Any:
@@ -37,7 +41,7 @@ def diag(backend: CanopenBackend, joint: str) -> Any:
 @pytest.fixture
 def rig() -> Iterator[tuple[EmulatedCia402Bus, CanopenBackend]]:
     """Two emulated drives (node 1 and 2) and an open backend on a fresh virtual channel."""
-    channel = f"cia402-{uuid.uuid4().hex[:12]}"
+    channel = canopen_channel()
     specs = [MotorSpec(joint, node, "cia402", dict(PARAMS)) for node, joint in JOINTS.items()]
     with EmulatedCia402Bus(channel, JOINTS) as emulator:
         backend = CanopenBackend(channel, specs, dict(OPTIONS))
@@ -214,7 +218,7 @@ def test_unknown_interface_is_a_motor_error_naming_channel_and_fix():
 
 
 def test_drive_that_never_answers_is_an_error_not_an_exception():
-    channel = f"cia402-{uuid.uuid4().hex[:12]}"
+    channel = canopen_channel()
     with EmulatedCia402Bus(channel, [1]):
         specs = [MotorSpec("limb1_joint1", 1, "cia402"), MotorSpec("limb1_joint9", 9, "cia402")]
         with CanopenBackend(channel, specs, dict(OPTIONS, sdo_timeout=0.1)) as backend:
@@ -241,7 +245,7 @@ def test_conversion_is_in_one_place_and_checked():
 
 
 def test_feedback_on_sync_as_the_module_data_asks():
-    channel = f"cia402-{uuid.uuid4().hex[:12]}"
+    channel = canopen_channel()
     options = {"interface": "virtual", "sync_period": 0.01, "heartbeat_ms": 100}
     with EmulatedCia402Bus(channel, [3]) as emulator:
         spec = MotorSpec("limb1_joint3", 3, "cia402", dict(PARAMS))

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 import pytest
 from conftest import wait_until
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
+from motor_rigs import DYNAMIXEL_OPTIONS, TICK, XM430
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
 from components.motors.dynamixel_chain import (
@@ -34,11 +35,7 @@ from components.motors.emulation.dynamixel import (
 )
 
 IDS = [1, 2, 3, 4, 5]
-XM430 = MODELS["XM430-W350"]
-TICK = 2 * math.pi / 4096
-#: The emulator is a Python thread: on a loaded CI machine it can answer tens of ms late, so
-#: the tests size the reply timeout as for a slow adapter (about 80 ms instead of 34 ms).
-OPTIONS = {"latency_timer_ms": 40.0}
+OPTIONS = DYNAMIXEL_OPTIONS
 
 
 def joint(dxl_id: int) -> str:
