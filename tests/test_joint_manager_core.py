@@ -317,10 +317,16 @@ def test_nan_and_inf_refused_counted_and_nothing_sent() -> None:
 
 def test_unknown_and_other_module_joints_refused_and_counted_apart() -> None:
     core = make()
+    # Two messages: one naming more entries than the module's three joints is refused whole.
     core.on_joint_set(
         state(
             JointSample("limb1_joint9", 0.0),  # our prefix, not our joint
             JointSample("joint1", 0.0),  # raw name: not a data-plane name
+        ),
+        now=0.0,
+    )
+    core.on_joint_set(
+        state(
             JointSample("limb2_joint1", 0.0),  # another module's joint
             JointSample("wheel3_drive", 0.0),
         ),

@@ -145,10 +145,11 @@ def test_wheel_velocity_on_the_ground_and_effort_mode(assembly) -> None:
     command(core, now, JointSample("wheel1_wheel_left", None, cal.rate_to_raw(3.0), None))
     now = run(core, now, 1.0)
     assert core.world.velocity("wheel1_wheel_left") == pytest.approx(3.0, abs=0.3)
-    # More than the joint's limit is clamped to it, as a drive would.
+    # More than the joint's limit is refused (the last stage's raw limits): it keeps its speed.
     command(core, now, JointSample("wheel1_wheel_left", None, cal.rate_to_raw(100.0), None))
+    assert core.counters["refused_velocity"] == 1
     now = run(core, now, 1.0)
-    assert core.world.velocity("wheel1_wheel_left") <= 6.0 + 0.3
+    assert core.world.velocity("wheel1_wheel_left") == pytest.approx(3.0, abs=0.3)
     command(core, now, JointSample("limb1_joint7", None, None, 0.0))
     assert core.world.mode_of("limb1_joint7") == "effort"
 
@@ -169,8 +170,13 @@ def test_limits_are_enforced_by_the_model(assembly) -> None:
     # Soft constraint: a brief overshoot at full speed into the stop, then pushed back.
     assert highest <= spec.upper + 0.03
     assert core.world.position("limb1_joint3") == pytest.approx(spec.upper, abs=0.02)
-    # An out-of-range position target stops at the limit too (the drive's software limit).
+    # An out-of-range position target is refused at the last stage (raw limits) and the
+    # joint stays where it is; a target at the limit itself is reached.
     command(core, now, JointSample("limb1_joint3", cal.to_raw(-10.0), None, None))
+    assert core.counters["refused_position"] == 1
+    now = run(core, now, 0.5)
+    assert core.world.position("limb1_joint3") == pytest.approx(spec.upper, abs=0.02)
+    command(core, now, JointSample("limb1_joint3", cal.to_raw(spec.lower), None, None))
     run(core, now, 4.0)
     assert core.world.position("limb1_joint3") == pytest.approx(spec.lower, abs=0.02)
     assert core.world.finite()

@@ -45,12 +45,21 @@ from components.messages import (
     trigger_response,
     worst,
 )
+from components.motors.base import RawLimits, refused_whole
 
 LIST_JOINTS_RESPONSE = "msctl_msgs/srv/ListJoints_Response"
 JOINT_INFO = "msctl_msgs/msg/JointInfo"
 
-#: Counters every manager exposes (filters may add their own names).
+#: Counters every manager exposes (filters may add their own names). ``refused_oversize``
+#: and ``refused_malformed`` count ``joint_set`` messages refused whole (more names than the
+#: module has joints; arrays that do not match the names), ``feedback_oversize`` such
+#: ``joint_states`` messages; ``duplicates`` counts entries superseded by a later one for the
+#: same joint in the same message; ``speed_cuts`` efforts cut because the joint was already
+#: faster than its max velocity; the rest count entries.
 COUNTERS = (
+    "refused_oversize",
+    "refused_malformed",
+    "duplicates",
     "refused_nan",
     "refused_unknown",
     "refused_other_module",
@@ -59,7 +68,9 @@ COUNTERS = (
     "refused_no_state",
     "clamped",
     "watchdog_trips",
+    "speed_cuts",
     "feedback_rejected",
+    "feedback_oversize",
 )
 
 
@@ -69,7 +80,11 @@ class JointManagerConfig:
 
     Attributes:
         position_margin: Distance kept from each URDF position limit: commands are clamped to
-            ``[lower + margin, upper - margin]``.
+            ``[lower + margin, upper - margin]``; at most ``position_margin_fraction`` of the
+            joint's range.
+        position_margin_fraction: Largest margin as a fraction of the joint's range, so a
+            short joint keeps its travel: a 0.04 m finger gets 0.002 m, not 0.02 m (which left
+            it only its midpoint).
         watchdog_timeout: Seconds without a command for a moving joint before the watchdog
             stops it (velocity 0, position held where it is).
         read_position_threshold: Position change (calibrated) that publishes ``joint_read``
@@ -97,6 +112,7 @@ class JointManagerConfig:
     """
 
     position_margin: float = 0.02
+    position_margin_fraction: float = 0.05
     watchdog_timeout: float = 0.5
     read_position_threshold: float = 1e-3
     read_velocity_threshold: float = 1e-2
@@ -119,6 +135,7 @@ class JointManagerConfig:
             ),
             non_negative=(
                 "position_margin",
+                "position_margin_fraction",
                 "read_position_threshold",
                 "read_velocity_threshold",
                 "read_effort_threshold",
@@ -156,6 +173,7 @@ class _Joint:
 
     __slots__ = (
         "cal",
+        "cmd_effort",
         "cmd_velocity",
         "effort",
         "filters",
@@ -181,11 +199,15 @@ class _Joint:
         "velocity",
     )
 
-    def __init__(self, spec: JointSpec, local: str, cal: JointCalibration, margin: float) -> None:
+    def __init__(
+        self, spec: JointSpec, local: str, cal: JointCalibration, margin: float, fraction: float
+    ) -> None:
         self.spec = spec
         self.local = local
         self.cal = cal
         if spec.bounded:
+            # Relative to the range: a fixed margin would eat a short joint's whole travel.
+            margin = min(margin, fraction * (spec.upper - spec.lower))
             lo, hi = spec.lower + margin, spec.upper - margin
             if lo > hi:
                 # A range narrower than two margins: the only safe command is its middle.
@@ -210,6 +232,8 @@ class _Joint:
         self.last_command = -math.inf
         self.target_raw: float | None = None
         self.cmd_velocity = 0.0
+        # Effort of the latest effort (or velocity + effort) command, calibrated; 0 if none.
+        self.cmd_effort = 0.0
         self.filters: list[CommandFilter] = []
         self.pin: float | None = None
         self.pin_note: str | None = None
@@ -280,7 +304,11 @@ class JointManagerCore(Core):
             local = spec.name[len(self._prefix) :]
             cal = calibration.pop(spec.name, None) or calibration.pop(local, None)
             self._joints[spec.name] = _Joint(
-                spec, local, cal or JointCalibration(), self.config.position_margin
+                spec,
+                local,
+                cal or JointCalibration(),
+                self.config.position_margin,
+                self.config.position_margin_fraction,
             )
             self._local[local] = spec.name
         if calibration:
@@ -288,6 +316,7 @@ class JointManagerCore(Core):
                 f"calibration for module {module!r} names joints it does not control: "
                 f"{sorted(calibration)}; known: {sorted(self._local)}"
             )
+        self._size = len(self._joints)
         self._counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self._halted = False
         self._halted_at: float | None = None
@@ -341,6 +370,21 @@ class JointManagerCore(Core):
     def calibration(self, joint: str) -> JointCalibration:
         """The calibration currently applied to a joint (full or raw name)."""
         return self._joints[self.resolve(joint)].cal
+
+    def command_range(self, joint: str) -> tuple[float, float]:
+        """The calibrated positions commands are clamped to: the limits minus the margin."""
+        j = self._joints[self.resolve(joint)]
+        return j.lo, j.hi
+
+    def raw_limits(self, joint: str) -> RawLimits:
+        """A joint's limits in raw space under its current calibration, with no margin.
+
+        The same numbers the motor interface and the simulator check every command against
+        (they take them from the resolved assembly at start, so a runtime re-zero does not
+        widen theirs).
+        """
+        j = self._joints[self.resolve(joint)]
+        return RawLimits.of_joint(j.spec, j.cal)
 
     def latest(self, joint: str) -> JointSample | None:
         """Latest calibrated feedback of a joint, or ``None`` before any ``joint_states``."""
@@ -447,6 +491,10 @@ class JointManagerCore(Core):
         every fresh joint goes out at the keep-alive period. Names this manager does not
         control and non-finite values are ignored (counted as ``feedback_rejected``).
         """
+        if len(message.name) > self._size:
+            # A flood (or a bug): dropped before it costs anything per name.
+            self._counters["feedback_oversize"] += 1
+            return
         changed: dict[str, _Joint] = {}
         holds: list[JointSample] = []
         for name, raw_pos, raw_vel, raw_eff in joint_samples(message):
@@ -491,11 +539,30 @@ class JointManagerCore(Core):
                 self._mark_clamp(j, f"{j.spec.name}: reached a limit, holding", now)
                 holds.append(self._hold_sample(j))
                 j.mode = _HOLD
+            elif (
+                j.cmd_effort and j.mode in (_VELOCITY, _EFFORT) and self._too_fast(j, j.cmd_effort)
+            ):
+                holds.append(self._cut_effort(j, now))
             if self._changed(j):
                 changed[name] = j
         self._send(holds, now)
         if not self._keepalive_if_due(now) and changed:
             self._publish_read(changed.values(), now)
+
+    def _too_fast(self, j: _Joint, effort: float) -> bool:
+        """Whether ``effort`` pushes a joint already above its max velocity on (effort mode
+        has no speed bound of its own; an effort that brakes is never cut)."""
+        speed = j.velocity
+        return speed is not None and abs(speed) > j.spec.max_velocity and effort * speed > 0
+
+    def _cut_effort(self, j: _Joint, now: float) -> JointSample:
+        """The raw command that takes a too-fast joint's effort away (counted)."""
+        self._counters["speed_cuts"] += 1
+        self._mark_clamp(j, f"{j.spec.name}: faster than {j.spec.max_velocity:g}, effort cut", now)
+        j.cmd_effort = 0.0
+        if j.mode == _VELOCITY:
+            return JointSample(j.spec.name, None, j.cal.rate_to_raw(j.cmd_velocity), None)
+        return JointSample(j.spec.name, None, None, 0.0)
 
     def _heading_past_limit(self, j: _Joint, velocity: float | None = None) -> bool:
         """Whether a bounded joint would cross ``lo``/``hi`` within the lookahead.
@@ -547,13 +614,28 @@ class JointManagerCore(Core):
         position) is counted and left out; the others go out on ``joint_commands``. An
         accepted command feeds that joint's watchdog.
         """
+        refused = refused_whole(message, self._size)
+        if refused is not None:
+            self._counters[refused] += 1
+            self._last_refusal = now
+            why = (
+                f"the module has {self._size} joints"
+                if refused == "refused_oversize"
+                else "its arrays do not match its names"
+            )
+            self._refusal_note = f"joint_set with {len(message.name)} names refused: {why}"
+            return
         samples = joint_samples(message)
         if self._halted:
             self._refuse_all(samples, now)
             return
+        # The last entry per joint wins: one command per joint however often it is named.
+        latest = {sample.name: sample for sample in samples}
+        if len(latest) != len(samples):
+            self._counters["duplicates"] += len(samples) - len(latest)
         out: list[JointSample] = []
         accepted = False
-        for sample in samples:
+        for sample in latest.values():
             j = self._joints.get(sample.name)
             if j is None:
                 self._refuse_name(sample.name, now)
@@ -605,6 +687,12 @@ class JointManagerCore(Core):
             limited = min(max(effort, -spec.max_effort), spec.max_effort)
             clamped |= limited != effort
             effort = limited
+            if position is None and self._too_fast(j, effort):
+                self._counters["speed_cuts"] += 1
+                self._mark_clamp(
+                    j, f"{spec.name}: faster than {spec.max_velocity:g}, effort cut", now
+                )
+                effort = 0.0 if velocity is None else None
         if position is None and (velocity is not None or effort is not None) and spec.bounded:
             # Velocity or effort mode on a bounded joint drives it toward its limits: only
             # safe while we know where the joint is. The position's own age: velocity-only
@@ -634,6 +722,7 @@ class JointManagerCore(Core):
             return self._hold_sample(j)
         if clamped:
             self._mark_clamp(j, f"{spec.name}: command clamped to limits", now)
+        j.cmd_effort = effort or 0.0
         if position is not None:
             j.mode = _POSITION
             j.target_raw = cal.to_raw(position)
@@ -668,6 +757,7 @@ class JointManagerCore(Core):
                 self.publish("joint_commands", message)
 
     def _refuse_name(self, name: str, now: float) -> None:
+        name = name if len(name) <= 64 else name[:64] + "..."  # notes stay small
         head, sep, _ = name.partition("_")
         if sep and head and not name.startswith(self._prefix):
             counter = "refused_other_module"

@@ -9,7 +9,7 @@ from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
 from components.motor_interface.core import MotorInterfaceCore
 from components.motor_interface.interface import MOTOR_INTERFACE
-from components.motors.base import MotorError
+from components.motors.base import MotorError, RawLimits
 from components.motors.options import backend_info, parse_options
 
 
@@ -45,5 +45,7 @@ def build(
         backend = info.load_class()(channel, module.motor_specs(), typed)
     except MotorError as exc:
         raise BuildError(f"{plan.name}: bus of module {plan.module}: {exc}") from exc
-    core = MotorInterfaceCore(plan.name, module.slot, backend)
+    # The last stage checks commands against the unit's raw limits itself (defence in depth).
+    limits = {j.raw_name: RawLimits.of_joint(j.spec, j.calibration) for j in module.actuated_joints}
+    core = MotorInterfaceCore(plan.name, module.slot, backend, limits=limits)
     return BuiltComponent(core, MOTOR_INTERFACE, module.namespace, "motor_interface", [backend])

@@ -22,12 +22,14 @@ and what to do.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
+from components.joints import JointCalibration, JointSpec
 from components.motors.options import (
     BACKENDS,
     MotorError,
@@ -50,7 +52,10 @@ __all__ = [
     "MotorOptionsError",
     "MotorSpec",
     "MotorState",
+    "RawLimits",
     "backend_class",
+    "check_command",
+    "refused_whole",
 ]
 
 log = logging.getLogger(__name__)
@@ -108,6 +113,110 @@ class MotorCommand:
     position: float | None = None
     velocity: float | None = None
     effort: float | None = None
+
+
+#: Relative slack of :meth:`RawLimits.admits`: a command this close past a limit is float
+#: noise (calibration round trips; the simulator's model stores limits to 6 digits), not a
+#: command out of limits. 1e-5 of 3.14 rad is 31 µrad.
+LIMIT_TOLERANCE = 1e-5
+
+
+@dataclass(frozen=True)
+class RawLimits:
+    """What one motor may be commanded to, in raw joint space: the last stage's own limits.
+
+    The module's joint limits (calibrated, URDF space) mapped through the unit's calibration,
+    with no margin: the joint manager clamps inside them with its own margin, so everything it
+    sends passes, and anything else (another publisher, a bug) is refused before the bus.
+
+    Attributes:
+        lower: Lowest raw position (``-inf`` for a continuous joint).
+        upper: Highest raw position (``inf`` for a continuous joint).
+        max_velocity: Largest speed magnitude (rad/s or m/s).
+        max_effort: Largest effort magnitude (N·m or N).
+    """
+
+    lower: float = -math.inf
+    upper: float = math.inf
+    max_velocity: float = math.inf
+    max_effort: float = math.inf
+
+    @classmethod
+    def of_joint(cls, spec: JointSpec, calibration: JointCalibration) -> RawLimits:
+        """The raw limits of a joint: ``spec``'s limits through ``calibration``."""
+        lower, upper = -math.inf, math.inf
+        if spec.bounded:
+            a, b = calibration.to_raw(spec.lower), calibration.to_raw(spec.upper)
+            lower, upper = min(a, b), max(a, b)
+        return cls(lower, upper, float(spec.max_velocity), float(spec.max_effort))
+
+    def checks(self) -> tuple[float, float, float, float]:
+        """``(lowest, highest, max speed, max effort)`` with :data:`LIMIT_TOLERANCE` applied:
+        precomputed once, so a per-command check is four comparisons."""
+
+        def slack(value: float) -> float:
+            return LIMIT_TOLERANCE * max(1.0, abs(value)) if math.isfinite(value) else 0.0
+
+        return (
+            self.lower - slack(self.lower),
+            self.upper + slack(self.upper),
+            self.max_velocity + slack(self.max_velocity),
+            self.max_effort + slack(self.max_effort),
+        )
+
+    def admits(
+        self, position: float | None, velocity: float | None, effort: float | None
+    ) -> str | None:
+        """Why a command breaks these limits (a counter name), or ``None`` if it does not.
+
+        Reasons: ``refused_nan`` (NaN or inf anywhere), ``refused_position``,
+        ``refused_velocity``, ``refused_effort``.
+        """
+        return check_command(self.checks(), position, velocity, effort)
+
+
+def check_command(
+    checks: tuple[float, float, float, float],
+    position: float | None,
+    velocity: float | None,
+    effort: float | None,
+) -> str | None:
+    """:meth:`RawLimits.admits` with the limits precomputed by :meth:`RawLimits.checks`."""
+    lo, hi, vmax, emax = checks
+    if position is not None:
+        if not math.isfinite(position):
+            return "refused_nan"
+        if not lo <= position <= hi:
+            return "refused_position"
+    if velocity is not None:
+        if not math.isfinite(velocity):
+            return "refused_nan"
+        if not -vmax <= velocity <= vmax:
+            return "refused_velocity"
+    if effort is not None:
+        if not math.isfinite(effort):
+            return "refused_nan"
+        if not -emax <= effort <= emax:
+            return "refused_effort"
+    return None
+
+
+def refused_whole(message: Any, size: int) -> str | None:
+    """Why a whole command JointState is refused (a counter name), or ``None``.
+
+    ``refused_oversize``: more names than the ``size`` joints it may command; a flood or a
+    bug, dropped before it costs anything per entry. ``refused_malformed``: a non-empty
+    position, velocity or effort array whose length is not the names' (which value belongs to
+    which joint would be a guess).
+    """
+    count = len(message.name)
+    if count > size:
+        return "refused_oversize"
+    for values in (message.position, message.velocity, message.effort):
+        length = len(values)
+        if length and length != count:
+            return "refused_malformed"
+    return None
 
 
 @dataclass(frozen=True)

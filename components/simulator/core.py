@@ -15,19 +15,27 @@ instead of spending ever longer catching up.
 
 Rates (states, diagnostics) are in wall time, because the joint managers and everything above
 run on wall time; at speed 1 wall time and simulated time advance together.
+
+As the last stage before the (simulated) motors, it checks every command as the motor
+interface does: a message naming more joints than the module has, or with arrays that do not
+match its names, is refused whole; unknown names, another module's joints, NaN and inf, and
+values outside the unit's raw limits are refused; a joint named twice gets its last entry; a
+halted module refuses everything until recover; an effort-mode joint faster than its max
+velocity gets effort 0. Every refusal is counted by reason (``/sim/diagnostics``).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from components.executor.core import Core
+from components.joints import JointSpec
 from components.messages import (
     ERROR,
     JOINT_STATE,
@@ -41,10 +49,52 @@ from components.messages import (
     msg,
     trigger_response,
 )
-from components.simulator.world import SimWorld
+from components.motors.base import RawLimits, check_command, refused_whole
+from components.simulator.world import EFFORT, SimWorld
 
 #: Namespace of what belongs to the simulator itself (pose ground truth, diagnostics).
 SIM_NAMESPACE = "/sim"
+
+#: Counters of the simulator's command checks: ``refused_oversize`` and
+#: ``refused_malformed`` count messages (refused whole), ``duplicates`` entries superseded
+#: by a later one for the same joint, ``speed_cuts`` efforts cut to 0 because the joint was
+#: faster than its max velocity; the other ``refused_*`` count entries.
+COUNTERS = (
+    "refused_oversize",
+    "refused_malformed",
+    "refused_unknown",
+    "refused_other_module",
+    "refused_halted",
+    "refused_nan",
+    "refused_position",
+    "refused_velocity",
+    "refused_effort",
+    "duplicates",
+    "speed_cuts",
+)
+
+
+class _Motor:
+    """What the command check needs of one simulated motor (precomputed once)."""
+
+    __slots__ = ("checks", "index", "limits", "slot")
+
+    def __init__(self, index: int, slot: str, limits: RawLimits) -> None:
+        self.index = index
+        self.slot = slot
+        self.limits = limits
+        self.checks = limits.checks()
+
+
+def world_raw_limits(world: SimWorld) -> dict[str, RawLimits]:
+    """Each simulated motor's raw limits: its model limits through the unit's calibration."""
+    return {
+        j.name: RawLimits.of_joint(
+            JointSpec(j.name, "revolute", j.lower, j.upper, j.max_velocity, j.max_effort),
+            j.calibration,
+        )
+        for j in world.joints
+    }
 
 
 @dataclass(frozen=True)
@@ -151,13 +201,14 @@ class SimulatorCore(Core):
         config: Timing; defaults when omitted.
         timer: A high-resolution clock used only to measure how long physics takes (the
             ``load`` in diagnostics); ``None`` in fake-time tests, where load is not reported.
+        limits: Raw limits per joint (assembly name); by default :func:`world_raw_limits`,
+            the model's limits (the module data's) through each unit's calibration.
 
     Attributes:
         world: The world.
         config: The timing in use.
         steps: Physics steps taken since start.
         dropped: Simulated seconds given up because ticks came too late to catch up.
-        refused_unknown: Command entries naming no simulated motor.
     """
 
     def __init__(
@@ -166,6 +217,7 @@ class SimulatorCore(Core):
         world: SimWorld,
         config: SimulatorConfig | None = None,
         timer: Callable[[], float] | None = None,
+        limits: Mapping[str, RawLimits] | None = None,
     ) -> None:
         super().__init__(name)
         self.world = world
@@ -178,8 +230,13 @@ class SimulatorCore(Core):
         self._pose_topics = pose_topics(tuple(world.roots))
         self.steps = 0
         self.dropped = 0.0
-        self.refused_unknown = 0
-        self.refused_nan = 0
+        given = {**world_raw_limits(world), **(limits or {})}
+        self._motors = {
+            j.name: _Motor(i, j.module, given[j.name]) for i, j in enumerate(world.joints)
+        }
+        self._sizes = {slot: len(names) for slot, names in self._names.items()}
+        self._counters = dict.fromkeys(COUNTERS, 0)
+        self._efforts: set[str] = set()  # joints in effort mode, watched for speed
         self._last: float | None = None
         self._debt = 0.0
         self._max_steps = max(
@@ -207,11 +264,39 @@ class SimulatorCore(Core):
         self.state_rate: float | None = None
         self.load: float | None = None
         self._halted: set[str] = set()
-        self.refused_other_module = 0
         for slot in self.slots:
             setattr(self, commands_handler(slot), functools.partial(self.on_module_commands, slot))
             setattr(self, halt_handler(slot), functools.partial(self.on_halt, slot))
             setattr(self, recover_handler(slot), functools.partial(self.on_recover, slot))
+
+    # ------------------------------------------------------------------ read access
+    @property
+    def counters(self) -> dict[str, int]:
+        """A copy of the command-check counters (cumulative since construction)."""
+        return dict(self._counters)
+
+    @property
+    def refused_unknown(self) -> int:
+        """Command entries naming no simulated motor."""
+        return self._counters["refused_unknown"]
+
+    @property
+    def refused_nan(self) -> int:
+        """Command entries carrying NaN or inf."""
+        return self._counters["refused_nan"]
+
+    @property
+    def refused_other_module(self) -> int:
+        """Command entries naming another module's joint on a module's topic."""
+        return self._counters["refused_other_module"]
+
+    def raw_limits(self, joint: str) -> RawLimits:
+        """The raw limits a joint's commands are checked against (assembly name)."""
+        return self._motors[joint].limits
+
+    def halted(self, slot: str) -> bool:
+        """Whether a module's ``motors/halt`` was called and ``motors/recover`` not since."""
+        return slot in self._halted
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, now: float) -> None:
@@ -236,39 +321,88 @@ class SimulatorCore(Core):
     def on_joint_commands(self, message: Any, now: float, slot: str | None = None) -> None:
         """Raw commands: each named joint gets its position, speed or effort.
 
-        Joint names are assembly-unique. Names the world does not drive, joints of another
-        module than ``slot`` (when given), and non-finite values are counted and skipped.
+        Joint names are assembly-unique. Checked as a motor interface checks them (see the
+        module's docstring); ``slot``, when given, is the module whose topic it came on.
         """
+        counters = self._counters
+        refused = refused_whole(message, len(self._motors) if slot is None else self._sizes[slot])
+        if refused is not None:
+            counters[refused] += 1
+            return
+        # The last entry per joint wins: one command per joint however often it is named.
+        latest = {sample.name: sample for sample in joint_samples(message)}
+        if len(latest) != len(message.name):
+            counters["duplicates"] += len(message.name) - len(latest)
         world = self.world
-        for sample in joint_samples(message):
-            if not world.has_joint(sample.name):
-                self.refused_unknown += 1
+        for name, position, velocity, effort in latest.values():
+            motor = self._motors.get(name)
+            if motor is None:
+                counters["refused_unknown"] += 1
                 continue
-            if slot is not None and world.joint(sample.name).module != slot:
-                self.refused_other_module += 1
+            if slot is not None and motor.slot != slot:
+                counters["refused_other_module"] += 1
                 continue
-            values = (sample.position, sample.velocity, sample.effort)
-            if any(v is not None and not math.isfinite(v) for v in values):
-                self.refused_nan += 1
+            if motor.slot in self._halted:
+                counters["refused_halted"] += 1
                 continue
-            world.command(sample.name, *values)
-            self._commanded.add(world.joint(sample.name).module)
-            if sample.position is None and sample.velocity:
-                self._spinning[sample.name] = now
+            reason = check_command(motor.checks, position, velocity, effort)
+            if reason is not None:
+                counters[reason] += 1
+                continue
+            if position is None and velocity is None and effort is not None:
+                if self._too_fast(name, effort):
+                    effort = 0.0
+                    counters["speed_cuts"] += 1
+                self._efforts.add(name)
             else:
-                self._spinning.pop(sample.name, None)
+                self._efforts.discard(name)
+            world.command(name, position, velocity, effort)
+            self._commanded.add(motor.slot)
+            if position is None and velocity:
+                self._spinning[name] = now
+            else:
+                self._spinning.pop(name, None)
         self._react(now)
 
+    def _too_fast(self, name: str, raw_effort: float) -> bool:
+        """Whether a raw effort pushes a joint already above its max velocity on."""
+        world = self.world
+        speed = world.velocity(name)  # model space: bring the effort there too
+        effort = world.joint(name).calibration.rate_to_calibrated(raw_effort)
+        return abs(speed) > self._motors[name].checks[2] and effort * speed > 0
+
+    def _cut_fast_efforts(self) -> None:
+        """Effort mode has no speed bound of its own: a joint turning faster than its max
+        velocity with its effort pushing it on gets effort 0 (an effort that brakes stays)."""
+        world = self.world
+        for name in sorted(self._efforts):
+            index = self._motors[name].index
+            if world.mode[index] != EFFORT:
+                self._efforts.discard(name)  # held by the world (a reset)
+                continue
+            target = float(world.target[index])  # model space
+            if target and self._too_fast(name, world.joint(name).calibration.rate_to_raw(target)):
+                world.command(name, None, None, 0.0)
+                self._counters["speed_cuts"] += 1
+
     def on_halt(self, slot: str, request: Any, now: float) -> Any:
-        """``/<slot>/motors/halt``: hold the module's motors where they are."""
-        self.world.hold(self._names[slot])
+        """``/<slot>/motors/halt``: hold the module's motors where they are; refuse every
+        command to them until ``motors/recover``."""
+        names = self._names[slot]
+        self.world.hold(names)
         self._halted.add(slot)
-        return trigger_response(True, f"{slot}: simulated motors halted")
+        for name in names:
+            self._spinning.pop(name, None)
+            self._efforts.discard(name)
+        return trigger_response(
+            True, f"{slot}: simulated motors halted; commands refused until motors/recover"
+        )
 
     def on_recover(self, slot: str, request: Any, now: float) -> Any:
-        """``/<slot>/motors/recover``: simulated motors have no faults to clear."""
+        """``/<slot>/motors/recover``: accept commands again (simulated motors have no
+        faults to clear)."""
         self._halted.discard(slot)
-        return trigger_response(True, f"{slot}: simulated motors have no faults")
+        return trigger_response(True, f"{slot}: simulated motors accept commands again")
 
     # ------------------------------------------------------------------ stepping
     def tick(self, now: float) -> None:
@@ -283,6 +417,8 @@ class SimulatorCore(Core):
                 del self._spinning[name]
                 self.watchdog_stops += 1
         steps = self._catch_up(now)
+        if self._efforts:
+            self._cut_fast_efforts()
         self._publish_due(now, force=False, stepped=steps > 0)
 
     def _catch_up(self, now: float) -> int:
@@ -430,8 +566,7 @@ class SimulatorCore(Core):
             "dropped_s": f"{self.dropped:.3f}",
             "resets": self.world.resets,
             "joints": len(self.world.joints),
-            "refused_unknown": self.refused_unknown,
-            "refused_nan": self.refused_nan,
+            **self._counters,
         }
         if self.load is not None:
             values["load"] = f"{self.load:.3f}"
