@@ -50,9 +50,8 @@ from components.comm.session import SessionSettings, open_session
 from msctl.launcher.control import (
     AGENT_SRV,
     RequestError,
+    answer,
     host_namespace,
-    parse_request,
-    reply,
 )
 from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
 from msctl.launcher.run import (
@@ -331,19 +330,17 @@ class Agent:
 
     # ------------------------------------------------------------------ requests
     def _answer(self, pending: Any) -> None:
-        verb = getattr(pending.request, "verb", "?")
-        try:
-            request = parse_request(pending.request.verb, pending.request.args)
-            payload, message = self.handle(request.verb, request.args)
-        except RequestError as exc:
-            self.log(f"refused {verb!r}: {exc}")
-            reply(pending, False, str(exc))
-            return
-        except Exception as exc:  # a request must never take the agent down
-            self.log(f"{verb} failed: {type(exc).__name__}: {exc}")
-            reply(pending, False, f"{self.host} could not {verb}: {type(exc).__name__}: {exc}")
-            return
-        reply(pending, True, message, payload)
+        """Answer one request; whatever it raises is an error reply, never the agent's end."""
+
+        def handle(verb: str, args: dict[str, Any]) -> tuple[bool, str, Any]:
+            try:
+                payload, message = self.handle(verb, args)
+            except RequestError as exc:
+                self.log(f"refused {verb!r}: {exc}")
+                raise
+            return True, message, payload
+
+        answer(pending, handle, self.log, self.host)
 
     def handle(self, verb: str, args: dict[str, Any]) -> tuple[Any, str]:
         """Carry out a validated request; returns ``(payload, message)``.

@@ -8,8 +8,10 @@ was sent) — never a command line, a path or a shell fragment.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,9 +27,14 @@ _ARG_KEYS: dict[str, set[str]] = {
     "up": {"assembly", "sim", "speed"},
 }
 _HOST_CHARS = re.compile(r"[^A-Za-z0-9_]")
-#: Bounds on a request's arguments: an assembly document is tens of kilobytes and a few
-#: levels deep; anything far past that is an attack or a bug, refused before it is parsed.
-MAX_ARGS_BYTES = 4 * 1024 * 1024
+#: Bounds on a request's arguments, checked before they are parsed. The largest request is
+#: an ``up`` carrying a resolved assembly document, as :func:`call_supervisor` sends it
+#: (compact JSON), measured with the shipped templates: minimal 6.5 KB, dragon 18 KB,
+#: dragon_x4 36 KB, two_dragons 40 KB (about 5 KB per module), 7 levels deep. 64 KiB holds
+#: a dozen modules; past that, ``msctl up --all`` says so before sending (the bound is the
+#: size of the request, not of the fleet: raise it here, with a new measurement, if a
+#: bigger assembly needs it). Anything nesting deeper than 32 is an attack or a bug.
+MAX_ARGS_BYTES = 64 * 1024
 MAX_ARGS_DEPTH = 32
 _JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
 _NESTING = str.maketrans({"[": "(", "{": "(", "]": ")", "}": ")"})
@@ -59,12 +66,14 @@ def parse_request(verb: str, args_text: str) -> Request:
     Raises:
         RequestError: For an unknown verb, malformed JSON, unknown keys or bad values.
     """
-    if verb not in VERBS:
-        raise RequestError(f"unknown verb {verb!r}; accepted: {', '.join(VERBS)}")
-    if len(args_text) > MAX_ARGS_BYTES:
-        raise RequestError(
-            f"arguments are {len(args_text)} bytes; at most {MAX_ARGS_BYTES} are accepted"
-        )
+    if not isinstance(verb, str) or verb not in VERBS:
+        shown = verb[:40] if isinstance(verb, str) else type(verb).__name__
+        raise RequestError(f"unknown verb {shown!r}; accepted: {', '.join(VERBS)}")
+    if not isinstance(args_text, str):
+        raise RequestError("arguments must be JSON text")
+    size = args_size(args_text)
+    if size > MAX_ARGS_BYTES:
+        raise RequestError(f"arguments are {size} bytes; at most {MAX_ARGS_BYTES} are accepted")
     if _depth(args_text) > MAX_ARGS_DEPTH:
         raise RequestError(f"arguments nest deeper than {MAX_ARGS_DEPTH} levels")
     try:
@@ -92,6 +101,18 @@ def parse_request(verb: str, args_text: str) -> Request:
     return Request(verb, args)
 
 
+def args_size(text: str) -> int:
+    """Bytes of ``text`` in UTF-8 (a character count first: a huge text is not encoded)."""
+    if len(text) > MAX_ARGS_BYTES:
+        return len(text)
+    return len(text.encode("utf-8", "surrogatepass"))
+
+
+def encode_args(args: dict[str, Any] | None) -> str:
+    """A request's arguments as the compact JSON :func:`call_supervisor` sends."""
+    return json.dumps(args or {}, separators=(",", ":"))
+
+
 def _depth(text: str) -> int:
     """How deep JSON ``text`` nests (strings skipped), without recursing into it."""
     brackets = "".join(ch for ch in _JSON_STRING.sub("", text).translate(_NESTING) if ch in "()")
@@ -116,6 +137,52 @@ def reply(pending: Any, success: bool, message: str, payload: Any = None) -> Non
     )
 
 
+def request_verb(pending: Any) -> str:
+    """A pending request's verb, for messages about it (never raises)."""
+    verb = getattr(getattr(pending, "request", None), "verb", None)
+    return verb[:40] if isinstance(verb, str) and verb else "?"
+
+
+def answer(
+    pending: Any,
+    handle: Callable[[str, dict[str, Any]], tuple[bool, str, Any]],
+    note: Callable[[str], None],
+    who: str,
+) -> None:
+    """Parse a pending request, carry it out with ``handle`` and reply; never raises.
+
+    A supervisor answers on its one loop thread: an exception escaping here would stop the
+    loop, and with it every process it supervises. So whatever ``handle`` (or the reply)
+    raises is answered as an error and said with ``note``.
+
+    Args:
+        pending: The pending AgentRequest.
+        handle: Carries out ``(verb, args)``; returns ``(success, message, payload)``.
+        note: Where to say what went wrong (the supervisor's log or events).
+        who: Names the supervisor in error replies (its host).
+    """
+    verb = request_verb(pending)
+    try:
+        request = parse_request(pending.request.verb, pending.request.args)
+        success, message, payload = handle(request.verb, request.args)
+    except RequestError as exc:
+        success, message, payload = False, str(exc), None
+    except Exception as exc:  # RecursionError, MemoryError, a bug: an error reply
+        success, message, payload = False, f"{who} could not {verb}: {_describe(exc)}", None
+        note(f"request {verb!r} failed: {_describe(exc)}")
+    try:
+        reply(pending, success, message, payload)
+    except Exception as exc:
+        note(f"could not answer request {verb!r}: {_describe(exc)}")
+        with contextlib.suppress(Exception):
+            reply(pending, False, f"{who} could not answer {verb}: {_describe(exc)}")
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc)
+    return f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
+
+
 def call_supervisor(
     node: Any, host: str, verb: str, args: dict[str, Any] | None = None, timeout: float = 5.0
 ) -> dict[str, Any]:
@@ -130,7 +197,7 @@ def call_supervisor(
     client = node.client(f"{host_namespace(host)}/request", AGENT_SRV)
     try:
         request_cls = registry().msg_class(client.parts.request)
-        response = client.call(request_cls(verb=verb, args=json.dumps(args or {})), timeout=timeout)
+        response = client.call(request_cls(verb=verb, args=encode_args(args)), timeout=timeout)
     finally:
         client.close()
     if not response.success:

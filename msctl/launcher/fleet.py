@@ -6,7 +6,7 @@ import json
 from typing import Any
 
 from msctl.launcher import state
-from msctl.launcher.control import AGENT_SRV
+from msctl.launcher.control import AGENT_SRV, encode_args
 
 
 def supervisors(node: Any) -> dict[str, str]:
@@ -31,9 +31,7 @@ def ask_all(
     for namespace, service in supervisors(node).items():
         client = node.client(service, AGENT_SRV)
         try:
-            request = registry().msg_class(client.parts.request)(
-                verb=verb, args=json.dumps(args or {})
-            )
+            request = registry().msg_class(client.parts.request)(verb=verb, args=encode_args(args))
             response = client.call(request, timeout=timeout)
             if response.success:
                 answers[namespace] = json.loads(response.payload) if response.payload else {}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from msctl.errors import MsctlError, NetworkError, NotFoundError
+from msctl.errors import InputError, MsctlError, NetworkError, NotFoundError
 from msctl.launcher.control import RequestError
 
 
@@ -85,10 +85,24 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
     from components.comm.services import ServiceError, ServiceTimeout
     from msctl.console import err
     from msctl.errors import OperationTimeout
-    from msctl.launcher.control import call_supervisor, host_namespace
+    from msctl.launcher.control import (
+        MAX_ARGS_BYTES,
+        args_size,
+        call_supervisor,
+        encode_args,
+        host_namespace,
+    )
     from msctl.plane import connected
 
     document = json.loads(assembly.lock_path.read_text()) if assembly.lock_path else {}
+    size = args_size(encode_args({"assembly": document, "sim": sim, "speed": speed}))
+    if size > MAX_ARGS_BYTES:
+        # Every agent would refuse it: say why once, here, rather than once per host.
+        raise InputError(
+            f"the resolved {assembly.template} ({assembly.lock_path}) is {size} bytes as an "
+            f"`up` request; agents accept at most {MAX_ARGS_BYTES}",
+            hint="MAX_ARGS_BYTES in msctl/launcher/control.py bounds it: raise it there",
+        )
     hosts = list(dict.fromkeys(assembly.hosts))
     started: dict[str, dict[str, Any]] = {}
     unreachable: list[tuple[str, str]] = []

@@ -20,7 +20,7 @@ from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionSettings, open_session
 from msctl.launcher import state
-from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace, parse_request, reply
+from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
 from msctl.launcher.plan import HostPlan
 from msctl.launcher.supervisor import ManagedProcess, ProcessState, RestartPolicy, Supervisor
 from msctl.launcher.watch import HealthWatch
@@ -268,13 +268,13 @@ class Launch:
 
     # ------------------------------------------------------------------ control
     def _answer(self, pending: Any) -> None:
-        try:
-            request = parse_request(pending.request.verb, pending.request.args)
-            payload = self._do(request.verb, request.args)
-        except RequestError as exc:
-            reply(pending, False, str(exc))
-            return
-        reply(pending, True, "ok", payload)
+        """Answer one request; whatever it raises is an error reply, never the loop's end."""
+        answer(
+            pending,
+            lambda verb, args: (True, "ok", self._do(verb, args)),
+            lambda line: self.events.append(f"supervisor: {line}"),
+            self.plan.host,
+        )
 
     def _process_of(self, name: str) -> str:
         if name in self.supervisor.processes:
