@@ -321,8 +321,16 @@ def test_cia402_goal_past_the_raw_limit_after_halt_never_reaches_the_drive(cia40
     assert core.counters["refused_position"] == 1
     # A legal goal on joint1 after it: once the drive has that one, joint2's would be there.
     sentinel = joint1.calibration.to_raw(0.3)
-    send(core, 2.2, JointSample("limb1_joint1", sentinel))
-    wait_until(lambda: abs(goal(joint1) - sentinel) < 1e-3, 5.0, "joint1's goal on the drive")
+
+    def sentinel_arrived() -> bool:
+        # Sent again at each poll, with the executor's tick between, as the backend tests do:
+        # a drive that missed a heartbeat on a loaded machine drops commands until it is
+        # picked up again.
+        send(core, 2.2, JointSample("limb1_joint1", sentinel))
+        core.tick(2.2)
+        return abs(goal(joint1) - sentinel) < 1e-3
+
+    wait_until(sentinel_arrived, 30.0, "joint1's goal on the drive", interval=0.1)
     print(f"\nCiA 402: joint2 goal {goal(joint2):.4f} rad after 6.0 was sent (before {before:.4f})")
     assert goal(joint2) == pytest.approx(before, abs=1e-3)
     limits = core.raw_limits("joint2")
@@ -356,8 +364,13 @@ def test_dynamixel_goal_past_the_raw_limit_never_reaches_the_servo(resolved) -> 
             before = goal(joint2)
             send(core, 0.1, JointSample("limb1_joint2", 3.14))
             sentinel = joint1.calibration.to_raw(0.4)
-            send(core, 0.2, JointSample("limb1_joint1", sentinel))
-            wait_until(lambda: abs(goal(joint1) - sentinel) < 4e-3, 5.0, "joint1's goal")
+
+            def sentinel_arrived() -> bool:
+                send(core, 0.2, JointSample("limb1_joint1", sentinel))
+                core.tick(0.2)
+                return abs(goal(joint1) - sentinel) < 4e-3
+
+            wait_until(sentinel_arrived, 30.0, "joint1's goal on the servo", interval=0.1)
             print(f"\nDynamixel: joint2 goal {goal(joint2):.4f} rad after 3.14 was sent")
             assert goal(joint2) == pytest.approx(before, abs=4e-3)
             assert core.counters["refused_position"] == 1
@@ -472,3 +485,146 @@ def test_the_gripper_reaches_both_ends_with_a_margin_relative_to_its_range(resol
     assert reached[1] - reached[0] >= 0.85 * (upper - lower)  # 0.036 of 0.04 m
     # A long joint keeps the absolute margin.
     assert core.command_range("joint2") == pytest.approx((-1.98, 1.98))
+
+
+# ------------------------------------------------------------------ the simulator (real MuJoCo)
+
+
+def simulator(assembly: ResolvedAssembly) -> Any:
+    from components.simulator.core import SimulatorConfig, SimulatorCore
+    from components.simulator.world import SimWorld
+
+    core = SimulatorCore(
+        "sim", SimWorld.from_assembly(assembly), SimulatorConfig(command_timeout=60)
+    )
+    core.start(0.0)
+    return core
+
+
+def run(core: Any, now: float, seconds: float) -> float:
+    for _ in range(round(seconds / 0.002)):
+        now += 0.002
+        core.tick(now)
+    return now
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("template", ["minimal", "dragon"])
+def test_simulator_and_joint_manager_use_the_same_raw_limits(resolved, template: str) -> None:
+    assembly = resolved(template)
+    core = simulator(assembly)
+    for module in assembly.modules:
+        if not module.actuated_joints:
+            continue
+        manager = build_component(plan_of(assembly, "joint_manager", module.slot), assembly).core
+        for joint in module.actuated_joints:
+            theirs, ours = manager.raw_limits(joint.name), core.raw_limits(joint.name)
+            # The model stores limits to 6 digits: the same numbers within that.
+            for field in ("lower", "upper", "max_velocity", "max_effort"):
+                assert getattr(ours, field) == pytest.approx(getattr(theirs, field), rel=1e-5)
+
+
+@pytest.mark.e2e
+def test_simulation_refuses_a_command_past_the_joint_manager_clamp(resolved) -> None:
+    """Finding 1 in simulation: a raw command went past the joint manager's clamp."""
+    assembly = resolved("minimal")
+    core = simulator(assembly)
+    manager = build_component(plan_of(assembly, "joint_manager"), assembly).core
+    name = "limb1_joint2"
+    cal = assembly.joint(name).calibration
+    clamp = manager.command_range(name)
+    for calibrated_goal in (6.0, -6.0):
+        core.on_module_commands(
+            SLOT, joint_state([JointSample(name, cal.to_raw(calibrated_goal))]), 0.0
+        )
+    now = run(core, 0.0, 1.5)
+    reached = core.world.position(name)
+    print(f"\nsim: {name} at {reached:.4f} rad after goals of ±6.0 (clamp {clamp[1]:.2f})")
+    assert core.counters["refused_position"] == 2
+    assert clamp[0] < reached < clamp[1]
+    assert abs(reached) < 0.05  # it stayed where it was
+    # NaN, another module's joint (none in this assembly: unknown), an unknown name.
+    core.on_module_commands(SLOT, joint_state([JointSample(name, math.nan)]), now)
+    core.on_module_commands(SLOT, joint_state([JointSample("limb2_joint2", 0.5)]), now)
+    core.on_joint_commands(joint_state([JointSample("limb1_nothing", 0.5)]), now)
+    counters = core.counters
+    assert counters["refused_nan"] == 1
+    assert counters["refused_unknown"] == 2
+    # A legal goal still moves it.
+    core.on_module_commands(SLOT, joint_state([JointSample(name, cal.to_raw(0.5))]), now)
+    run(core, now, 1.5)
+    assert core.world.position(name) == pytest.approx(0.5, abs=0.03)
+    status = core.diagnostics(now).status[0]
+    assert diagnostic_values(status)["refused_position"] == "2"
+
+
+@pytest.mark.e2e
+def test_simulated_halt_latches_per_module_until_recover(resolved) -> None:
+    assembly = resolved("dragon")
+    core = simulator(assembly)
+    now = run(core, 0.0, 0.3)
+    targets = {"limb1_joint2": 0.3, "limb2_joint2": 0.3}
+
+    def goal(*names: str) -> Any:
+        samples = [JointSample(n, assembly.joint(n).calibration.to_raw(targets[n])) for n in names]
+        return joint_state(samples)
+
+    assert core.on_halt_limb1(TRIGGER_REQ, now).success
+    held = core.world.position("limb1_joint2")
+    core.on_joint_commands(goal("limb1_joint2", "limb2_joint2"), now)
+    core.on_joint_commands_limb1(goal("limb1_joint2"), now)
+    assert core.counters["refused_halted"] == 2
+    now = run(core, now, 1.0)
+    # Held where it was (a position servo under the limb's weight sags a few hundredths).
+    assert core.world.position("limb1_joint2") == pytest.approx(held, abs=0.05)
+    assert core.world.position("limb2_joint2") == pytest.approx(0.3, abs=0.05)  # not halted
+    assert core.halted("limb1") and not core.halted("limb2")
+    assert core.on_recover_limb1(TRIGGER_REQ, now).success
+    core.on_joint_commands_limb1(goal("limb1_joint2"), now)
+    run(core, now, 1.0)
+    assert core.world.position("limb1_joint2") == pytest.approx(0.3, abs=0.05)
+
+
+@pytest.mark.e2e
+def test_simulator_refuses_floods_and_collapses_duplicates(resolved) -> None:
+    assembly = resolved("minimal")
+    core = simulator(assembly)
+    names = [f"limb1_joint{i}" for i in range(100_000)]
+    core.on_module_commands(SLOT, msg(JOINT_STATE, name=names, position=np.ones(len(names))), 0.0)
+    dups = joint_state(JointSample("limb1_joint2", 0.001 * i) for i in range(1000))
+    core.on_module_commands(SLOT, dups, 0.0)
+    assert core.counters["refused_oversize"] == 2
+    assert core.counters["refused_unknown"] == 0
+    cal = assembly.joint("limb1_joint2").calibration
+    twice = [
+        JointSample("limb1_joint2", cal.to_raw(0.6)),
+        JointSample("limb1_joint2", cal.to_raw(0.2)),
+    ]
+    core.on_module_commands(SLOT, joint_state(twice), 0.0)
+    assert core.counters["duplicates"] == 1
+    run(core, 0.0, 1.0)
+    assert core.world.position("limb1_joint2") == pytest.approx(0.2, abs=0.03)
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize(
+    ("template", "name"), [("dragon", "wheel1_wheel_left"), ("minimal", "limb1_joint5")]
+)
+def test_simulated_effort_mode_is_speed_bound(resolved, template: str, name: str) -> None:
+    """Finding 8 in simulation: full effort spun a wheel to 180 rad/s (limit 6), a limb joint
+    to 39 rad/s (limit 3), with nothing to stop it."""
+    assembly = resolved(template)
+    core = simulator(assembly)
+    now = run(core, 0.0, 0.5)
+    spec, cal = assembly.joint(name).spec, assembly.joint(name).calibration
+    core.on_joint_commands(
+        joint_state([JointSample(name, None, None, cal.rate_to_raw(spec.max_effort))]), now
+    )
+    peak = 0.0
+    for _ in range(1000):
+        now += 0.002
+        core.tick(now)
+        peak = max(peak, abs(core.world.velocity(name)))
+    print(f"\nsim effort mode: {name} peaked at {peak:.2f} rad/s (max {spec.max_velocity:g})")
+    assert core.counters["speed_cuts"] >= 1
+    assert peak <= 1.2 * spec.max_velocity  # one physics step of full effort past the bound
