@@ -39,6 +39,8 @@ _COMMANDS: dict[str, str] = {
     "stop": "msctl.commands.stop",
     "router": "msctl.commands.router",
     "run": "msctl.commands.run",
+    "update": "msctl.commands.update",
+    "build": "msctl.commands.build",
 }
 
 

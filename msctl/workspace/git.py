@@ -1,0 +1,275 @@
+"""Git, run as a program: one clone's state, and the few operations ``msctl update`` needs.
+
+Every call is ``git`` with an argument list (never a shell), with no terminal prompt (a
+credential question on a robot would hang forever), git's ``transport::`` helpers off, and
+``LC_ALL=C`` so the messages parsed here read the same everywhere.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from msctl.errors import MsctlError
+
+#: Options given to every git call: ``ext::``/``fd::`` transports stay off whatever the
+#: user's configuration says.
+_SAFE_CONFIG = ("-c", "protocol.ext.allow=never", "-c", "protocol.fd.allow=never")
+
+
+class GitError(MsctlError):
+    """A git command failed; ``stderr`` holds what git said.
+
+    Attributes:
+        args: The git arguments (after ``git``).
+        stderr: git's error output, stripped.
+        returncode: git's exit status.
+    """
+
+    exit_code = 3
+
+    def __init__(self, args: Sequence[str], returncode: int, stderr: str):
+        self.args_run = list(args)
+        self.stderr = stderr.strip()
+        self.returncode = returncode
+        last = self.stderr.splitlines()[-1] if self.stderr else f"exit status {returncode}"
+        super().__init__(f"`git {' '.join(args)}` failed: {last}")
+
+
+def git_env() -> dict[str, str]:
+    """The environment of every git call (no prompts, C locale, no pager)."""
+    env = dict(os.environ)
+    env.update(
+        GIT_TERMINAL_PROMPT="0",
+        GIT_ASKPASS="true",
+        SSH_ASKPASS="true",
+        LC_ALL="C",
+        LANGUAGE="C",
+        GIT_PAGER="cat",
+    )
+    # ssh must not ask whether to trust a host either: it fails instead.
+    env.setdefault("GIT_SSH_COMMAND", "ssh -o BatchMode=yes")
+    return env
+
+
+def run_git(
+    args: Sequence[str],
+    cwd: Path | None = None,
+    *,
+    check: bool = True,
+    timeout: float | None = None,
+) -> subprocess.CompletedProcess[str]:
+    """Run ``git <args>`` and return it (stdout and stderr as text).
+
+    Raises:
+        GitError: If ``check`` and git fails.
+        MsctlError: If git is not installed.
+    """
+    try:
+        result = subprocess.run(
+            ["git", *_SAFE_CONFIG, *args],
+            cwd=cwd,
+            env=git_env(),
+            capture_output=True,
+            text=True,
+            check=False,
+            timeout=timeout,
+            stdin=subprocess.DEVNULL,
+        )
+    except FileNotFoundError:
+        raise MsctlError(
+            "git is not installed on this computer", hint="install it (e.g. apt install git)"
+        ) from None
+    if check and result.returncode != 0:
+        raise GitError(args, result.returncode, result.stderr)
+    return result
+
+
+@dataclass(frozen=True)
+class Target:
+    """What a version resolved to in one clone.
+
+    Attributes:
+        ref_type: ``branch``, ``tag`` or ``commit``.
+        name: The branch or tag name (the full commit id for a commit).
+        commit: The commit to end on.
+    """
+
+    ref_type: str
+    name: str
+    commit: str
+
+
+class Clone:
+    """One local clone, asked about its state (no network).
+
+    Args:
+        path: The clone's working tree.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def git(self, *args: str, check: bool = True) -> str:
+        """``git <args>`` in this clone; its stdout, stripped."""
+        return run_git(args, self.path, check=check).stdout.strip()
+
+    def ok(self, *args: str) -> bool:
+        """Whether ``git <args>`` succeeds in this clone."""
+        return run_git(args, self.path, check=False).returncode == 0
+
+    # ------------------------------------------------------------------ what it is
+    def is_clone(self) -> bool:
+        """Whether the path is the top of a git working tree."""
+        if not (self.path / ".git").exists():
+            return False
+        top = run_git(["rev-parse", "--show-toplevel"], self.path, check=False)
+        return top.returncode == 0 and Path(top.stdout.strip()).resolve() == self.path.resolve()
+
+    def remote_url(self) -> str | None:
+        """``origin``'s URL, or ``None`` without an ``origin``."""
+        result = run_git(["remote", "get-url", "origin"], self.path, check=False)
+        return result.stdout.strip() if result.returncode == 0 else None
+
+    def head(self) -> str | None:
+        """The commit checked out (``None`` in a clone with no commit yet)."""
+        result = run_git(
+            ["rev-parse", "--verify", "--quiet", "HEAD^{commit}"], self.path, check=False
+        )
+        return result.stdout.strip() or None
+
+    def branch(self) -> str | None:
+        """The branch checked out, or ``None`` on a detached HEAD."""
+        result = run_git(["symbolic-ref", "--short", "-q", "HEAD"], self.path, check=False)
+        return result.stdout.strip() or None
+
+    def is_shallow(self) -> bool:
+        """Whether the clone is shallow (``--shallow``)."""
+        return self.git("rev-parse", "--is-shallow-repository") == "true"
+
+    def changes(self) -> list[str]:
+        """Tracked files with changes, staged or not (``git status --porcelain``, untracked
+        files left out: a checkout never loses them, it refuses to overwrite them)."""
+        text = run_git(["status", "--porcelain", "--untracked-files=no"], self.path).stdout.rstrip(
+            "\n"
+        )
+        return [line[3:] for line in text.splitlines() if line.strip()]
+
+    def commit_of(self, ref: str) -> str | None:
+        """The commit ``ref`` names, or ``None``."""
+        result = run_git(
+            ["rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}"], self.path, check=False
+        )
+        return result.stdout.strip() or None
+
+    def has_ref(self, ref: str) -> bool:
+        """Whether the full ref name exists (``refs/heads/x``, ``refs/tags/x`` ...)."""
+        return self.ok("show-ref", "--verify", "--quiet", ref)
+
+    def is_ancestor(self, older: str, newer: str) -> bool:
+        """Whether ``older`` is an ancestor of (or the same as) ``newer``."""
+        return self.ok("merge-base", "--is-ancestor", older, newer)
+
+    def count(self, *rev_list: str) -> int:
+        """``git rev-list --count <rev_list>``."""
+        return int(self.git("rev-list", "--count", *rev_list) or 0)
+
+    def ahead_behind(self, local: str, upstream: str) -> tuple[int, int]:
+        """Commits only on ``local`` and only on ``upstream``."""
+        text = self.git("rev-list", "--left-right", "--count", f"{local}...{upstream}")
+        ahead, behind = text.split()
+        return int(ahead), int(behind)
+
+    def unpushed(self, branch: str) -> int:
+        """Commits on ``branch`` that no remote-tracking branch holds."""
+        return self.count(f"refs/heads/{branch}", "--not", "--remotes")
+
+    def orphaned_by_leaving(self) -> int:
+        """On a detached HEAD: its commits that no branch, tag or remote branch holds."""
+        return self.count("HEAD", "--not", "--branches", "--tags", "--remotes")
+
+    def default_branch(self) -> str | None:
+        """The remote's default branch as this clone last saw it (``origin/HEAD``)."""
+        result = run_git(
+            ["symbolic-ref", "--short", "-q", "refs/remotes/origin/HEAD"], self.path, check=False
+        )
+        name = result.stdout.strip()
+        return name.split("/", 1)[1] if name.startswith("origin/") else None
+
+    def versions(self) -> list[str]:
+        """The branch and tag names this clone knows of its remote (for "did you mean")."""
+        text = self.git("for-each-ref", "--format=%(refname)", "refs/remotes/origin", "refs/tags")
+        names = []
+        for ref in text.splitlines():
+            if ref.startswith("refs/remotes/origin/"):
+                name = ref[len("refs/remotes/origin/") :]
+                if name != "HEAD":
+                    names.append(name)
+            elif ref.startswith("refs/tags/"):
+                names.append(ref[len("refs/tags/") :])
+        return names
+
+    def resolve(self, version: str | None) -> Target | None:
+        """What ``version`` names here: a remote branch, a tag, or a commit (in that order).
+
+        ``None`` is the remote's default branch. Returns ``None`` when the clone does not
+        hold it.
+        """
+        if version is None:
+            version = self.default_branch()
+            if version is None:
+                return None
+        remote = self.commit_of(f"refs/remotes/origin/{version}")
+        if remote is not None:
+            return Target("branch", version, remote)
+        tag = self.commit_of(f"refs/tags/{version}")
+        if tag is not None:
+            return Target("tag", version, tag)
+        from msctl.workspace.repos import looks_like_commit
+
+        if looks_like_commit(version):
+            commit = self.commit_of(version)
+            if commit is not None:
+                return Target("commit", commit, commit)
+        return None
+
+    def describe(self) -> str:
+        """``branch@abc1234`` or ``(detached)@abc1234``, for a summary table."""
+        head = self.head()
+        if head is None:
+            return "(no commit)"
+        return f"{self.branch() or '(detached)'}@{head[:7]}"
+
+
+def remote_versions(url: str) -> list[str]:
+    """Branch and tag names on a remote (``git ls-remote``), for naming what it has.
+
+    Returns an empty list when the remote cannot be listed.
+    """
+    result = run_git(["ls-remote", "--heads", "--tags", "--", url], check=False)
+    names = []
+    for line in result.stdout.splitlines():
+        ref = line.partition("\t")[2]
+        if ref.endswith("^{}"):
+            continue
+        for prefix in ("refs/heads/", "refs/tags/"):
+            if ref.startswith(prefix):
+                names.append(ref[len(prefix) :])
+    return names
+
+
+def same_remote(a: str, b: str) -> bool:
+    """Whether two remote URLs name the same repository (``.git`` and ``/`` aside)."""
+
+    def norm(url: str) -> str:
+        url = url.strip().rstrip("/")
+        if url.startswith("file://"):
+            url = url[len("file://") :]
+        if url.endswith(".git"):
+            url = url[: -len(".git")]
+        return url.rstrip("/")
+
+    return norm(a) == norm(b)
