@@ -27,7 +27,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from conftest import free_port, resolved_assembly
+from conftest import free_port, resolved_assembly, wait_until
 
 from components.comm.session import SessionSettings
 from msctl.launcher.control import (
@@ -38,7 +38,7 @@ from msctl.launcher.control import (
     host_namespace,
     parse_request,
 )
-from msctl.launcher.state import group_alive
+from msctl.launcher.state import RunLock, group_alive
 
 HOST = "e2e-laptop"  # none of the assembly's computers: off-robot, simulated
 
@@ -99,6 +99,22 @@ class Home:
     def components(self) -> dict[str, dict[str, Any]]:
         """``msctl ps --json``'s components by name."""
         return {c["name"]: c for c in self.ps()["components"]}
+
+    def processes(self) -> dict[int, str]:
+        """Every live process started for this MSCTL_HOME (from ``/proc``): pid -> cmdline."""
+        marker = f"MSCTL_HOME={self.path}".encode()
+        found = {}
+        for entry in Path("/proc").glob("[0-9]*"):
+            try:
+                if marker not in (entry / "environ").read_bytes().split(b"\0"):
+                    continue
+                status = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+                cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except (OSError, IndexError):
+                continue
+            if status != "Z" and int(entry.name) != os.getpid():
+                found[int(entry.name)] = cmdline
+        return found
 
     def clean_up(self) -> None:
         """``msctl down``, then SIGKILL whatever of msctl's is left of every group seen."""
@@ -257,3 +273,61 @@ def test_hostile_requests_get_error_replies_and_the_assembly_keeps_running(
     after = home.state()
     assert after["supervisor_pid"] == before["supervisor_pid"]
     assert {p["name"]: p["pid"] for p in after["processes"]} == pids
+
+
+# ------------------------------------------------------------------------------ one supervisor
+def test_up_is_refused_while_the_run_lock_is_held_naming_the_holder(
+    home: Home, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Refused before it resolves or reads anything, naming what holds the lock."""
+    monkeypatch.setenv("MSCTL_HOME", str(home.path))
+    lock = RunLock.acquire(template="dragon", host="gl-pi-01", by="msctl up --detach")
+    try:
+        result = home.msctl("up", "minimal", "--detach", timeout=60.0)
+    finally:
+        lock.release()
+    message = " ".join(result.stderr.split())
+    assert result.returncode == 3, message
+    assert "internal error" not in message
+    assert f"dragon is already up on gl-pi-01 (pid {os.getpid()}: msctl up --detach" in message
+    assert "started " in message and "msctl down" in message, message
+    assert not (home.path / "assembly").exists()  # nothing was resolved over the first run's
+    # Released (as a dead holder's is, by the kernel): the next one may take it.
+    RunLock.acquire(template="minimal").release()
+
+
+@pytest.mark.e2e
+def test_two_ups_started_together_one_is_refused_naming_the_first_and_down_leaves_nothing(
+    home: Home,
+) -> None:
+    ups = [
+        subprocess.Popen(
+            home.command("up", "minimal", "--detach"),
+            env=home.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    outputs = [up.communicate(timeout=120.0) for up in ups]
+    home.state()
+    codes = sorted(up.returncode for up in ups)
+    assert codes == [0, 3], outputs
+    winner, loser = (0, 1) if ups[0].returncode == 0 else (1, 0)
+    refusal = " ".join(outputs[loser][1].split())
+    supervisor = home.state()["supervisor_pid"]
+    # The first is named: the `up` that took the lock, or the supervisor it handed it to.
+    assert "minimal is already up on e2e-laptop" in refusal, refusal
+    assert f"(pid {ups[winner].pid}:" in refusal or f"(pid {supervisor}:" in refusal, refusal
+    # One set of processes: one supervisor, one router, one worker per process of the plan.
+    running = home.processes()
+    supervisors = [pid for pid, cmd in running.items() if " msctl up " in f" {cmd}"]
+    assert supervisors == [supervisor], running
+    workers = [cmd for cmd in running.values() if "components.executor.worker" in cmd]
+    assert len(workers) == 2, running  # sim and limb1
+    assert all_running(home.components())
+    down = home.msctl("down", timeout=60.0)
+    assert down.returncode == 0, down.stderr
+    assert "nothing left" in down.stderr
+    wait_until(lambda: not home.processes(), timeout=15.0, what="no process of the run left")

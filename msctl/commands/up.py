@@ -69,27 +69,57 @@ def command(
 
         up_all(load_resolved(template, use or [], defaults), sim, speed, timeout)
         return
-    previous = state.read_state()
-    if state.supervisor_alive(previous) and os.environ.get(_DAEMON_ENV) != "1":
-        raise MsctlError(
-            f"{previous.get('template')} is already up on {previous.get('host')} "
-            f"(supervisor pid {previous.get('supervisor_pid')})",
-            hint="see it with `msctl ps`, stop it with `msctl down`",
-        )
-    assembly = load_resolved(template, use or [], defaults)
     host = host or this_host()
-    if os.environ.get(_DAEMON_ENV) != "1":
-        _refuse_if_agent_serves(host)
-    plan = plan_host(assembly, host, sim)
-    if not plan.processes:
-        raise InputError(
-            f"{host} runs nothing of {assembly.template}",
-            hint="use --host to act as one of its computers, or --sim to run it all here",
-        )
-    if detach and os.environ.get(_DAEMON_ENV) != "1":
-        _detach(plan, sim, duration, host, speed, timeout)
-        return
-    _run_foreground(assembly, plan, duration, speed, timeout)
+    # Before anything looks at the state: of two `up` started together, one goes on and the
+    # other is refused here, naming the first (the state file cannot tell them apart yet).
+    lock = _run_lock(template, host)
+    try:
+        previous = state.read_state()
+        if state.supervisor_alive(previous) and os.environ.get(_DAEMON_ENV) != "1":
+            raise MsctlError(
+                f"{previous.get('template')} is already up on {previous.get('host')} "
+                f"(supervisor pid {previous.get('supervisor_pid')})",
+                hint="see it with `msctl ps`, stop it with `msctl down`",
+                exit_code=3,
+            )
+        try:
+            assembly = load_resolved(template, use or [], defaults)
+        except OSError as exc:  # writing the resolution into MSCTL_HOME
+            raise state.home_not_writable(Path(exc.filename or state.state_dir()), exc) from exc
+        lock.note(template=assembly.template)
+        if os.environ.get(_DAEMON_ENV) != "1":
+            _refuse_if_agent_serves(host)
+        plan = plan_host(assembly, host, sim)
+        if not plan.processes:
+            raise InputError(
+                f"{host} runs nothing of {assembly.template}",
+                hint="use --host to act as one of its computers, or --sim to run it all here",
+            )
+        if detach and os.environ.get(_DAEMON_ENV) != "1":
+            _detach(plan, sim, duration, host, speed, timeout, lock)
+            return
+        _run_foreground(assembly, plan, duration, speed, timeout)
+    finally:
+        lock.release()
+
+
+#: The descriptor of the run lock a detached supervisor inherits from the `up` that started it.
+_LOCK_FD_ENV = "MSCTL_UP_LOCK_FD"
+
+
+def _run_lock(template: str | None, host: str) -> Any:
+    """Take this MSCTL_HOME's run lock, or keep the one a detaching `up` handed down.
+
+    Raises:
+        AlreadyRunning: If another supervisor holds it (named).
+        HomeNotWritable: If MSCTL_HOME cannot be written (named).
+    """
+    from msctl.launcher.state import RunLock
+
+    inherited = os.environ.pop(_LOCK_FD_ENV, None)
+    if inherited and os.environ.get(_DAEMON_ENV) == "1":
+        return RunLock.adopt(int(inherited), host=host, by="msctl up --detach")
+    return RunLock.acquire(template=template, host=host, by="msctl up")
 
 
 def _refuse_if_agent_serves(host: str) -> None:
@@ -293,7 +323,13 @@ def _print_summary(launch: Any, elapsed: float) -> None:
 
 
 def _detach(
-    plan: Any, sim: bool | None, duration: float | None, host: str, speed: float, timeout: float
+    plan: Any,
+    sim: bool | None,
+    duration: float | None,
+    host: str,
+    speed: float,
+    timeout: float,
+    lock: Any,
 ) -> None:
     from msctl.console import err
     from msctl.launcher import state
@@ -314,17 +350,23 @@ def _detach(
         argv.append("--sim" if sim else "--real")
     if duration is not None:
         argv += ["--for", repr(duration)]
-    state.run_dir().mkdir(parents=True, exist_ok=True)
     log_path = state.run_dir() / "supervisor.log"
-    with log_path.open("a") as log:
+    try:
+        log = log_path.open("a")
+    except OSError as exc:
+        raise state.home_not_writable(log_path.parent, exc) from exc
+    with log:
+        # The supervisor inherits the run lock (the same open file) and holds it to its end.
         daemon = subprocess.Popen(
             argv,
-            env={**os.environ, _DAEMON_ENV: "1"},
+            env={**os.environ, _DAEMON_ENV: "1", _LOCK_FD_ENV: str(lock.fd)},
             stdin=subprocess.DEVNULL,
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            pass_fds=(lock.fd,),
         )
+    lock.note(pid=daemon.pid, by="msctl up --detach")
     deadline = time.monotonic() + timeout + 15
     while time.monotonic() < deadline:
         document = state.read_state()

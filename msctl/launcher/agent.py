@@ -47,6 +47,7 @@ from components.assembly import (
     state_dir,
 )
 from components.comm.session import SessionSettings, open_session
+from msctl.errors import MsctlError
 from msctl.launcher.control import (
     AGENT_SRV,
     RequestError,
@@ -61,6 +62,7 @@ from msctl.launcher.run import (
     start_router,
     wait_for_router,
 )
+from msctl.launcher.state import RunLock
 from msctl.launcher.supervisor import Supervisor
 
 #: Verbs forwarded to the running :class:`Launch` as they are.
@@ -215,6 +217,7 @@ class Agent:
         self.settings = settings or SessionSettings.from_env()
         self.endpoint = self.settings.connect[0] if self.settings.connect else ""
         self.launch: Launch | None = None
+        self._lock: RunLock | None = None
         self.router = Supervisor(agent_dir() / "logs")
         self._log = log or (lambda line: print(line, file=sys.stderr, flush=True))
         self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -260,7 +263,6 @@ class Agent:
             MsctlError: Naming the service and what to check.
         """
         from components.comm.node import Node
-        from msctl.errors import MsctlError
         from msctl.launcher.fleet import supervisors
 
         if not self.endpoint:
@@ -405,11 +407,19 @@ class Agent:
             f"{len(plan.components)} components in {len(plan.processes)} processes"
             + (f"; not started (not implemented yet): {', '.join(not_built)}" if not_built else "")
         )
+        # One supervisor per MSCTL_HOME: not beside a `msctl up` of this computer's own.
+        try:
+            self._lock = RunLock.acquire(
+                template=assembly.template, host=self.host, by="msctl agent"
+            )
+        except MsctlError as exc:
+            raise RequestError(f"{self.host} cannot start {assembly.template}: {exc}") from None
         launch = Launch(assembly, plan, settings=self.settings, speed=speed, serve_control=False)
         try:
             launch.start()
         except Exception as exc:
             launch.shutdown()
+            self._release_lock()
             raise RequestError(f"{self.host} could not start {assembly.template}: {exc}") from exc
         self.launch = launch
         self._printed_events = 0
@@ -429,7 +439,6 @@ class Agent:
         """Check the document, resolve it from this computer's data, write it, plan it."""
         from msctl.assembler import resolve
         from msctl.assembler.store import write_resolution
-        from msctl.errors import MsctlError
 
         sent = check_assembly(document, self.host)
         try:
@@ -468,5 +477,13 @@ class Agent:
             return []
         launch, self.launch = self.launch, None
         names = list(launch.supervisor.processes)
-        launch.shutdown()
+        try:
+            launch.shutdown()
+        finally:
+            self._release_lock()
         return names
+
+    def _release_lock(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None

@@ -7,13 +7,17 @@ second) and ``$MSCTL_HOME/run/logs/<process>.log`` (+ rotated ``.1`` .. ``.3``).
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
 from components.assembly import state_dir
+from msctl.errors import MsctlError
 
 
 def run_dir() -> Path:
@@ -29,6 +33,140 @@ def state_path() -> Path:
 def log_dir() -> Path:
     """Where process logs are written."""
     return run_dir() / "logs"
+
+
+def lock_path() -> Path:
+    """The lock a supervisor of this MSCTL_HOME holds for its whole life."""
+    return run_dir() / "up.lock"
+
+
+class HomeNotWritable(MsctlError):
+    """MSCTL_HOME (or a directory under it) cannot be written: read-only, full, not ours."""
+
+    exit_code = 3
+
+
+def home_not_writable(path: Path, exc: OSError) -> HomeNotWritable:
+    """The error for a directory under MSCTL_HOME that cannot be written, naming it."""
+    reason = exc.strerror or type(exc).__name__
+    full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    return HomeNotWritable(
+        f"cannot write to {path}: {reason}",
+        hint=(
+            "free some space on its disk"
+            if full
+            else "msctl keeps its run state in MSCTL_HOME: point MSCTL_HOME at a writable "
+            "directory, or make this one writable"
+        ),
+    )
+
+
+class AlreadyRunning(MsctlError):
+    """Another supervisor holds this MSCTL_HOME's run lock."""
+
+    exit_code = 3
+
+
+class RunLock:
+    """The exclusive lock of this MSCTL_HOME's run (``flock`` on :func:`lock_path`).
+
+    Whoever holds it is the one supervisor of this computer's run: a foreground ``msctl up``,
+    a detached one (the parent takes it, the supervisor it starts inherits the descriptor
+    and keeps it to its end), or an agent while it runs a part. The kernel drops it when its
+    last holder exits, however it ends: no stale lock to clean after a crash. The file also
+    says who holds it (pid, since when, what), for the refusal of the next one.
+    """
+
+    def __init__(self, fd: int, path: Path) -> None:
+        self.fd = fd
+        self.path = path
+        self.holder: dict[str, Any] = {"pid": os.getpid(), "started": time.time()}
+
+    @classmethod
+    def acquire(cls, **holder: Any) -> RunLock:
+        """Take the lock without waiting, and note ``holder`` (what runs) in it.
+
+        Raises:
+            AlreadyRunning: If another process holds it, naming that process.
+            HomeNotWritable: If the run directory cannot be created or written.
+        """
+        path = lock_path()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise home_not_writable(path.parent, exc) from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            other = _read_holder(fd)
+            os.close(fd)
+            raise AlreadyRunning(
+                describe_holder(other),
+                hint="see it with `msctl ps`, stop it with `msctl down`",
+            ) from None
+        except OSError as exc:
+            os.close(fd)
+            raise home_not_writable(path.parent, exc) from exc
+        lock = cls(fd, path)
+        lock.note(**holder)
+        return lock
+
+    @classmethod
+    def adopt(cls, fd: int, **holder: Any) -> RunLock:
+        """Keep a lock inherited from the process that took it (a detached ``msctl up``)."""
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # ours already: never waits
+        lock = cls(fd, lock_path())
+        lock.holder = {**_read_holder(fd, tries=1), "pid": os.getpid()}
+        lock.note(**holder)
+        return lock
+
+    def note(self, **holder: Any) -> None:
+        """Say in the lock file who holds it (best effort: a full disk does not matter)."""
+        self.holder.update(holder)
+        data = json.dumps(self.holder).encode()
+        try:
+            os.pwrite(self.fd, data, 0)
+            os.ftruncate(self.fd, len(data))
+        except OSError:
+            pass
+
+    def release(self) -> None:
+        """Let the lock go (idempotent)."""
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+def _read_holder(fd: int, tries: int = 20) -> dict[str, Any]:
+    """What the lock's holder wrote in it (``{}`` if nothing readable yet)."""
+    for _ in range(tries):  # the holder may be between its two writes
+        try:
+            document = json.loads(os.pread(fd, 65536, 0) or b"null")
+        except (OSError, ValueError):
+            document = None
+        if isinstance(document, dict):
+            return document
+        time.sleep(0.02)
+    return {}
+
+
+def describe_holder(holder: dict[str, Any]) -> str:
+    """One line naming the holder of the run lock: what it runs, its pid, since when."""
+    what = holder.get("template") or "an assembly"
+    by = holder.get("by") or "msctl up"
+    where = f" on {holder['host']}" if holder.get("host") else ""
+    pid = holder.get("pid")
+    started = holder.get("started")
+    since = ""
+    if isinstance(started, int | float):
+        ago = max(0.0, time.time() - started)
+        since = f", started {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(started))}"
+        since += f", {ago:.0f} s ago"
+    return (
+        f"{what} is already up{where} (pid {pid}: {by}{since}); one supervisor "
+        f"per MSCTL_HOME ({state_dir()})"
+    )
 
 
 def write_state(document: dict[str, Any]) -> None:
