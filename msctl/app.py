@@ -39,6 +39,7 @@ _COMMANDS: dict[str, str] = {
     "stop": "msctl.commands.stop",
     "router": "msctl.commands.router",
     "run": "msctl.commands.run",
+    "health": "msctl.commands.health",
     "update": "msctl.commands.update",
     "build": "msctl.commands.build",
 }

@@ -98,10 +98,11 @@ def level_name(level: Level | None) -> str:
     return "-" if level is None else level.name
 
 
-def sparkline(values: Iterable[float | None], width: int = 16) -> str:
+def sparkline(values: Iterable[float | None], width: int = 16, resolution: float = 1e-4) -> str:
     """The last ``width`` values as block characters, scaled between their min and max.
 
-    Values that are missing or not finite are blanks.
+    Values that are missing or not finite are blanks; a range narrower than ``resolution``
+    (a joint at rest: numerical noise) is drawn flat.
     """
     recent = list(values)[-width:]
     numbers = [v for v in (finite(v) for v in recent) if v is not None]
@@ -114,7 +115,7 @@ def sparkline(values: Iterable[float | None], width: int = 16) -> str:
         number = finite(value)
         if number is None:
             out.append(" ")
-        elif span <= 1e-12:
+        elif span < resolution:
             out.append(_SPARKS[0])
         else:
             out.append(_SPARKS[min(7, int((number - low) / span * 7.999))])
