@@ -32,6 +32,7 @@ BUILTIN: tuple[str, ...] = (
     "components.location.kind",
     "components.kinematics.kind",
     "components.simulator.kind",
+    "components.data_monitor.kind",
     "components.stations",
 )
 #: Entry-point group through which other packages add kinds.

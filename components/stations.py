@@ -20,11 +20,6 @@ KINDS = (
         placement=Placement.STATION,
     ),
     ComponentKind(
-        name="data_monitor",
-        summary="aggregates module health into /diagnostics_agg (msctl health)",
-        placement=Placement.STATION,
-    ),
-    ComponentKind(
         name="data_archiver",
         summary="records the data plane to rosbag2 (MCAP) bags",
         placement=Placement.STATION,

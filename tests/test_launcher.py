@@ -365,7 +365,8 @@ def test_off_robot_runs_everything_with_the_simulator_and_no_motor_interface(dra
     plan = plan_host(dragon, "a-laptop")
     assert plan.off_robot and plan.simulated
     names = [p.name for p in plan.processes]
-    assert names[0] == "sim" and set(names) == {"sim", "limb1", "limb2", "wheel1", "wheel2"}
+    assert names[0] == "sim"
+    assert set(names) == {"sim", "limb1", "limb2", "wheel1", "wheel2", "gc1_data_monitor"}
     kinds = {c.kind for c in plan.components}
     assert "motor_interface" not in kinds
     assert [c.name for c in plan.processes[0].components] == [SIMULATOR_COMPONENT]

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import itertools
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from components.comm.liveliness import Entity, EntityKind
-from components.comm.names import check_node_name, normalize_namespace
+from components.comm.names import check_node_name, normalize_namespace, qualify
 from components.comm.qos import QoS
 from components.comm.services import ServiceClient, ServiceServer
 from components.comm.topics import Publisher, Subscription
@@ -106,9 +106,26 @@ class Node:
         callback: Callable[[Any], None],
         qos: QoS | None = None,
         raw: bool = False,
+        senders: Iterable[str] | None = None,
     ) -> Subscription:
-        """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``)."""
-        return self._own(Subscription(self, topic, msg_type, callback, qos, raw))
+        """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``).
+
+        Args:
+            senders: Nodes whose samples are taken (others' are refused and counted, see
+                :class:`Subscription`): fully qualified (``/limb1/joint_manager``) or
+                relative to this node's namespace (``joint_manager``). ``None``: anyone.
+        """
+        qualified = None if senders is None else [self.qualify_node(s) for s in senders]
+        return self._own(Subscription(self, topic, msg_type, callback, qos, raw, qualified))
+
+    def qualify_node(self, name: str) -> str:
+        """A node name as ``ros2 node list`` prints it: relative names are taken in this
+        node's namespace (``joint_manager`` in ``/limb1`` is ``/limb1/joint_manager``).
+
+        Raises:
+            NameError_: If the name is not a valid ROS 2 name.
+        """
+        return qualify(name, self.namespace)
 
     def service(
         self, service: str, srv_type: str, handler: Callable[[Any], Any], deferred: bool = False

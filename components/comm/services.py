@@ -10,13 +10,16 @@ the request's sequence number and the client's GID, so the client can match the 
 from __future__ import annotations
 
 import itertools
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import TYPE_CHECKING, Any
 
 from components.comm.attachment import Attachment, AttachmentError, gid_of
-from components.comm.liveliness import EntityKind
-from components.comm.names import key_name, qualify
+from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
 from components.comm.types import dds_type_name, normalize_type_name, registry
@@ -26,6 +29,23 @@ if TYPE_CHECKING:
 
 #: rmw_zenoh announces services with the "services default" QoS (reliable, keep last 10).
 SERVICE_QOS = QoS(depth=10)
+
+#: Most clients a server remembers by GID (a short-lived ``msctl service call`` each adds
+#: one while it lives); beyond this a caller is reported by GID only.
+MAX_CALLERS = 256
+
+_handling: ContextVar[PendingRequest | None] = ContextVar("msctl_service_request", default=None)
+
+
+def current_caller() -> str | None:
+    """Who sent the request being handled on this thread, for a handler that must say so
+    (e.g. one that writes to disk): the client's node (``/ground1/teleop``), ``"GID <hex>"``
+    for a client whose graph token is not known, or ``None`` outside a request handler.
+
+    Set while a server's handler runs (see :meth:`PendingRequest.handling`).
+    """
+    pending = _handling.get()
+    return None if pending is None else pending.caller
 
 
 class ServiceError(RuntimeError):
@@ -70,6 +90,23 @@ class PendingRequest:
         self.request = request
         self.attachment = attachment
         self._done = False
+
+    @property
+    def caller(self) -> str:
+        """The client's node from the graph (its GID is its client token's hash), or
+        ``"GID <hex>"`` if no client token with that GID is known."""
+        node = self._server.caller_node(self.attachment.gid)
+        return node if node is not None else f"GID {self.attachment.gid.hex()}"
+
+    @contextmanager
+    def handling(self) -> Iterator[PendingRequest]:
+        """While in this block, :func:`current_caller` names this request's caller (an
+        executor wraps the handler call in it)."""
+        token = _handling.set(self)
+        try:
+            yield self
+        finally:
+            _handling.reset(token)
 
     def reply(self, response: Any) -> None:
         """Send the response (serialized per the service's response type)."""
@@ -128,9 +165,45 @@ class ServiceServer:
         self._serialize = reg.serializer(self.parts.response)
         self._handler = handler
         self._deferred = deferred
-        self._zqueryable = node.session.declare_queryable(self.key, self._on_query, complete=True)
+        # Callers by GID, from the client tokens of this service (with history, so clients
+        # that existed before this server are known too): who asked, for handlers that log it.
+        self._callers: dict[bytes, str] = {}
+        self._callers_lock = threading.Lock()
+        self._clients = node.session.liveliness().declare_subscriber(
+            f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.CLIENT.value}/*/*/*/"
+            f"{mangle(self.service)}/*/*/*",
+            self._on_client_token,
+            history=True,
+        )
+        try:
+            self._zqueryable = node.session.declare_queryable(
+                self.key, self._on_query, complete=True
+            )
+        except Exception:
+            self._clients.undeclare()
+            raise
         self._token = node.session.liveliness().declare_token(self.token_key)
         self._closed = False
+
+    def _on_client_token(self, sample: Any) -> None:
+        import zenoh
+
+        key = str(sample.key_expr)
+        try:
+            node = Entity.parse(key).node_fqn
+        except TokenError:
+            return
+        gid = gid_of(key)
+        with self._callers_lock:
+            if sample.kind != zenoh.SampleKind.PUT:
+                self._callers.pop(gid, None)
+            elif len(self._callers) < MAX_CALLERS:
+                self._callers[gid] = node
+
+    def caller_node(self, gid: bytes) -> str | None:
+        """The node of the client with this GID, if its token is known."""
+        with self._callers_lock:
+            return self._callers.get(gid)
 
     def _on_query(self, query: Any) -> None:
         if query.attachment is None:
@@ -155,7 +228,8 @@ class ServiceServer:
             self._handler(pending)
             return
         try:
-            response = self._handler(request)
+            with pending.handling():
+                response = self._handler(request)
         except Exception as exc:
             log.exception("service %s handler failed", self.service)
             drops.drop(self.service, "handler_error")
@@ -168,7 +242,7 @@ class ServiceServer:
         if self._closed:
             return
         self._closed = True
-        for thing in (self._token, self._zqueryable):
+        for thing in (self._token, self._zqueryable, self._clients):
             try:
                 thing.undeclare()
             except Exception:

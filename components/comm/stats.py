@@ -27,12 +27,21 @@ class DropStats:
         self._lock = threading.Lock()
         self._interval = log_interval
 
-    def drop(self, topic: str, reason: str, detail: str = "") -> None:
-        """Count one dropped sample and log it if this (topic, reason) has been quiet."""
+    def drop(self, topic: str, reason: str, detail: str = "", quiet: bool = False) -> None:
+        """Count one dropped sample and log it if this (topic, reason) has been quiet.
+
+        Args:
+            topic: Topic or service the sample came on.
+            reason: Short reason (``malformed``, ``intruder``...).
+            detail: Said in the log line.
+            quiet: Count only: the caller says it in its own words (e.g. once per node).
+        """
         now = time.monotonic()
         with self._lock:
             self._counts[topic][reason] += 1
             count = self._counts[topic][reason]
+            if quiet:
+                return
             last = self._last_log.get((topic, reason))
             due = last is None or now - last >= self._interval
             if due:

@@ -10,8 +10,9 @@ as rmw_zenoh does, so a late subscriber gets the last sample.
 from __future__ import annotations
 
 import itertools
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
 from components.comm.attachment import (
@@ -32,6 +33,16 @@ if TYPE_CHECKING:
 
 
 _pack_attachment = CURRENT_FORMAT.pack
+
+#: Seconds a publisher with no graph token may go on being refused before it is warned
+#: about: the legitimate sender's first samples can outrun its token by a moment, and that
+#: must not read as an intrusion.
+UNKNOWN_GRACE = 2.0
+#: Most publishers a sender-checking subscription tracks by GID (unknown ones, other nodes'
+#: ones, warned ones): a spray of made-up GIDs costs a bounded amount of memory.
+MAX_TRACKED = 64
+#: The drop reason of a sample refused because its publisher is not an allowed sender.
+INTRUDER = "intruder"
 
 
 def data_key(domain: int, topic: str, type_name: str) -> str:
@@ -83,20 +94,27 @@ class Publisher:
             else zenoh.CongestionControl.DROP
         )
         session = node.session
-        if self.qos.latched:
-            self._zpub = zenoh.ext.declare_advanced_publisher(
-                session,
-                self.key,
-                reliability=reliability,
-                congestion_control=congestion,
-                cache=zenoh.ext.CacheConfig(max_samples=self.qos.depth),
-                publisher_detection=True,
-            )
-        else:
-            self._zpub = session.declare_publisher(
-                self.key, reliability=reliability, congestion_control=congestion
-            )
+        # The token first: every link then carries it before this publisher's first sample,
+        # so a subscription that checks who sends (see Subscription's ``senders``) knows
+        # this GID by the time a sample arrives.
         self._token = session.liveliness().declare_token(self.token_key)
+        try:
+            if self.qos.latched:
+                self._zpub = zenoh.ext.declare_advanced_publisher(
+                    session,
+                    self.key,
+                    reliability=reliability,
+                    congestion_control=congestion,
+                    cache=zenoh.ext.CacheConfig(max_samples=self.qos.depth),
+                    publisher_detection=True,
+                )
+            else:
+                self._zpub = session.declare_publisher(
+                    self.key, reliability=reliability, congestion_control=congestion
+                )
+        except Exception:
+            self._token.undeclare()
+            raise
         self._closed = False
 
     def publish(self, message: Any) -> None:
@@ -130,9 +148,26 @@ class Subscription:
     the topic is counted there once, from its liveliness token, naming its node. An
     exception in the callback is logged and counted, and never reaches Zenoh.
 
+    With ``senders`` (fully qualified node names), only samples published by those nodes
+    are taken, as rmw_zenoh's graph tells them: a sample's attachment carries its
+    publisher's GID, which is the hash of the publisher's liveliness token
+    (:func:`~components.comm.attachment.gid_of`), and the token names the node. The
+    publisher tokens on the topic are followed (with history), each hashed once into an
+    allowed set, so the check per sample is one set lookup of the GID. Everything else is
+    refused and counted under :data:`INTRUDER`, with one WARN per intruding node naming it:
+
+    * a sample with no attachment (a raw Zenoh put): refused, warned once;
+    * a GID whose token names another node: refused, warned once for that node;
+    * a GID with no token yet: refused (safe: never taken before it is known). The
+      legitimate sender's token normally arrives before its first sample (a publisher
+      declares its token first; a late subscription gets existing tokens from the
+      liveliness history), and its samples are taken from the moment it is known. A GID
+      still unknown after :data:`UNKNOWN_GRACE` seconds is warned about once, by GID.
+
     Attributes:
         received: Samples delivered to the callback.
         last_attachment: The attachment of the latest good sample, if it had one.
+        senders: The nodes allowed to publish here (``None``: anyone).
     """
 
     def __init__(
@@ -143,6 +178,7 @@ class Subscription:
         callback: Callable[[Any], None],
         qos: QoS | None = None,
         raw: bool = False,
+        senders: Collection[str] | None = None,
     ) -> None:
         import zenoh.ext
 
@@ -165,43 +201,60 @@ class Subscription:
         self.type_hash = reg.type_hash(self.type_name)
         self.received = 0
         self._last_attachment: bytes | None = None
+        self.senders: frozenset[str] | None = None if senders is None else frozenset(senders)
+        # GIDs of the allowed senders' publishers on this topic (-> node): the per-sample check.
+        self._allowed: dict[bytes, str] = {}
+        # The slow path's bookkeeping (refusals, tokens), all bounded by MAX_TRACKED.
+        self._others: dict[bytes, str] = {}  # GID -> node of a publisher not allowed here
+        self._unknown: dict[bytes, list[float]] = {}  # GID -> [first refused, refusals]
+        self._warned: set[object] = set()
+        self._identity_lock = threading.Lock()
         # The exact key, as rmw_zenoh subscribes: a wildcard here (to see samples of other
         # types) cost ~20 us a round trip. Publishers of another type, or of another version
         # of the type, are found from their liveliness tokens instead (_on_publisher_token),
         # which also names the node at fault.
         session = node.session
-        if self.qos.latched:
-            self._zsub = zenoh.ext.declare_advanced_subscriber(
-                session,
-                self.key,
-                self._on_sample,
-                history=zenoh.ext.HistoryConfig(
-                    detect_late_publishers=True, max_samples=self.qos.depth
-                ),
-                subscriber_detection=True,
-            )
-        else:
-            self._zsub = session.declare_subscriber(self.key, self._on_sample)
         self._mismatched: set[str] = set()
+        # Tokens before samples: with senders, the allowed set should be filled (from the
+        # liveliness history) before the first sample is judged.
         self._publishers = session.liveliness().declare_subscriber(
             f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.PUBLISHER.value}/*/*/*/"
             f"{mangle(self.topic)}/*/*/*",
             self._on_publisher_token,
             history=True,
         )
+        try:
+            if self.qos.latched:
+                self._zsub = zenoh.ext.declare_advanced_subscriber(
+                    session,
+                    self.key,
+                    self._on_sample,
+                    history=zenoh.ext.HistoryConfig(
+                        detect_late_publishers=True, max_samples=self.qos.depth
+                    ),
+                    subscriber_detection=True,
+                )
+            else:
+                self._zsub = session.declare_subscriber(self.key, self._on_sample)
+        except Exception:
+            self._publishers.undeclare()
+            raise
         self._token = session.liveliness().declare_token(self.token_key)
         self._closed = False
 
     def _on_publisher_token(self, sample: Any) -> None:
         import zenoh
 
-        if sample.kind != zenoh.SampleKind.PUT:
-            return
+        alive = sample.kind == zenoh.SampleKind.PUT
         key = str(sample.key_expr)
         try:
             entity = Entity.parse(key)
         except TokenError:
             return  # counted by the graph view; nothing of ours
+        if self.senders is not None:
+            self._on_sender_token(key, entity, alive)
+        if not alive:
+            return
         if (entity.type_name, entity.type_hash) == (self.type_name, self.type_hash):
             return
         if key in self._mismatched:
@@ -215,18 +268,57 @@ class Subscription:
             f"this subscription takes {self.type_name} {self.type_hash})",
         )
 
+    def _on_sender_token(self, key: str, entity: Entity, alive: bool) -> None:
+        """Keep the allowed GIDs (and the names of the others) as tokens come and go."""
+        assert self.senders is not None
+        gid = gid_of(key)
+        node = entity.node_fqn
+        allowed = node in self.senders
+        with self._identity_lock:
+            if not alive:
+                self._allowed.pop(gid, None)
+                self._others.pop(gid, None)
+                return
+            if allowed:
+                self._allowed[gid] = node
+            elif gid in self._others or len(self._others) < MAX_TRACKED:
+                self._others[gid] = node
+            early = self._unknown.pop(gid, None)
+        if early is None:
+            return
+        if allowed:
+            self._early(node, int(early[1]))
+        else:
+            self._warn_once(node, f"node {node}")
+
+    def _early(self, node: str, refused: int) -> None:
+        log.info(
+            "%s: publisher of %s known from its graph token; %d sample(s) it sent before "
+            "were refused",
+            self.topic,
+            node,
+            refused,
+        )
+
     def _on_sample(self, sample: Any) -> None:
         attachment = sample.attachment
-        if attachment is not None:
-            raw_attachment = attachment.to_bytes()
+        raw_attachment = None if attachment is None else attachment.to_bytes()
+        gid = None
+        if raw_attachment is not None:
             # The current 33-byte form is checked with two comparisons; only the rare older
             # keyed form (or a malformed one) pays for a full parse.
             if len(raw_attachment) != CURRENT_SIZE or raw_attachment[16] != 16:
                 try:
-                    Attachment.decode(raw_attachment)
+                    gid = Attachment.decode(raw_attachment).gid
                 except AttachmentError as exc:
                     drops.drop(self.topic, "bad_attachment", str(exc))
                     return
+            elif self.senders is not None:
+                gid = raw_attachment[17:]
+        if self.senders is not None and gid not in self._allowed:
+            self._refuse(gid)
+            return
+        if raw_attachment is not None:
             self._last_attachment = raw_attachment
         payload = sample.payload.to_bytes()
         if self._raw:
@@ -244,6 +336,52 @@ class Subscription:
             drops.drop(self.topic, "callback_error")
             log.exception("subscription callback on %s failed", self.topic)
 
+    def _refuse(self, gid: bytes | None) -> None:
+        """Count a sample from a publisher that is not an allowed sender; warn once per node."""
+        drops.drop(self.topic, INTRUDER, quiet=True)
+        if gid is None:
+            self._warn_once(
+                None, "a publisher with no rmw_zenoh attachment (a raw Zenoh put, not a ROS node)"
+            )
+            return
+        with self._identity_lock:
+            allowed = self._allowed.get(gid)
+            other = self._others.get(gid)
+            key: object = other
+            who = f"node {other}"
+            if allowed is None and other is None:
+                now = time.monotonic()
+                early = self._unknown.get(gid)
+                if early is None and len(self._unknown) < MAX_TRACKED:
+                    self._unknown[gid] = [now, 1.0]
+                    return
+                if early is None:
+                    # Too many unknown GIDs to wait for each: a spray of made-up ones.
+                    key, who = "unknown", "publishers with no graph token (many GIDs)"
+                else:
+                    early[1] += 1
+                    if now - early[0] < UNKNOWN_GRACE:
+                        return
+                    key, who = gid, f"a publisher with no graph token (GID {gid.hex()})"
+        if allowed is not None:
+            # Its token came between the check and here: an allowed sender after all.
+            self._early(allowed, 1)
+            return
+        self._warn_once(key, who)
+
+    def _warn_once(self, key: object, who: str) -> None:
+        with self._identity_lock:
+            if key in self._warned or len(self._warned) >= MAX_TRACKED:
+                return
+            self._warned.add(key)
+        log.warning(
+            "%s: refused samples from %s: only %s may publish here (%d refused so far)",
+            self.topic,
+            who,
+            ", ".join(sorted(self.senders or ())),
+            drops.count(self.topic, INTRUDER),
+        )
+
     @property
     def last_attachment(self) -> Attachment | None:
         """The attachment of the latest good sample, if it had one."""
@@ -256,7 +394,7 @@ class Subscription:
         if self._closed:
             return
         self._closed = True
-        for thing in (self._token, self._publishers, self._zsub):
+        for thing in (self._token, self._zsub, self._publishers):
             try:
                 thing.undeclare()
             except Exception:

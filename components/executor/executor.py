@@ -174,7 +174,9 @@ class Executor:
                 inbox.scheduled = True
             self._work.put(inbox)
 
-        component.node.subscription(sub.topic, sub.msg_type, on_message, sub.qos)
+        component.node.subscription(
+            sub.topic, sub.msg_type, on_message, sub.qos, senders=sub.senders
+        )
 
     def _bind_service(self, component: Component, serve: Serve) -> None:
         handler = self._handler(component.core, serve.handler)
@@ -271,7 +273,8 @@ class Executor:
             self._call(item.component, item.handler, *item.args, self.clock())
             return
         component, handler, pending = item
-        response = self._call(component, handler, pending.request, self.clock())
+        with pending.handling():  # the handler may ask who called (current_caller)
+            response = self._call(component, handler, pending.request, self.clock())
         if response is None:
             pending.fail(f"{component.name} could not answer (see its log)")
         else:

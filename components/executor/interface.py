@@ -19,12 +19,17 @@ from components.comm.qos import QoS
 
 @dataclass(frozen=True)
 class Subscribe:
-    """The core reads ``topic`` of ``msg_type``; samples go to ``handler``."""
+    """The core reads ``topic`` of ``msg_type``; samples go to ``handler``.
+
+    ``senders``, when given, are the only nodes whose samples are taken (fully qualified, or
+    relative to the component's namespace); the transport refuses and counts the others.
+    """
 
     topic: str
     msg_type: str
     handler: str
     qos: QoS = field(default_factory=QoS)
+    senders: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,10 @@ from collections.abc import Mapping
 from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import BuildError, BuiltComponent
+from components.build import BuildError, BuiltComponent, node_name
 from components.joint_manager.core import JointManagerConfig, JointManagerCore
 from components.joint_manager.interface import JOINT_MANAGER
+from components.joint_manager.kind import KIND
 
 
 def build(
@@ -43,3 +44,16 @@ def build(
     if module.calibration_file:
         built.extension_defaults = {"rezero": {"calibration_file": module.calibration_file}}
     return built
+
+
+def commanding_node(assembly: ResolvedAssembly, slot: str) -> str:
+    """The one node that may command a module's motors: its joint manager, fully qualified
+    (``/limb1/joint_manager``), from the assembly's plan (the node-naming rule of
+    :func:`components.build.node_name`). The motor interface and the simulator take
+    ``joint_commands`` from this node only.
+    """
+    for plan in assembly.components:
+        if plan.kind == KIND.name and plan.module == slot:
+            return f"{plan.namespace.rstrip('/')}/{node_name(plan.name)}"
+    # No joint manager planned (a bare test assembly): the name it would run under.
+    return f"{assembly.module(slot).namespace.rstrip('/')}/joint_manager"

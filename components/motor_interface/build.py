@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
+from components.executor.interface import InterfaceSpec
 from components.motor_interface.core import MotorInterfaceCore
 from components.motor_interface.interface import MOTOR_INTERFACE
 from components.motors.base import MotorError, RawLimits
@@ -48,4 +50,19 @@ def build(
     # The last stage checks commands against the unit's raw limits itself (defence in depth).
     limits = {j.raw_name: RawLimits.of_joint(j.spec, j.calibration) for j in module.actuated_joints}
     core = MotorInterfaceCore(plan.name, module.slot, backend, limits=limits)
-    return BuiltComponent(core, MOTOR_INTERFACE, module.namespace, "motor_interface", [backend])
+    return BuiltComponent(
+        core, interface_for(assembly, module.slot), module.namespace, "motor_interface", [backend]
+    )
+
+
+def interface_for(assembly: ResolvedAssembly, slot: str) -> InterfaceSpec:
+    """:data:`MOTOR_INTERFACE` taking ``joint_commands`` from the module's own joint manager
+    only, named from the assembly."""
+    from components.joint_manager.build import commanding_node
+
+    sender = commanding_node(assembly, slot)
+    subscribe = tuple(
+        dataclasses.replace(s, senders=(sender,)) if s.senders is not None else s
+        for s in MOTOR_INTERFACE.subscribe
+    )
+    return dataclasses.replace(MOTOR_INTERFACE, subscribe=subscribe)

@@ -39,15 +39,26 @@ def simulator_interface(
 ) -> InterfaceSpec:
     """The simulator's interface for ``assembly``: per module, what its motor interface has.
 
-    Per module ``/<slot>``: subscribes ``joint_commands``; publishes ``joint_states``
+    Per module ``/<slot>``: subscribes ``joint_commands`` (from that module's joint manager
+    only, as its motor interface); publishes ``joint_states``
     (sensor QoS) and ``diagnostics``; serves ``motors/halt`` and ``motors/recover``. Its own:
     ``/sim/base_pose`` (and ``/sim/<root link>/pose`` with several robots) and
     ``/sim/diagnostics``. One timer drives the physics.
     """
+    from components.joint_manager.build import commanding_node
+
     config = config or SimulatorConfig()
     subscribe, publish, serve = [], [], []
     for slot in simulated_slots(assembly):
-        subscribe.append(Subscribe(commands_topic(slot), JOINT_STATE, commands_handler(slot)))
+        # As a real motor interface: only the module's own joint manager commands it.
+        subscribe.append(
+            Subscribe(
+                commands_topic(slot),
+                JOINT_STATE,
+                commands_handler(slot),
+                senders=(commanding_node(assembly, slot),),
+            )
+        )
         publish.append(Publish(states_topic(slot), JOINT_STATE, SENSOR))
         publish.append(Publish(module_diagnostics_topic(slot), DIAGNOSTIC_ARRAY))
         serve.append(Serve(f"/{slot}/motors/halt", TRIGGER, halt_handler(slot)))
