@@ -119,7 +119,8 @@ def test_the_joint_manager_passes_a_foreign_node_and_a_raw_publisher_do_not(
         legit = manager.publisher("joint_commands", JOINT_STATE)
         send_until(lambda: legit.publish(command(0.1)), lambda: motors.got)
         assert joint_samples(motors.got[-1]) == [JointSample("limb1_joint2", 0.1, None, None)]
-        assert motors.refused() == 0
+        # (A first sample may outrun the manager's token: refused, but never warned about.)
+        assert warnings_about(caplog, motors.topic) == []
 
         # Another node's publisher on the module's topic: refused, named once.
         foreign = intruder.publisher(f"{namespace}/joint_commands", JOINT_STATE)
