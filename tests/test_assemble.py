@@ -202,7 +202,9 @@ def test_loader_exposes_the_per_host_plan(resolved) -> None:
     assert math.isinf(wheel.joints[0].spec.upper)  # continuous: null in JSON, inf here
     manager = assembly.component("limb1/joint_manager")
     assert manager.host == limb.host and manager.params["joints"] == [j.name for j in limb.joints]
-    assert manager.params["injections"] == [{"name": "rezero"}]
+    assert manager.params["injections"] == [
+        {"name": "rezero", "max_shift": 0.07, "max_shift_linear": 0.002}
+    ]
     kin = assembly.component("limb1/kinematics_manager")
     assert kin.params["tip_link"] == "limb1_tip_link"
     ground = assembly.components_on("ground1")

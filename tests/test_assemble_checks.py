@@ -193,7 +193,7 @@ CASES: dict[str, tuple[Mutation, dict[str, str], list[str]]] = {
         ["hlv1-limb-03.toml: field overrides[0]", "joint"],
     ),
     "an injection that does not exist": (
-        edit(LIMB, 'injections = [{ name = "rezero" }]', 'injections = [{ name = "rezro" }]'),
+        edit(LIMB, 'injections = [{ name = "rezero",', 'injections = [{ name = "rezro",'),
         {},
         ["hl_limb_v1.toml: field injections[0].name", "'rezro'", "known: rezero"],
     ),

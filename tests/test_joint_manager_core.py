@@ -715,9 +715,9 @@ def test_rezero_injection_rewrites_offsets_and_the_toml_file(tmp_path) -> None:
     apply_all(
         core,
         "joint_manager",
-        injections=[{"name": "rezero", "calibration_file": str(path)}],
+        injections=[{"name": "rezero", "calibration_file": str(path), "max_shift": 1.0}],
     )
-    assert core.extra_serve == [Serve("rezero", "std_srvs/srv/Trigger", "on_rezero")]
+    assert core.extra_serve == [Serve("rezero", "msctl_msgs/srv/Rezero", "on_rezero")]
 
     core.on_joint_states(
         state(
@@ -749,7 +749,8 @@ def test_rezero_injection_rewrites_offsets_and_the_toml_file(tmp_path) -> None:
     }
     assert data["overrides"] == [{"name": "locked_joint", "joint": "joint3"}]
     assert data["bus"] == {"channel": "can0", "motor_ids": [[1, 2]]}
-    assert list(tmp_path.iterdir()) == [path]  # no temporary file left behind
+    # No temporary file left behind; the previous file kept beside it (tests/test_rezero_safety).
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".bak")) == [path.name]
 
     # New commands use the new zero: calibrated 0.1 on joint1 is raw 0.8 - 0.1.
     core.on_joint_set(state(JointSample(J1, 0.1)), now=0.2)
@@ -763,7 +764,9 @@ def test_rezero_named_joints_and_refusals_change_nothing(tmp_path) -> None:
     apply_all(
         core,
         "joint_manager",
-        injections=[{"name": "rezero", "joints": ["joint1"], "calibration_file": str(path)}],
+        injections=[
+            {"name": "rezero", "joints": ["joint1"], "calibration_file": str(path), "max_shift": 1}
+        ],
     )
     no_state = core.on_rezero(TRIGGER_REQ, 0.0)
     assert no_state.success is False and J1 in no_state.message
@@ -786,7 +789,9 @@ def test_rezero_named_joints_and_refusals_change_nothing(tmp_path) -> None:
 
 def test_rezero_without_file_and_bad_params() -> None:
     core = make()
-    apply_all(core, "joint_manager", injections=[{"name": "rezero", "joints": "joint2"}])
+    apply_all(
+        core, "joint_manager", injections=[{"name": "rezero", "joints": "joint2", "max_shift": 1}]
+    )
     feed(core, 0.0, joint2=0.3)
     response = core.on_rezero(TRIGGER_REQ, 0.1)
     assert response.success is True and "not saved" in response.message
@@ -802,7 +807,7 @@ def test_rezero_keeps_a_pinned_joint_physically_where_it_is() -> None:
     apply_all(
         core,
         "joint_manager",
-        injections=[{"name": "rezero", "joints": ["joint2"]}],
+        injections=[{"name": "rezero", "joints": ["joint2"], "max_shift": 1.0}],
         overrides=[{"name": "locked_joint", "joint": "joint2", "position": 0.3}],
     )
     feed(core, 0.0, joint2=0.05)

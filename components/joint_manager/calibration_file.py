@@ -6,6 +6,8 @@ table header; a missing table is appended (with the joint's ``direction``). The 
 checked by parsing both versions with :mod:`tomllib`: it must equal the original with exactly
 the requested values changed, otherwise nothing is written. The write is atomic (temporary
 file in the same directory, then :func:`os.replace`), so a crash leaves the old file whole.
+Before it, a timestamped copy of the old file can be kept beside it
+(``<unit>.toml.<UTC time>.bak``; restoring is copying it back), written atomically too.
 
 No TOML writer is a dependency; the calibration schema is small enough that a careful
 updater is less risk than a full emitter that would reformat the operator's file.
@@ -20,6 +22,7 @@ import re
 import tempfile
 import tomllib
 from collections.abc import Mapping
+from datetime import UTC, datetime
 from pathlib import Path
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -130,16 +133,53 @@ def _has_joint(document: Mapping, joint: str) -> bool:
     return isinstance(joints, Mapping) and joint in joints
 
 
+def backup_name(target: Path, when: datetime) -> Path:
+    """Where a backup of ``target`` taken at ``when`` goes: beside it, named
+    ``<name>.<UTC time, microseconds>.bak`` (never ``*.toml``, so nothing loads it as a unit)."""
+    stamp = when.astimezone(UTC).strftime("%Y%m%dT%H%M%S.%fZ")
+    return target.with_name(f"{target.name}.{stamp}.bak")
+
+
+def _atomic_write(target: Path, text: str, mode: int) -> None:
+    """Write ``text`` to a temporary file beside ``target``, then rename it over ``target``.
+
+    Raises:
+        OSError: If writing or renaming fails (the temporary file is removed).
+    """
+    fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(temp, mode)
+        os.replace(temp, target)
+    except OSError:
+        Path(temp).unlink(missing_ok=True)
+        raise
+
+
 def write_zero_offsets(
     path: str | os.PathLike[str],
     offsets: Mapping[str, float],
     directions: Mapping[str, int] | None = None,
-) -> None:
+    backup: bool = False,
+) -> Path | None:
     """Atomically update the zero offsets of a unit calibration file (see :func:`updated_text`).
+
+    Args:
+        path: The unit calibration file.
+        offsets: Raw joint name -> new zero offset.
+        directions: Raw joint name -> direction, for joints the file has no table for.
+        backup: First keep a copy of the file as it was, beside it (:func:`backup_name`).
+
+    Returns:
+        The backup's path, or ``None`` without ``backup``.
 
     Raises:
         CalibrationFileError: If the file is missing, unreadable, not valid TOML or not
-            editable as described; the file is then left as it was.
+            editable as described, or the backup cannot be written; the file is then left
+            as it was.
     """
     target = Path(path)
     try:
@@ -152,14 +192,17 @@ def write_zero_offsets(
             f"cannot read calibration file {target}: {exc.strerror or exc}"
         ) from exc
     result = updated_text(text, offsets, directions, source=str(target))
-    fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    saved = None
+    if backup:
+        saved = backup_name(target, datetime.now(UTC))
+        try:
+            _atomic_write(saved, text, mode)
+        except OSError as exc:
+            raise CalibrationFileError(
+                f"cannot keep a backup of {target} as {saved.name}: {exc}; nothing changed"
+            ) from exc
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
-            handle.write(result)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(temp, mode)
-        os.replace(temp, target)
+        _atomic_write(target, result, mode)
     except OSError as exc:
-        Path(temp).unlink(missing_ok=True)
         raise CalibrationFileError(f"cannot write calibration file {target}: {exc}") from exc
+    return saved

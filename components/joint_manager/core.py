@@ -411,6 +411,15 @@ class JointManagerCore(Core):
         """Whether a joint is pinned (reported as locked)."""
         return self._joints[self.resolve(joint)].pin_note is not None
 
+    def in_motion(self, joint: str) -> bool:
+        """Whether a command is moving a joint: a velocity or effort command in force, or a
+        position target not reached yet (as the watchdog judges it). Measured speed alone is
+        read with :meth:`latest`."""
+        j = self._joints[self.resolve(joint)]
+        if j.mode in (_VELOCITY, _EFFORT) and (j.cmd_velocity or j.cmd_effort):
+            return True
+        return j.mode in (_POSITION, _VELOCITY, _EFFORT) and self._moving(j)
+
     # ------------------------------------------------------------------ hook points
     def add_command_filter(self, joint: str, command_filter: CommandFilter) -> None:
         """Append a filter to a joint's command chain (hook for overrides and injections).
