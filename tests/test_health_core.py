@@ -523,3 +523,44 @@ def test_builder_refuses_a_bad_threshold_naming_module_and_key() -> None:
     bad = replace(plan, params={**plan.params, "thresholds": {"cpu_warn": "high"}})
     with pytest.raises(BuildError, match=r"limb1.*cpu_warn"):
         build_component(bad, assembly, {})
+
+
+# ---------------------------------------------------------------------------- bounded state
+
+
+def test_a_100k_name_flood_is_refused_whole_and_nothing_of_it_is_stored() -> None:
+    """Issue 10, finding 3: the monitor stored every name it saw and starved the process."""
+    import numpy as np
+
+    from components.messages import JOINT_STATE, JointSample, joint_state, msg
+
+    core = make({"max_tracking_error": 0.2})
+    names = [f"limb1_x{i}" for i in range(100_000)]
+    flood = msg(JOINT_STATE, name=names, position=np.zeros(len(names)))
+    core.on_joint_commands(flood, 0.1)
+    core.on_joint_states(flood, 0.1)
+    assert core.counters["refused_oversize"] == 2
+    assert core._targets == {} and core._tracking_errors == {}
+    assert core._topics["joint_states"].count == 0  # not a sample either
+    # Within the size, names that are not the module's motors are not kept either.
+    core.on_joint_commands(joint_state([JointSample("limb9_joint1", 1.0)]), 0.2)
+    core.on_joint_commands(joint_state([JointSample("limb1_joint1", 1.0)]), 0.2)
+    assert set(core._targets) == {"limb1_joint1"}
+    values = diagnostic_values(items_now(core, 0.3)["limb1"])
+    assert values["refused_oversize"] == "2"
+
+
+def test_invented_diagnostics_sources_and_nodes_are_bounded() -> None:
+    from components.health.core import MAX_SOURCES
+
+    core = make()
+    flood = diagnostics(*((f"x{i}/limb1_joint1", OK, "ok", {}) for i in range(1000)))
+    core.on_diagnostics(flood, 0.1)
+    assert len(core._motor_reports["limb1_joint1"]) == MAX_SOURCES
+    assert core.counters["dropped_sources"] == 1000 - MAX_SOURCES
+    # Once they are silent, a real source gets a place.
+    core.on_diagnostics(diagnostics(("limb1_joint1", OK, "ok", {})), 10.0)
+    assert "limb1_joint1" in core._motor_reports["limb1_joint1"]
+    for i in range(1000):
+        core.on_component_seen(f"/intruder_{i}", True, 0.2)
+    assert core._instances == {}

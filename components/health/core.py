@@ -21,6 +21,11 @@ any item gets worse, preceded by a summary item named after the module.
 Everything here is pure: graph changes arrive as :meth:`HealthMonitorCore.on_component_seen`
 (or ``on_component_instances``) calls, host metrics through the ``read_host_metrics``
 callable, time as ``now``.
+
+Its state is bounded whatever arrives: only the module's own motors and expected nodes are
+kept, a ``joint_states`` or ``joint_commands`` message naming more joints than the module
+has is refused whole (counted as ``refused_oversize`` in the summary), and each motor keeps
+at most :data:`MAX_SOURCES` reporting sources.
 """
 
 from __future__ import annotations
@@ -44,6 +49,10 @@ from components.messages import (
     joint_samples,
     worst,
 )
+
+#: Most diagnostics sources kept per motor (motor interface, joint manager, simulator... are
+#: three): status names are free text, and a flood of invented ones must not grow memory.
+MAX_SOURCES = 8
 
 #: Keys motor backends use for a motor's temperature (°C) and supply voltage (V).
 TEMPERATURE_KEYS = ("temperature", "temperature_c")
@@ -298,9 +307,15 @@ class HealthMonitorCore(Core):
         self.host = host
         self._read_host_metrics = read_host_metrics
         self._components = {c.label: _ComponentState(c) for c in components}
+        self._watched_nodes = frozenset(n for c in components for n in c.nodes)
         self._instances: dict[str, int] = {}
         self._topics = {w.topic: _TopicState(w) for w in self.thresholds.topic_watches()}
         self._motors = list(motors)
+        self._joints = frozenset(m.joint for m in self._motors)
+        self._size = len(self._joints)
+        #: Messages refused whole (more joint names than the module has motors); reports
+        #: dropped because a motor already had MAX_SOURCES live sources.
+        self.counters = {"refused_oversize": 0, "dropped_sources": 0}
         self._motor_names: dict[str, str] = {}
         for motor in self._motors:
             self._motor_names[motor.joint] = motor.joint
@@ -348,6 +363,8 @@ class HealthMonitorCore(Core):
             count: Live instances (distinct node tokens) with that name.
             now: Monotonic seconds.
         """
+        if node not in self._watched_nodes:
+            return  # only expected nodes are kept
         self._instances[node] = count
         changed = False
         for state in self._components.values():
@@ -370,7 +387,14 @@ class HealthMonitorCore(Core):
             self._check(now)
 
     def on_joint_states(self, message: Any, now: float) -> None:
-        """A ``joint_states`` sample arrived: its rate, and how far joints are from target."""
+        """A ``joint_states`` sample arrived: its rate, and how far joints are from target.
+
+        A message naming more joints than the module has is refused whole (no motor
+        interface sends one): it is neither a sample nor read.
+        """
+        if len(message.name) > self._size:
+            self.counters["refused_oversize"] += 1
+            return
         self._arrived("joint_states", now)
         limit = self.thresholds.max_tracking_error
         if limit is None or not self._targets:
@@ -390,8 +414,17 @@ class HealthMonitorCore(Core):
                 self._stalled_since.pop(sample.name, None)
 
     def on_joint_commands(self, message: Any, now: float) -> None:
-        """What the joint manager asked the motors for: position targets are tracked."""
+        """What the joint manager asked the motors for: position targets are tracked.
+
+        Only the module's own motors are tracked; a message naming more joints than it has is
+        refused whole.
+        """
+        if len(message.name) > self._size:
+            self.counters["refused_oversize"] += 1
+            return
         for sample in joint_samples(message):
+            if sample.name not in self._joints:
+                continue
             if sample.position is not None and math.isfinite(sample.position):
                 if self._targets.get(sample.name) != sample.position:
                     self._stalled_since.pop(sample.name, None)  # a new target: a new chance
@@ -414,6 +447,13 @@ class HealthMonitorCore(Core):
             if label is None:
                 continue
             reports = self._motor_reports.setdefault(label, {})
+            if status.name not in reports and len(reports) >= MAX_SOURCES:
+                # Full: a silent (stale) source makes room; live ones are never pushed out.
+                oldest = min(reports, key=lambda source: reports[source].at)
+                if now - reports[oldest].at <= self.thresholds.diagnostics_stale_after:
+                    self.counters["dropped_sources"] += 1
+                    continue
+                del reports[oldest]
             reports[status.name] = _SourceReport(
                 Level.of(status.level), status.message, diagnostic_values(status), now
             )
@@ -467,6 +507,7 @@ class HealthMonitorCore(Core):
                 "warn": sum(i.level == WARN for i in items),
                 "error": sum(i.level == ERROR for i in items),
                 "stale": sum(i.level == STALE for i in items),
+                **{k: v for k, v in self.counters.items() if v},
             },
         )
         return [summary, *items]
