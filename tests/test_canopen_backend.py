@@ -73,10 +73,10 @@ def test_open_enables_every_drive_in_profile_position(rig):
         assert drive.mode == 1
         # The backend armed the drive's watchdog on its own heartbeat (node 127).
         assert drive.read_object(0x1016, 1) >> 16 == 127
-        entry = diag(backend, joint)
-        assert entry.level == 0, entry.message
-        assert joint in entry.message
-    assert diag(backend, "").level == 0
+        # Enabled on the drive; the backend reports it OK at its next poll.
+        wait_until(lambda j=joint: diag(backend, j).level == 0, 10.0, f"{joint} reported OK")
+        assert joint in diag(backend, joint).message
+    wait_until(lambda: diag(backend, "").level == 0, 10.0, "the bus reported OK")
     assert set(backend.read()) == set(JOINTS.values())
 
 

@@ -503,17 +503,20 @@ def test_pause_longer_than_the_watchdog_is_reported_and_rearmed(
 def test_write_after_a_pause_is_not_swallowed_by_the_expired_watchdog(
     chain: EmulatedDynamixelChain, backend: DynamixelBackend
 ) -> None:
+    # Generous bounds: the emulated chain and the backend's I/O thread share a busy machine.
     backend.write([MotorCommand(joint(3), velocity=1.0)])
-    wait_until(lambda: chain.register(3, "present_velocity") > 35)
+    wait_until(lambda: chain.register(3, "present_velocity") > 35, 20.0, "moving")
     # The caller stalls until the watchdog expires.
-    wait_until(lambda: chain.register(3, "bus_watchdog") == BUS_WATCHDOG_EXPIRED, 2.0, "expiry")
+    wait_until(lambda: chain.register(3, "bus_watchdog") == BUS_WATCHDOG_EXPIRED, 20.0, "expiry")
     # A write comes first after the pause: the goal must land, not be refused.
     backend.write([MotorCommand(joint(3), velocity=0.7)])
     wait_until(
-        lambda: chain.register(3, "goal_velocity") == JointUnits(XM430, 1.0).velocity_units(0.7)
+        lambda: chain.register(3, "goal_velocity") == JointUnits(XM430, 1.0).velocity_units(0.7),
+        20.0,
+        "the new goal",
     )
     assert chain.register(3, "bus_watchdog") == 5
-    wait_until(lambda: "bus watchdog" in diag(backend, joint(3)).message, what="the report")
+    wait_until(lambda: "bus watchdog" in diag(backend, joint(3)).message, 20.0, "the report")
 
 
 def test_position_mode_and_close_leave_the_watchdog_off(chain: EmulatedDynamixelChain) -> None:
