@@ -113,7 +113,8 @@ def test_the_data_monitor_publishes_the_aggregate_and_serves_its_alarms(
         names = {s.name for s in received[-1].status}
         assert {"/dragon", "/dragon/limb1/components", "/dragon/gc1"} <= names
         assert "/dragon/limb1/components/joint_manager" in names
-        assert top and top[-1].name == "toplevel_state"
+        wait_until(lambda: top, timeout=30.0, what="/diagnostics_toplevel_state")
+        assert top[-1].name == "toplevel_state"
         limb.message = health("limb1", ("motors/j1", 2, "too hot", {}))
         wait_until(
             lambda: any(

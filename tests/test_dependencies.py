@@ -17,7 +17,7 @@ OPTIONAL = {"rclpy", "rosidl_runtime_py"}
 #: Modules their distribution's metadata does not list (cmeel wheels install under a prefix).
 INSTALLED_BY = {"pinocchio": ["pin"]}
 #: Test-extra tools used as programs or plugins rather than imported.
-TOOLS = {"pytest-timeout", "ruff"}
+TOOLS = {"pytest-timeout", "ruff", "pytest-textual-snapshot"}
 
 
 def _imports(*folders: str) -> set[str]:
