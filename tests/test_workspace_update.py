@@ -297,9 +297,12 @@ def test_status_shows_branch_commit_dirty_ahead_behind_and_unlisted_clones(
 
 
 def test_a_second_update_of_one_workspace_is_refused_while_one_runs(tmp_path: Path) -> None:
-    with workspace_lock(tmp_path, "update"), pytest.raises(MsctlError) as caught:
-        with workspace_lock(tmp_path, "update"):
-            pass
+    with (
+        workspace_lock(tmp_path, "update"),
+        pytest.raises(MsctlError) as caught,
+        workspace_lock(tmp_path, "update"),
+    ):
+        pass
     assert f"pid {os.getpid()}" in str(caught.value)
 
 

@@ -31,7 +31,14 @@ app = typer.Typer(
 UNIT_NAME = "msctl-agent.service"
 SYSTEM_UNIT_DIR = Path("/etc/systemd/system")
 #: Passed from the installing shell into the unit, so the agent joins the same network.
-_ENV_PREFIXES = ("MSCTL_ZENOH_", "MSCTL_HOME", "MSCTL_DOMAIN", "ROS_DOMAIN_ID")
+_ENV_PREFIXES = (
+    "MSCTL_ZENOH_",
+    "MSCTL_HOME",
+    "MSCTL_DOMAIN",
+    "ROS_DOMAIN_ID",
+    "MSCTL_WORKSPACE",
+    "MSCTL_WHEELHOUSE",
+)
 
 
 @app.callback(invoke_without_command=True)
@@ -58,6 +65,11 @@ def run(
         # SIGHUP (terminal or SSH link gone) stops the run as SIGTERM does: nothing orphaned.
         for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
+    from msctl.workspace.remote import WorkspaceAgent
+
+    # `msctl update --all` / `build --all`: its own service and thread, so a long git or pip
+    # run never holds up the agent's loop.
+    workspace = WorkspaceAgent.from_env(agent.host, log=agent.log)
     try:
         try:
             agent.start()
@@ -65,8 +77,10 @@ def run(
             raise MsctlError(
                 str(exc), hint="free the port or point MSCTL_ZENOH_CONNECT at the router"
             ) from exc
+        workspace.serve(agent.session, agent.settings.domain)
         agent.run()
     finally:
+        workspace.close()
         agent.shutdown()
         for signum, handler in previous.items():
             signal.signal(signum, handler)

@@ -1,0 +1,250 @@
+"""``msctl build``: build what changed in the workspace, in dependency order, offline-capable.
+
+msctl build                                   every package, changed ones only
+msctl build --packages-up-to limb_control     one package and what it depends on
+msctl build --list                            the packages and their dependencies
+msctl build --wheelhouse wh                   fill wh with the external wheels, build
+msctl build --wheelhouse wh --platform manylinux2014_aarch64 --python-version 3.11
+                                              fill wh for a robot (download only)
+msctl build --offline --wheelhouse wh         on the robot: no network at all
+msctl build --all                             every robot computer's agent builds its own
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from msctl.errors import InputError, MsctlError
+
+COMMAND_SETTINGS = {
+    "help": "Build the workspace's packages that changed (doit task graph; offline-capable)."
+}
+
+
+def command(
+    workspace: Path = typer.Option(
+        None,
+        "--workspace",
+        "-w",
+        envvar="MSCTL_WORKSPACE",
+        help="The workspace directory (env MSCTL_WORKSPACE; default: here).",
+    ),
+    packages_up_to: list[str] = typer.Option(
+        None,
+        "--packages-up-to",
+        "-p",
+        help="Build this package and what it depends on (repeatable).",
+    ),
+    jobs: int = typer.Option(None, "--jobs", "-j", help="Packages built at once (default: CPUs)."),
+    offline: bool = typer.Option(
+        False, "--offline", help="No network: pip installs from --wheelhouse only."
+    ),
+    wheelhouse: Path = typer.Option(
+        None,
+        "--wheelhouse",
+        help="Online: download every external wheel here. Offline: install from here.",
+    ),
+    platform: str = typer.Option(
+        None, "--platform", help="With --wheelhouse: wheels for this platform (download only)."
+    ),
+    python_version: str = typer.Option(
+        None, "--python-version", help="With --wheelhouse: wheels for this Python (e.g. 3.11)."
+    ),
+    editable: bool = typer.Option(False, "--editable", help="Install Python packages editable."),
+    wheels: Path = typer.Option(
+        None, "--wheels", help="Build Python packages' wheels into this directory instead."
+    ),
+    force: bool = typer.Option(False, "--force", help="Build every package, changed or not."),
+    stop_on_error: bool = typer.Option(
+        False, "--stop-on-error", help="Stop at the first failure (default: build the rest)."
+    ),
+    list_only: bool = typer.Option(
+        False, "--list", help="List the packages and their dependencies; build nothing."
+    ),
+    all_hosts: bool = typer.Option(
+        False, "--all", help="Ask every robot computer's agent to build its own workspace."
+    ),
+    timeout: float = typer.Option(
+        1800.0, "--timeout", help="With --all: seconds to wait for every agent."
+    ),
+    json_output: bool = typer.Option(False, "--json", help="Print one JSON document."),
+) -> None:
+    """Find the packages (pyproject.toml, package.xml, msctl-build.toml) and build them."""
+    from msctl.workspace import workspace_dir
+    from msctl.workspace.build import BuildOptions
+    from msctl.workspace.packages import find_packages
+
+    if jobs is not None and jobs < 1:
+        raise InputError(f"--jobs must be at least 1, not {jobs}")
+    if (platform or python_version) and wheelhouse is None:
+        raise InputError(
+            "--platform and --python-version choose the wheels a download fetches",
+            hint="give --wheelhouse DIR too",
+        )
+    if offline and (platform or python_version):
+        raise InputError("--offline downloads nothing: --platform/--python-version do not apply")
+    if editable and wheels is not None:
+        raise InputError("--editable and --wheels exclude each other: install, or build wheels")
+    if offline and wheelhouse is not None and not wheelhouse.is_dir():
+        raise InputError(
+            f"--wheelhouse {wheelhouse} does not exist on this computer",
+            hint="fill it online with `msctl build --wheelhouse DIR`, then copy it here",
+        )
+    if all_hosts:
+        from msctl.workspace.remote import build_all
+
+        build_all(list(packages_up_to or []), offline, json_output, timeout)
+        return
+    ws = workspace_dir(workspace)
+    if not ws.is_dir():
+        raise InputError(f"workspace {ws} does not exist", hint="run `msctl update` first")
+    graph = find_packages(ws)
+    keys = graph.up_to(packages_up_to) if packages_up_to else graph.order()
+    if list_only:
+        _list(graph, keys, json_output)
+        return
+    options = BuildOptions(
+        offline=offline,
+        wheelhouse=wheelhouse.absolute() if wheelhouse else None,
+        platform=platform,
+        python_version=python_version,
+        editable=editable,
+        wheels=wheels.absolute() if wheels else None,
+        force=force,
+        keep_going=not stop_on_error,
+        **({"jobs": jobs} if jobs else {}),
+    )
+    result = _build(graph, keys, options)
+    _report(result, graph, json_output)
+
+
+def _build(graph: Any, keys: list[str], options: Any) -> Any:
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from msctl.console import err
+    from msctl.workspace import workspace_lock
+    from msctl.workspace.build import Builder
+
+    for note in graph.notes:
+        err.print(f"[dim]{escape(note)}[/]", highlight=False)
+    if not keys:
+        err.print(f"no packages in {graph.root} (pyproject.toml, package.xml, msctl-build.toml)")
+    colour = {"built": "green", "failed": "red", "blocked": "red", "skipped": "yellow"}
+    with (
+        workspace_lock(graph.root, "build"),
+        Progress(
+            TextColumn("{task.description}"),
+            BarColumn(bar_width=20),
+            TextColumn("{task.fields[stage]}"),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        ) as progress,
+    ):
+        rows: dict[str, Any] = {}
+
+        def row(name: str) -> Any:
+            if name not in rows:
+                rows[name] = progress.add_task(name, total=1, stage="waiting")
+            return rows[name]
+
+        for key in keys:
+            row(graph.packages[key].name)
+
+        def event(name: str, status: str, detail: str) -> None:
+            style = colour.get(status)
+            shown = f"[{style}]{status}[/]" if style else status
+            done = status in ("built", "up to date", "failed", "blocked", "skipped")
+            progress.update(row(name), stage=shown, completed=1 if done else 0)
+
+        return Builder(graph, options, event).run(keys)
+
+
+def _report(result: Any, graph: Any, json_output: bool) -> None:
+    from rich.markup import escape
+    from rich.table import Table
+
+    from msctl.console import err, out, print_json
+
+    if json_output:
+        print_json(result.to_dict())
+    elif result.nothing_done and result.packages:
+        err.print(
+            f"nothing to build: {len(result.packages)} packages up to date "
+            f"({result.seconds:.2f} s)",
+            highlight=False,
+        )
+        skipped = [p for p in result.packages if p.status == "skipped"]
+        for p in skipped:
+            err.print(f"[yellow]skipped {p.name}: {escape(p.message)}[/]", highlight=False)
+    else:
+        table = Table()
+        for column in ("package", "type", "result", "time", "note"):
+            table.add_column(column, overflow="fold")
+        colour = {"built": "green", "failed": "red", "blocked": "red", "skipped": "yellow"}
+        rows = ([result.wheelhouse] if result.wheelhouse else []) + result.packages
+        for p in rows:
+            style = colour.get(p.status, "")
+            note = p.message.splitlines()[0] if p.message else ""
+            table.add_row(
+                escape(p.name),
+                p.type,
+                f"[{style}]{p.status}[/]" if style else p.status,
+                f"{p.seconds:.1f}s" if p.seconds else "",
+                escape(note),
+            )
+        out.print(table)
+        err.print(f"[dim]{result.seconds:.1f} s[/]", highlight=False)
+    failed = [p for p in result.packages if p.status == "failed"]
+    if result.wheelhouse is not None and result.wheelhouse.status == "failed":
+        failed.insert(0, result.wheelhouse)
+    blocked = [p for p in result.packages if p.status == "blocked"]
+    for p in failed:
+        err.print(
+            f"[red]{escape(p.name)}[/] failed at {escape(p.step)}: {escape(p.message)}",
+            highlight=False,
+        )
+    for message in result.errors:
+        err.print(f"[red]doit:[/] {escape(message)}", highlight=False)
+    if not result.ok:
+        parts = []
+        if failed:
+            parts.append(f"failed: {', '.join(p.name for p in failed)}")
+        if blocked:
+            parts.append(f"not built (a dependency failed): {', '.join(p.name for p in blocked)}")
+        if result.errors:
+            parts.append("doit could not run the graph")
+        raise MsctlError(
+            "; ".join(parts) + " (the packages not depending on them were built)",
+            hint="each failure's log is under .msctl/build/logs in the workspace",
+            exit_code=1,
+        )
+
+
+def _list(graph: Any, keys: list[str], json_output: bool) -> None:
+    from rich.markup import escape
+    from rich.table import Table
+
+    from msctl.console import out, print_json
+
+    document = graph.to_dict()
+    document["packages"] = [p for p in document["packages"] if graph.key_of(p["name"]) in set(keys)]
+    if json_output:
+        print_json(document)
+        return
+    table = Table(title=f"packages of {graph.root}", title_justify="left")
+    for column in ("package", "type", "path", "depends on", "external"):
+        table.add_column(column, overflow="fold")
+    for p in document["packages"]:
+        table.add_row(
+            escape(p["name"]),
+            p["type"],
+            escape(str(Path(p["path"]).relative_to(graph.root)) or "."),
+            escape(", ".join(p["depends"])),
+            escape(", ".join(p["external"])),
+        )
+    out.print(table)

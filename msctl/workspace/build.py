@@ -1,0 +1,692 @@
+"""``msctl build``: a doit task graph over the workspace's packages, incremental, offline.
+
+One doit task per package (``build:<name>``), run programmatically
+(``DoitMain(ModuleTaskLoader(...))``) with the json backend (doit's dbm backend breaks when
+shared, pydoit #121) and threads, ``jobs`` at a time, in dependency order:
+
+- ``file_dep``: the package's sources (doit compares content by MD5 once a file's time
+  changed) and the stamps of the packages it depends on;
+- ``targets``: its own stamp (``.msctl/build/stamps/<name>.stamp``), rewritten by each
+  build, so every package depending on it is built again after it;
+- ``uptodate``: how it is built (type, commands, mode, interpreter, the list of source
+  files), so a new or removed file or another mode also builds it again.
+
+A package whose sources and dependencies did not change is skipped, and a build with no
+change runs nothing. A failure names the package, the step and the last lines of its log
+(``.msctl/build/logs/<name>.log``); the packages that do not depend on it still build
+(doit's ``--continue``), those that do are reported blocked, and the outcome is a failure.
+
+How each type builds:
+
+- Python: its external requirements (``pip install``, offline from the wheelhouse: the
+  missing ones are named before pip runs), then the package itself (``pip install
+  --no-deps``, ``-e`` when editable), or a wheel (``pip wheel --no-deps``);
+- ROS 2: ``colcon build --packages-select`` when ``colcon`` is on PATH, else skipped,
+  named, with how to get colcon;
+- command: the commands of its ``msctl-build.toml``, in its directory, no shell.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from msctl.workspace import state_dir
+from msctl.workspace.packages import Graph, Package, source_files
+from msctl.workspace.wheelhouse import (
+    MANIFEST,
+    download_command,
+    installed,
+    missing,
+    pip,
+    target_python,
+    write_manifest,
+)
+
+#: What a package's build ended as.
+STATUSES = ("built", "up to date", "failed", "blocked", "skipped", "not run")
+#: Lines of a failed step's log shown with the failure.
+LOG_TAIL = 15
+#: How to get colcon when a ROS package needs it.
+COLCON_HINT = (
+    "colcon is not on PATH: source your ROS 2 setup (/opt/ros/jazzy/setup.bash) or "
+    "`pip install colcon-common-extensions`, then build again"
+)
+#: Called with (package name, status or step, detail) as the build goes on.
+Events = Callable[[str, str, str], None]
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """How to build.
+
+    Attributes:
+        jobs: Packages built at once.
+        offline: No network: pip uses only the wheelhouse (``--no-index``).
+        wheelhouse: A wheelhouse to fill (online) or install from (offline).
+        platform: Download wheels for this platform (e.g. ``manylinux2014_aarch64``):
+            download only, nothing is built here.
+        python_version: Download wheels for this Python (e.g. ``3.11``): download only.
+        editable: Install Python packages editable (``pip install -e``).
+        wheels: Build Python packages' wheels into this directory instead of installing.
+        force: Build every selected package, changed or not.
+        keep_going: Build the independent packages after a failure.
+        python: The interpreter of the environment to install into.
+        colcon: The colcon program (``None``: not available).
+    """
+
+    jobs: int = field(default_factory=lambda: os.cpu_count() or 2)
+    offline: bool = False
+    wheelhouse: Path | None = None
+    platform: str | None = None
+    python_version: str | None = None
+    editable: bool = False
+    wheels: Path | None = None
+    force: bool = False
+    keep_going: bool = True
+    python: str = field(default_factory=target_python)
+    colcon: str | None = field(default_factory=lambda: shutil.which("colcon"))
+
+    @property
+    def download_only(self) -> bool:
+        """Filling a wheelhouse for another platform or Python: nothing to build here."""
+        return bool(self.wheelhouse and (self.platform or self.python_version))
+
+
+@dataclass
+class PackageResult:
+    """What became of one package.
+
+    Attributes:
+        name: The package.
+        type: ``python``, ``ros`` or ``command``.
+        status: One of :data:`STATUSES`.
+        step: The step that failed (or why it was skipped or blocked).
+        message: The failure's last log lines, or the reason.
+        log: Its build log.
+        seconds: How long its build took.
+    """
+
+    name: str
+    type: str
+    status: str = "not run"
+    step: str = ""
+    message: str = ""
+    log: str | None = None
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """The result as ``--json`` prints it."""
+        return asdict(self)
+
+
+@dataclass
+class BuildResult:
+    """The outcome of one ``msctl build``.
+
+    Attributes:
+        workspace: The workspace directory.
+        packages: Each selected package's result, in build order.
+        wheelhouse: The wheelhouse task's result, when there is one.
+        seconds: Wall time of the whole build.
+        errors: Errors of doit itself (not of a package).
+    """
+
+    workspace: Path
+    packages: list[PackageResult]
+    wheelhouse: PackageResult | None = None
+    seconds: float = 0.0
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """Whether nothing failed or was blocked."""
+        bad = {"failed", "blocked", "not run"}
+        return (
+            not self.errors
+            and all(p.status not in bad for p in self.packages)
+            and (self.wheelhouse is None or self.wheelhouse.status not in bad)
+        )
+
+    @property
+    def nothing_done(self) -> bool:
+        """Whether every package was up to date (and no download ran)."""
+        return all(p.status in ("up to date", "skipped") for p in self.packages) and (
+            self.wheelhouse is None or self.wheelhouse.status == "up to date"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The result as ``--json`` prints it."""
+        return {
+            "workspace": str(self.workspace),
+            "ok": self.ok,
+            "nothing_done": self.nothing_done,
+            "seconds": round(self.seconds, 3),
+            "packages": [p.to_dict() for p in self.packages],
+            "wheelhouse": self.wheelhouse.to_dict() if self.wheelhouse else None,
+            "errors": self.errors,
+        }
+
+
+@dataclass(frozen=True)
+class Step:
+    """One command of a package's build.
+
+    Attributes:
+        label: What it is, in the messages (``dependencies``, ``install``, ``colcon`` ...).
+        argv: The command (no shell).
+        cwd: Where it runs.
+        serial: Run under the builder's lock (pip installing shared dependencies).
+    """
+
+    label: str
+    argv: tuple[str, ...]
+    cwd: Path
+    serial: bool = False
+
+
+class _Failed(Exception):
+    def __init__(self, step: str, message: str):
+        super().__init__(message)
+        self.step = step
+        self.message = message
+
+
+class Builder:
+    """Builds a workspace's packages through doit.
+
+    Args:
+        graph: The workspace's packages.
+        options: How to build.
+        events: Called with (package name, step or status, detail) as the build goes on
+            (from the build's threads).
+    """
+
+    def __init__(self, graph: Graph, options: BuildOptions, events: Events | None = None):
+        self.graph = graph
+        self.options = options
+        self.events = events or (lambda _name, _status, _detail: None)
+        self.state = state_dir(graph.root) / "build"
+        self.results: dict[str, PackageResult] = {}
+        self.wheelhouse_result: PackageResult | None = None
+        self._serial = threading.Lock()
+        self._environment: dict[str, str] | None = None
+        self._environment_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ paths
+    def stamp(self, key: str) -> Path:
+        """The file a package's successful build rewrites (its doit target)."""
+        return self.state / "stamps" / f"{key}.stamp"
+
+    def log(self, key: str) -> Path:
+        """A package's build log."""
+        return self.state / "logs" / f"{key}.log"
+
+    # ------------------------------------------------------------------ the graph
+    def tasks(self, keys: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
+        """The doit tasks building ``keys`` (in build order), and the keys skipped here
+        (ROS packages without colcon; everything when only downloading).
+
+        Pure: it reads the packages' files, runs nothing.
+        """
+        self.results = {
+            k: PackageResult(self.graph.packages[k].name, self.graph.packages[k].type) for k in keys
+        }
+        tasks: list[dict[str, Any]] = []
+        skipped: list[str] = []
+        wheelhouse_task = self._wheelhouse_task(keys)
+        if wheelhouse_task is not None:
+            tasks.append(wheelhouse_task)
+            self.wheelhouse_result = PackageResult("wheelhouse", "wheelhouse")
+        if self.options.download_only:
+            for key in keys:
+                self._skip(key, "download only", "wheels for another platform: not built here")
+            return tasks, list(keys)
+        selected = set(keys)
+        for key in keys:
+            package = self.graph.packages[key]
+            if package.type == "ros" and not self.options.colcon:
+                skipped.append(key)
+                self._skip(key, "colcon", COLCON_HINT)
+                continue
+            deps = [d for d in self.graph.edges[key] if d in selected and d not in skipped]
+            files = self._inputs(package)
+            recipe = {
+                "type": package.type,
+                "steps": [list(s.argv) for s in self.steps(package)],
+                "files": sorted(str(p.relative_to(package.path)) for p in files),
+                "python": self.options.python,
+            }
+            task: dict[str, Any] = {
+                "basename": "build",
+                "name": key,
+                "actions": [(self._build, (key,))],
+                "file_dep": [str(p) for p in files] + [str(self.stamp(d)) for d in deps],
+                "targets": [str(self.stamp(key))],
+                "uptodate": [_recipe(recipe)],
+                "verbosity": 0,
+                "io": {"capture": False},  # doit swaps sys.stdout when capturing: not in threads
+                "doc": f"{package.type} package {package.name}",
+            }
+            if wheelhouse_task is not None and package.type == "python":
+                task["task_dep"] = ["wheelhouse"]
+            tasks.append(task)
+        return tasks, skipped
+
+    def _inputs(self, package: Package) -> list[Path]:
+        if package.type == "python" and self.options.editable and not self.options.wheels:
+            # Editable: the sources are used in place; only the metadata needs a reinstall.
+            return [
+                p
+                for p in (package.manifest, package.path / "setup.py", package.path / "setup.cfg")
+                if p.exists()
+            ]
+        return source_files(package)
+
+    def steps(self, package: Package) -> list[Step]:
+        """The commands building ``package`` (its external requirements' install aside,
+        which is decided when it runs)."""
+        return {
+            "python": self._python_steps,
+            "ros": self._ros_steps,
+            "command": self._command_steps,
+        }[package.type](package)
+
+    def _python_steps(self, package: Package) -> list[Step]:
+        options = self.options
+        if options.wheels is not None:
+            args = ["wheel", "--no-deps", *self._index(), "-w", str(options.wheels)]
+            argv = pip(options.python, *args, str(package.path))
+            return [Step("wheel", tuple(argv), package.path)]
+        args = ["install", "--no-deps", *self._index(), *self._isolation()]
+        args += ["-e", str(package.path)] if options.editable else [str(package.path)]
+        return [Step("install", tuple(pip(options.python, *args)), package.path)]
+
+    def _ros_steps(self, package: Package) -> list[Step]:
+        root = self.graph.root
+        argv = (
+            self.options.colcon or "colcon",
+            "build",
+            "--base-paths",
+            str(package.path),
+            "--packages-select",
+            package.name,
+            "--build-base",
+            str(root / "build"),
+            "--install-base",
+            str(root / "install"),
+        )
+        return [Step("colcon", argv, root)]
+
+    @staticmethod
+    def _command_steps(package: Package) -> list[Step]:
+        return [
+            Step(f"command {i + 1} ({argv[0]})", tuple(argv), package.path)
+            for i, argv in enumerate(package.commands)
+        ]
+
+    def _index(self) -> list[str]:
+        options = self.options
+        links = ["--find-links", str(options.wheelhouse)] if options.wheelhouse else []
+        return (["--no-index"] if options.offline else []) + links
+
+    def _isolation(self) -> list[str]:
+        # Offline with no wheelhouse, an isolated build could not get its backend: use the
+        # environment's own (setuptools ...), as colcon does.
+        return (
+            ["--no-build-isolation"] if self.options.offline and not self.options.wheelhouse else []
+        )
+
+    def _wheelhouse_task(self, keys: Sequence[str]) -> dict[str, Any] | None:
+        options = self.options
+        if options.wheelhouse is None or options.offline:
+            return None
+        requirements = self.download_requirements(keys)
+        wanted = {
+            "requirements": requirements,
+            "platform": options.platform,
+            "python_version": options.python_version,
+        }
+        return {
+            "basename": "wheelhouse",
+            "actions": [(self._download, (requirements,))],
+            "targets": [str(options.wheelhouse / MANIFEST)],
+            "uptodate": [_recipe(wanted)],
+            "verbosity": 0,
+            "io": {"capture": False},
+            "doc": f"download {len(requirements)} requirements into {options.wheelhouse}",
+        }
+
+    def download_requirements(self, keys: Sequence[str]) -> list[str]:
+        """Every external requirement and build requirement of the Python packages among
+        ``keys``: what a wheelhouse needs to install them offline."""
+        found: dict[str, None] = {}
+        for key in keys:
+            package = self.graph.packages[key]
+            if package.type != "python":
+                continue
+            for requirement in [*self.graph.external_requirements(key), *package.build_requires]:
+                found.setdefault(requirement)
+            if any(r.lower().startswith("setuptools") for r in package.build_requires):
+                # setuptools before 70.1 asks for `wheel` when building, beyond its requires.
+                found.setdefault("wheel")
+        return list(found)
+
+    def _skip(self, key: str, step: str, why: str) -> None:
+        result = self.results[key]
+        result.status, result.step, result.message = "skipped", step, why
+
+    # ------------------------------------------------------------------ actions
+    def _download(self, requirements: list[str]) -> Any:
+        from doit.exceptions import TaskFailed
+
+        options = self.options
+        assert options.wheelhouse is not None
+        options.wheelhouse.mkdir(parents=True, exist_ok=True)
+        log = self.state / "logs" / "wheelhouse.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        self.events("wheelhouse", "downloading", f"{len(requirements)} requirements")
+        started = time.monotonic()
+        try:
+            with log.open("w", encoding="utf-8") as out:
+                if requirements:
+                    argv = download_command(
+                        options.python,
+                        options.wheelhouse,
+                        requirements,
+                        options.platform,
+                        options.python_version,
+                    )
+                    self._run(Step("download", tuple(argv), self.graph.root), out, log)
+            write_manifest(
+                options.wheelhouse, requirements, options.platform, options.python_version
+            )
+        except _Failed as failure:
+            self.wheelhouse_result = PackageResult(
+                "wheelhouse", "wheelhouse", "failed", failure.step, failure.message, str(log)
+            )
+            return TaskFailed(failure.message)
+        self.wheelhouse_result = PackageResult(
+            "wheelhouse", "wheelhouse", "built", log=str(log), seconds=time.monotonic() - started
+        )
+        return None
+
+    def _build(self, key: str) -> Any:
+        """doit's action for one package: its steps, its log, its stamp."""
+        from doit.exceptions import TaskFailed
+
+        package = self.graph.packages[key]
+        result = self.results[key]
+        log = self.log(key)
+        log.parent.mkdir(parents=True, exist_ok=True)
+        started = time.monotonic()
+        try:
+            with log.open("w", encoding="utf-8") as out:
+                for step in self._all_steps(key, package):
+                    self.events(package.name, step.label, "")
+                    self._run(step, out, log)
+        except _Failed as failure:
+            result.status, result.step, result.message = "failed", failure.step, failure.message
+            result.log, result.seconds = str(log), time.monotonic() - started
+            return TaskFailed(f"{package.name}: {failure.step} failed")
+        stamp = self.stamp(key)
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        # A new content each time: the packages depending on this one see it changed.
+        stamp.write_text(json.dumps({"package": package.name, "built": time.time_ns()}) + "\n")
+        result.status, result.log = "built", str(log)
+        result.seconds = time.monotonic() - started
+        return None
+
+    def _all_steps(self, key: str, package: Package) -> list[Step]:
+        steps = self.steps(package)
+        if package.type != "python" or self.options.wheels is not None:
+            return steps
+        before = []
+        options = self.options
+        if options.offline:
+            self._check_offline(key, package)
+        externals = self.graph.external_requirements(key)
+        absent = missing(externals, None, self.environment())
+        if absent:
+            # One pip at a time installs shared dependencies: two would race on one file.
+            argv = pip(options.python, "install", *self._index(), *absent)
+            before.append(Step("dependencies", tuple(argv), package.path, serial=True))
+        return before + steps
+
+    def environment(self) -> dict[str, str]:
+        """What is installed in the target environment (read once per build, then kept
+        up to date by the builds themselves as pip reports them)."""
+        with self._environment_lock:
+            if self._environment is None:
+                self._environment = installed(self.options.python)
+            return self._environment
+
+    def _check_offline(self, key: str, package: Package) -> None:
+        options = self.options
+        externals = self.graph.external_requirements(key)
+        absent = missing(externals, options.wheelhouse, self.environment(), python=options.python)
+        if options.wheelhouse is not None:
+            # An isolated build installs its backend from the wheelhouse alone.
+            absent += missing(package.build_requires, options.wheelhouse, {}, python=options.python)
+        else:
+            absent += missing(package.build_requires, None, self.environment())
+        if absent:
+            where = f"wheelhouse {options.wheelhouse}" if options.wheelhouse else "no wheelhouse"
+            raise _Failed(
+                "dependencies",
+                f"offline, and neither this environment nor {where} has: "
+                f"{', '.join(dict.fromkeys(absent))} — on a computer with the network, run "
+                f"`msctl build --wheelhouse DIR` (with --platform/--python-version for this "
+                "robot), copy DIR here, and build with --offline --wheelhouse DIR",
+            )
+
+    def _run(self, step: Step, out: Any, log: Path) -> None:
+        out.write(f"$ {' '.join(step.argv)}\n")
+        out.flush()
+        env = {
+            **os.environ,
+            "MSCTL_WORKSPACE": str(self.graph.root),
+            "MSCTL_PYTHON": self.options.python,
+            "PIP_NO_INPUT": "1",
+        }
+        try:
+            if step.serial:
+                with self._serial:
+                    code = self._call(step, out, env)
+            else:
+                code = self._call(step, out, env)
+        except FileNotFoundError:
+            raise _Failed(step.label, f"{step.argv[0]} is not installed (not on PATH)") from None
+        if code != 0:
+            out.flush()
+            raise _Failed(step.label, f"exit status {code}; last lines of {log}:\n{_tail(log)}")
+        if step.serial:
+            with self._environment_lock:
+                self._environment = None  # pip installed things: read the environment again
+
+    @staticmethod
+    def _call(step: Step, out: Any, env: dict[str, str]) -> int:
+        return subprocess.run(
+            step.argv,
+            cwd=step.cwd,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            check=False,
+        ).returncode
+
+    # ------------------------------------------------------------------ running
+    def run(self, keys: Sequence[str]) -> BuildResult:
+        """Build ``keys`` (and nothing else) through doit; see the module's description."""
+        from doit.cmd_base import ModuleTaskLoader
+        from doit.doit_cmd import DoitMain
+
+        started = time.monotonic()
+        tasks, _skipped = self.tasks(keys)
+        reporter = _Reporter(self)
+
+        def task_msctl() -> Any:
+            yield from tasks
+
+        namespace = {
+            "DOIT_CONFIG": {"reporter": reporter, "verbosity": 0},
+            "task_msctl": task_msctl,
+        }
+        names = [f"{t['basename']}:{t['name']}" if "name" in t else t["basename"] for t in tasks]
+        self.state.mkdir(parents=True, exist_ok=True)
+        if names:
+            argv = [
+                "run",
+                "--backend",
+                "json",
+                "--db-file",
+                str(self.state / "doit.json"),
+                "--parallel-type",
+                "thread",
+                "--process",
+                str(max(1, self.options.jobs)),
+                "--continue" if self.options.keep_going else "--no-continue",
+                *(["--always-execute"] if self.options.force else []),
+                *names,
+            ]
+            with _without_entry_point_plugins():
+                code = DoitMain(ModuleTaskLoader(namespace), config_filenames=()).run(argv)
+            if code not in (0, 1) and not reporter.errors:
+                # 2 and 3: doit itself could not run the graph (it said why on stderr).
+                reporter.errors.append(f"doit stopped with exit status {code}")
+        return BuildResult(
+            self.graph.root,
+            [self.results[k] for k in keys],
+            self.wheelhouse_result,
+            time.monotonic() - started,
+            reporter.errors,
+        )
+
+    def _event(self, task_name: str, status: str, detail: str = "") -> None:
+        """One of doit's events about a task (``building``, ``built``, ``up to date``,
+        ``failed``, ``blocked``), kept in the results and passed on to :attr:`events`."""
+        if task_name == "wheelhouse":
+            if status in ("up to date", "blocked"):
+                self.wheelhouse_result = PackageResult("wheelhouse", "wheelhouse", status)
+                self.wheelhouse_result.message = detail
+            self.events("wheelhouse", status, detail)
+            return
+        key = task_name[len("build:") :] if task_name.startswith("build:") else None
+        result = self.results.get(key) if key is not None else None
+        if result is None:
+            return  # doit's group task "build"
+        if status == "up to date":
+            result.status = status
+        elif status == "blocked":
+            result.status, result.step, result.message = status, "dependencies", detail
+        elif status == "failed" and result.status != "failed":
+            # A failure outside the package's own steps (doit could not check or save it).
+            result.status, result.step, result.message = status, "doit", detail
+        self.events(result.name, status, result.message if status == "failed" else detail)
+
+
+@contextmanager
+def _without_entry_point_plugins() -> Iterator[None]:
+    """Run doit with its own commands, backends and reporters only.
+
+    doit adds plugins from every installed distribution's ``doit.*`` entry points, and a
+    plugin there takes precedence over doit's own of the same name (a ``json`` backend, a
+    reporter): what the environment happens to hold must not change how msctl builds. It
+    also reads every distribution's entry points three times per run, most of a no-op
+    build's time in a large environment.
+    """
+    import doit.plugin
+
+    original = doit.plugin.entry_points_impl
+    doit.plugin.entry_points_impl = lambda: lambda group: ()  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        doit.plugin.entry_points_impl = original
+
+
+def _recipe(config: dict[str, Any]) -> Any:
+    from doit.tools import config_changed
+
+    return config_changed(config)
+
+
+def _tail(log: Path, lines: int = LOG_TAIL) -> str:
+    try:
+        text = log.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return "(no log)"
+    return "\n".join(f"    {line}" for line in text[-lines:])
+
+
+class _Reporter:
+    """doit's reporter for msctl: turns doit's events into :meth:`Builder._event` calls.
+
+    doit calls it from its worker threads (``execute_task``) and its main loop (the rest).
+    """
+
+    desc = "msctl build events"
+
+    def __init__(self, builder: Builder):
+        self.builder = builder
+        self.errors: list[str] = []
+
+    def initialize(self, tasks: Any, selected_tasks: Any) -> None:
+        """Tasks are loaded."""
+
+    def get_status(self, task: Any) -> None:
+        """A task's up-to-date check starts."""
+
+    def execute_task(self, task: Any) -> None:
+        """A task starts running."""
+        self.builder._event(task.name, "building")
+
+    def add_success(self, task: Any) -> None:
+        """A task ran successfully."""
+        self.builder._event(task.name, "built")
+
+    def add_failure(self, task: Any, fail: Any) -> None:
+        """A task failed, or could not run because a dependency failed."""
+        from doit.exceptions import UnmetDependency
+
+        if isinstance(fail, UnmetDependency):
+            failed = [
+                n.split(":", 1)[1] if n.startswith("build:") else n
+                for n in str(fail.message).split()
+            ]
+            packages = self.builder.graph.packages
+            names = [packages[k].name if k in packages else k for k in failed]
+            self.builder._event(task.name, "blocked", f"not built: {', '.join(names)} failed")
+        else:
+            self.builder._event(task.name, "failed", fail.get_msg().strip().splitlines()[0])
+
+    def skip_uptodate(self, task: Any) -> None:
+        """A task was up to date."""
+        self.builder._event(task.name, "up to date")
+
+    def skip_ignore(self, task: Any) -> None:
+        """A task was ignored (never, here)."""
+
+    def cleanup_error(self, exception: Any) -> None:
+        """A teardown failed (there are none here)."""
+        self.errors.append(str(exception))
+
+    def runtime_error(self, msg: str) -> None:
+        """doit itself failed."""
+        self.errors.append(msg)
+
+    def teardown_task(self, task: Any) -> None:
+        """A teardown starts (there are none here)."""
+
+    def complete_run(self) -> None:
+        """Everything ran."""

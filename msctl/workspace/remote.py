@@ -1,0 +1,540 @@
+"""``msctl update --all`` and ``msctl build --all``: every robot computer's agent updates and
+builds its own workspace (the paper's network-synchronised orchestrators).
+
+Each ``msctl agent`` serves ``/msctl/<host>/workspace`` (``msctl_msgs/srv/AgentRequest``,
+the agent's own request type) beside its ``/request``. A request is a verb and a JSON
+object:
+
+- ``update``: ``repos`` (``{"name", "text"}``, the .repos file's content), ``overlays`` (a
+  list of the same), ``offline``, ``shallow``;
+- ``build``: ``packages_up_to`` (package names), ``offline``;
+- ``progress``: what the running (or last) job has done so far.
+
+What is sent is checked as data: the files are parsed exactly as a local ``msctl update``
+parses them (paths inside the workspace, git URLs without shell metacharacters or
+``transport::`` forms, plain ref names), file and package names are plain names, and
+nothing else is accepted: no command line, no path. The workspace directory (and the
+wheelhouse of an offline build) are the agent's own settings (``MSCTL_WORKSPACE``,
+``MSCTL_WHEELHOUSE``), never part of a request. The build commands that run are those of
+the packages in that workspace.
+
+An update or build runs on the agent's own worker thread, one at a time (a second request
+meanwhile is refused, naming the first); the ground station asks for ``progress`` every
+half second until every agent is done, and shows one combined view.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from msctl.errors import MsctlError, NetworkError
+
+SERVICE = "workspace"
+VERBS = ("update", "build", "progress")
+#: A request's arguments, at most: a workspace file and its overlays are a few KiB each.
+MAX_ARGS_BYTES = 512 * 1024
+MAX_OVERLAYS = 16
+MAX_PACKAGES = 256
+_ARG_KEYS = {
+    "update": {"repos", "overlays", "offline", "shallow"},
+    "build": {"packages_up_to", "offline"},
+    "progress": set(),
+}
+_FILE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}$")
+_PACKAGE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+
+
+class Refused(ValueError):
+    """A workspace request refused; the message says why."""
+
+
+def check_request(verb: Any, args_text: Any) -> dict[str, Any]:
+    """Validate a workspace request: its verb, and arguments that are data only.
+
+    Returns:
+        The arguments, with ``repositories`` (the merged files, checked) for an update.
+
+    Raises:
+        Refused: Naming what is wrong.
+    """
+    if not isinstance(verb, str) or verb not in VERBS:
+        shown = verb[:40] if isinstance(verb, str) else type(verb).__name__
+        raise Refused(f"unknown verb {shown!r}; accepted: {', '.join(VERBS)}")
+    if not isinstance(args_text, str):
+        raise Refused("arguments must be JSON text")
+    if (
+        len(args_text) > MAX_ARGS_BYTES
+        or len(args_text.encode("utf-8", "replace")) > MAX_ARGS_BYTES
+    ):
+        raise Refused(f"arguments are over {MAX_ARGS_BYTES} bytes")
+    try:
+        args = json.loads(args_text) if args_text.strip() else {}
+    except (ValueError, RecursionError) as exc:
+        raise Refused(f"arguments are not JSON: {str(exc)[:200]}") from None
+    if not isinstance(args, dict):
+        raise Refused("arguments must be a JSON object")
+    unknown = set(args) - _ARG_KEYS[verb]
+    if unknown:
+        raise Refused(f"{verb} takes no argument {', '.join(sorted(map(str, unknown)))}")
+    for flag in ("offline", "shallow"):
+        if flag in args and not isinstance(args[flag], bool):
+            raise Refused(f"{flag} must be true or false")
+    if verb == "update":
+        base = _file(args.get("repos"), "repos")
+        overlays = args.get("overlays", [])
+        if not isinstance(overlays, list) or len(overlays) > MAX_OVERLAYS:
+            raise Refused(f"overlays must be a list of at most {MAX_OVERLAYS} files")
+        files = [_file(o, f"overlays[{i}]") for i, o in enumerate(overlays)]
+        from msctl.workspace.repos import load_texts
+
+        try:
+            args["repositories"] = load_texts(base, files)
+        except MsctlError as exc:
+            raise Refused(f"the files sent are refused: {exc}") from None
+    if verb == "build":
+        names = args.get("packages_up_to", [])
+        if (
+            not isinstance(names, list)
+            or len(names) > MAX_PACKAGES
+            or not all(isinstance(n, str) and _PACKAGE_NAME.match(n) for n in names)
+        ):
+            raise Refused("packages_up_to must be a list of plain package names")
+    return args
+
+
+def _file(value: Any, where: str) -> tuple[str, str]:
+    if not isinstance(value, dict) or set(value) != {"name", "text"}:
+        raise Refused(f"{where} must be an object with a file's name and text")
+    name, text = value["name"], value["text"]
+    if not isinstance(name, str) or not _FILE_NAME.match(name) or ".." in name:
+        raise Refused(f"{where}: file name {str(name)[:60]!r} is not a plain file name")
+    if not isinstance(text, str):
+        raise Refused(f"{where}: the file's text must be a string")
+    return name, text
+
+
+# --------------------------------------------------------------------------- the agent's side
+class WorkspaceAgent:
+    """Updates and builds this computer's workspace when a ground station asks.
+
+    Args:
+        host: This computer's name (its service is ``/msctl/<host>/workspace``).
+        workspace: The workspace directory (the agent's own setting).
+        wheelhouse: Where an offline build installs external wheels from (its own setting).
+        log: Where to say what it does (one line per call).
+    """
+
+    def __init__(
+        self,
+        host: str,
+        workspace: Path,
+        wheelhouse: Path | None = None,
+        log: Callable[[str], None] | None = None,
+    ):
+        self.host = host
+        self.workspace = workspace
+        self.wheelhouse = wheelhouse
+        self._log = log or (lambda _line: None)
+        self._lock = threading.Lock()
+        self._job: dict[str, Any] | None = None
+        self._thread: threading.Thread | None = None
+        self._count = 0
+        self.node: Any = None
+
+    @classmethod
+    def from_env(cls, host: str, log: Callable[[str], None] | None = None) -> WorkspaceAgent:
+        """The agent's settings from its environment: ``MSCTL_WORKSPACE`` (default
+        ``$MSCTL_HOME/workspace``) and ``MSCTL_WHEELHOUSE``."""
+        from components.assembly import state_dir
+
+        given = os.environ.get("MSCTL_WORKSPACE")
+        workspace = Path(given) if given else state_dir() / "workspace"
+        wheelhouse = os.environ.get("MSCTL_WHEELHOUSE")
+        return cls(host, workspace.absolute(), Path(wheelhouse) if wheelhouse else None, log)
+
+    # ------------------------------------------------------------------ serving
+    def serve(self, session: Any, domain: int) -> None:
+        """Serve ``/msctl/<host>/workspace`` on ``session``."""
+        from components.comm.node import Node
+        from msctl.launcher.control import AGENT_SRV, host_namespace
+
+        self.node = Node(session, "workspace", host_namespace(self.host), domain)
+        self.node.service(SERVICE, AGENT_SRV, self._on_request, deferred=True)
+        self._log(f"serving {self.node.namespace}/{SERVICE} for {self.workspace}")
+
+    def close(self, wait: float = 5.0) -> None:
+        """Stop serving, and give a running job ``wait`` seconds to end (each repository's
+        update is whole or nothing, so one cut short is left as it was)."""
+        if self.node is not None:
+            self.node.close()
+            self.node = None
+        thread = self._thread
+        if thread is not None:
+            thread.join(wait)
+
+    def _on_request(self, pending: Any) -> None:
+        from msctl.launcher.control import reply
+
+        verb = getattr(getattr(pending, "request", None), "verb", "?")
+        try:
+            payload, message = self.handle(pending.request.verb, pending.request.args)
+            reply(pending, True, message, payload)
+        except Refused as exc:
+            self._log(f"refused workspace {str(verb)[:40]!r}: {exc}")
+            reply(pending, False, str(exc))
+        except Exception as exc:  # an error reply, never the agent's end
+            self._log(f"workspace request {str(verb)[:40]!r} failed: {exc}")
+            reply(pending, False, f"{self.host} could not {verb}: {type(exc).__name__}: {exc}")
+
+    # ------------------------------------------------------------------ requests
+    def handle(self, verb: Any, args_text: Any) -> tuple[dict[str, Any], str]:
+        """Carry out one request; returns ``(payload, message)``.
+
+        Raises:
+            Refused: For a malformed request, or a job while another runs.
+        """
+        args = check_request(verb, args_text)
+        if verb == "progress":
+            return self.progress(), "ok"
+        with self._lock:
+            if self._job is not None and self._job["state"] == "running":
+                raise Refused(
+                    f"{self.host} is already running {self._job['verb']} (job "
+                    f"{self._job['id']}, for {time.time() - self._job['started']:.0f} s)"
+                )
+            self._count += 1
+            self._job = {
+                "id": self._count,
+                "verb": verb,
+                "state": "running",
+                "started": time.time(),
+                "items": {},
+                "result": None,
+                "error": "",
+            }
+            job = self._job
+        work = self._update if verb == "update" else self._build
+        self._thread = threading.Thread(
+            target=self._run, args=(job, work, args), name=f"msctl-{verb}", daemon=True
+        )
+        self._thread.start()
+        self._log(f"{verb} started (job {job['id']}) in {self.workspace}")
+        return self.progress(), f"{verb} started"
+
+    def progress(self) -> dict[str, Any]:
+        """The running (or last) job, as the ground station shows it."""
+        with self._lock:
+            job = json.loads(json.dumps(self._job)) if self._job else None
+        return {"host": self.host, "workspace": str(self.workspace), "job": job}
+
+    def _set(self, job: dict[str, Any], name: str, stage: str) -> None:
+        with self._lock:
+            job["items"][name] = stage
+
+    def _run(self, job: dict[str, Any], work: Callable[..., Any], args: dict[str, Any]) -> None:
+        try:
+            result, ok = work(job, args)
+            error = ""
+        except MsctlError as exc:
+            result, ok, error = None, False, str(exc)
+        except Exception as exc:
+            result, ok, error = None, False, f"{type(exc).__name__}: {exc}"
+        with self._lock:
+            job.update(state="done", result=result, ok=ok, error=error)
+        self._log(f"{job['verb']} done (job {job['id']}): {'ok' if ok else error or 'failed'}")
+
+    def _update(self, job: dict[str, Any], args: dict[str, Any]) -> tuple[Any, bool]:
+        from msctl.workspace import state_dir, workspace_lock
+        from msctl.workspace.update import (
+            UpdateOptions,
+            remember_files,
+            update_workspace,
+            write_atomically,
+        )
+
+        repositories = args["repositories"]
+        for repo in repositories:
+            self._set(job, repo.path, "waiting")
+        options = UpdateOptions(
+            offline=args.get("offline", False), shallow=args.get("shallow", False)
+        )
+        self.workspace.mkdir(parents=True, exist_ok=True)
+        with workspace_lock(self.workspace, "update"):
+            # The files as sent, kept: `msctl update --status` on the robot reads them.
+            sent = state_dir(self.workspace) / "sent"
+            names = [args["repos"]["name"], *(o["name"] for o in args.get("overlays", []))]
+            texts = [args["repos"]["text"], *(o["text"] for o in args.get("overlays", []))]
+            paths = [sent / name for name in names]
+            for path, text in zip(paths, texts, strict=True):
+                write_atomically(path, text)
+            outcomes = update_workspace(
+                repositories,
+                self.workspace,
+                options,
+                lambda path, stage: self._set(job, path, stage),
+                lambda outcome: self._set(job, outcome.path, outcome.result),
+            )
+            remember_files(self.workspace, paths[0], paths[1:])
+        return [o.to_dict() for o in outcomes], all(o.ok for o in outcomes)
+
+    def _build(self, job: dict[str, Any], args: dict[str, Any]) -> tuple[Any, bool]:
+        from msctl.workspace import workspace_lock
+        from msctl.workspace.build import Builder, BuildOptions
+        from msctl.workspace.packages import find_packages
+
+        if not self.workspace.is_dir():
+            raise MsctlError(f"{self.workspace} does not exist yet: `msctl update --all` first")
+        graph = find_packages(self.workspace)
+        names = args.get("packages_up_to") or []
+        keys = graph.up_to(names) if names else graph.order()
+        for key in keys:
+            self._set(job, graph.packages[key].name, "waiting")
+        options = BuildOptions(offline=args.get("offline", False), wheelhouse=self.wheelhouse)
+        with workspace_lock(self.workspace, "build"):
+            result = Builder(
+                graph, options, lambda name, status, _detail: self._set(job, name, status)
+            ).run(keys)
+        return result.to_dict(), result.ok
+
+
+# --------------------------------------------------------------------------- the ground station
+#: Stages after which an item is done, for the combined progress bar.
+_DONE = {"cloned", "updated", "unchanged", "refused", "failed", "built", "up to date"}
+_DONE |= {"blocked", "skipped"}
+
+
+def workspace_services(node: Any) -> dict[str, str]:
+    """``{host namespace: service}`` of every agent serving workspace requests."""
+    from components.comm.graph import snapshot
+    from msctl.launcher.control import AGENT_SRV
+
+    found = {}
+    for name, info in snapshot(node.session, node.domain).services().items():
+        if name.startswith("/msctl/") and name.endswith(f"/{SERVICE}") and AGENT_SRV in info.types:
+            found[name[: -len(SERVICE) - 1]] = name
+    return found
+
+
+def _expected_namespaces() -> dict[str, str]:
+    """``{namespace: host}`` of the resolved assembly's computers (none if nothing is
+    resolved): the agents that should answer."""
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.launcher.control import host_namespace
+
+    try:
+        assembly = load_assembly()
+    except (AssemblyError, OSError):
+        return {}
+    return {host_namespace(h): h for h in assembly.hosts}
+
+
+def update_all(
+    repos: Path,
+    overlays: Sequence[Path],
+    offline: bool,
+    shallow: bool,
+    json_output: bool,
+    timeout: float,
+) -> None:
+    """Ask every agent to update its workspace from these files (read and checked here
+    first, then sent as they are)."""
+    from msctl.workspace.repos import load
+
+    load(repos, overlays)  # the same refusal here as on every robot, said once
+    args = {
+        "repos": {"name": repos.name, "text": repos.read_text(encoding="utf-8")},
+        "overlays": [{"name": p.name, "text": p.read_text(encoding="utf-8")} for p in overlays],
+        "offline": offline,
+        "shallow": shallow,
+    }
+    _run_all("update", args, json_output, timeout)
+
+
+def build_all(packages_up_to: list[str], offline: bool, json_output: bool, timeout: float) -> None:
+    """Ask every agent to build its workspace."""
+    _run_all("build", {"packages_up_to": packages_up_to, "offline": offline}, json_output, timeout)
+
+
+def _call(node: Any, service: str, verb: str, args: dict[str, Any], timeout: float) -> Any:
+    from components.comm.types import registry
+    from msctl.launcher.control import AGENT_SRV, encode_args
+
+    client = node.client(service, AGENT_SRV)
+    try:
+        request = registry().msg_class(client.parts.request)(verb=verb, args=encode_args(args))
+        response = client.call(request, timeout=timeout)
+    finally:
+        client.close()
+    if not response.success:
+        raise Refused(response.message)
+    return json.loads(response.payload) if response.payload else {}
+
+
+def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float) -> None:
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from components.comm.services import ServiceError
+    from msctl.console import err, out, print_json
+    from msctl.plane import connected
+
+    expected = _expected_namespaces()
+    started: dict[str, dict[str, Any]] = {}
+    problems: dict[str, str] = {}
+    with connected(f"{verb}_all") as node:
+        services = _discover(node, expected)
+        for namespace in expected:
+            if namespace not in services:
+                problems[namespace] = f"unreachable: no agent serves {namespace}/{SERVICE}"
+        if not services and not expected:
+            raise NetworkError(
+                f"no agent serves /msctl/<host>/{SERVICE} on this network",
+                hint="start `msctl agent` on each robot computer (or `msctl agent install`)",
+            )
+        for namespace, service in sorted(services.items()):
+            err.print(f"[dim]asking {namespace} to {verb}...[/]", highlight=False)
+            try:
+                started[namespace] = _call(node, service, verb, args, 10.0)
+            except Refused as exc:
+                problems[namespace] = f"refused: {exc}"
+            except ServiceError as exc:
+                problems[namespace] = f"unreachable: {exc}"
+        final: dict[str, dict[str, Any]] = {}
+        deadline = time.monotonic() + timeout
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(bar_width=20),
+            TextColumn("{task.completed}/{task.total}"),
+            TextColumn("{task.fields[stage]}"),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        ) as progress:
+            rows = {
+                ns: progress.add_task(answer.get("host", ns), total=None, stage="starting")
+                for ns, answer in started.items()
+            }
+            waiting = set(started)
+            while waiting and time.monotonic() < deadline:
+                for namespace in sorted(waiting):
+                    try:
+                        state = _call(node, services[namespace], "progress", {}, 3.0)
+                    except (Refused, ServiceError) as exc:
+                        progress.update(rows[namespace], stage=f"[yellow]{exc}[/]")
+                        continue
+                    job = state.get("job") or {}
+                    items = job.get("items", {})
+                    done = sum(stage in _DONE for stage in items.values())
+                    busy = [n for n, s in items.items() if s not in _DONE and s != "waiting"]
+                    progress.update(
+                        rows[namespace],
+                        total=len(items) or None,
+                        completed=done,
+                        stage=", ".join(busy[:3]) if job.get("state") == "running" else "done",
+                    )
+                    if job.get("state") == "done":
+                        final[namespace] = state
+                        waiting.discard(namespace)
+                if waiting:
+                    time.sleep(0.5)
+            for namespace in waiting:
+                problems[namespace] = f"still running after {timeout:g} s (see its agent's log)"
+    document = _summarise(verb, final, problems, expected)
+    if json_output:
+        print_json(document)
+    else:
+        table = Table(title=f"{verb} on every agent", title_justify="left")
+        for column in ("host", "result", "done", "not done", "note"):
+            table.add_column(column, overflow="fold")
+        for host in document["hosts"]:
+            colour = "green" if host["ok"] else "red"
+            table.add_row(
+                escape(host["host"]),
+                f"[{colour}]{'ok' if host['ok'] else 'failed'}[/]",
+                str(len(host["done"])),
+                escape(", ".join(host["not_done"])),
+                escape(host["note"]),
+            )
+        out.print(table)
+    bad = [h for h in document["hosts"] if not h["ok"]]
+    if bad:
+        raise MsctlError(
+            f"{verb} did not succeed on {', '.join(h['host'] for h in bad)} (the other "
+            "agents' workspaces were done)",
+            hint="see the note of each; `msctl agent` logs on the robot say more",
+            exit_code=1,
+        )
+
+
+def _discover(node: Any, expected: dict[str, str], settle: float = 3.0) -> dict[str, str]:
+    """The agents' services, waiting a moment for the graph to show the expected ones."""
+    deadline = time.monotonic() + settle
+    services = workspace_services(node)
+    while time.monotonic() < deadline and not (services and set(expected) <= set(services)):
+        time.sleep(0.1)
+        services = workspace_services(node)
+    return services
+
+
+def _summarise(
+    verb: str,
+    final: dict[str, dict[str, Any]],
+    problems: dict[str, str],
+    names: dict[str, str],
+) -> dict[str, Any]:
+    """One document of every host's outcome (``names``: host of each namespace known)."""
+    hosts = []
+    for namespace, state in sorted(final.items()):
+        job = state.get("job") or {}
+        result = job.get("result")
+        done: list[str] = []
+        not_done: list[str] = []
+        if verb == "update" and isinstance(result, list):
+            for outcome in result:
+                (done if outcome.get("ok") else not_done).append(outcome["path"])
+        elif verb == "build" and isinstance(result, dict):
+            for package in result.get("packages", []):
+                ok = package.get("status") in ("built", "up to date", "skipped")
+                (done if ok else not_done).append(package["name"])
+        note = job.get("error", "")
+        if not note and verb == "update" and isinstance(result, list):
+            note = "; ".join(f"{o['path']}: {o['reason']}" for o in result if not o.get("ok"))
+        if not note and verb == "build" and isinstance(result, dict):
+            note = "; ".join(
+                f"{p['name']}: {p['step']}: {p['message'].splitlines()[0]}"
+                for p in result.get("packages", [])
+                if p.get("status") in ("failed", "blocked") and p.get("message")
+            )
+        hosts.append(
+            {
+                "host": state.get("host", namespace),
+                "workspace": state.get("workspace"),
+                "ok": bool(job.get("ok")),
+                "done": done,
+                "not_done": not_done,
+                "note": note,
+                "result": result,
+            }
+        )
+    for namespace, problem in sorted(problems.items()):
+        host = names.get(namespace, namespace.rsplit("/", 1)[-1])
+        hosts.append(
+            {
+                "host": host,
+                "workspace": None,
+                "ok": False,
+                "done": [],
+                "not_done": [],
+                "note": problem,
+                "result": None,
+            }
+        )
+    return {"verb": verb, "ok": all(h["ok"] for h in hosts), "hosts": hosts}
