@@ -29,6 +29,7 @@ _GROUPS: dict[str, str] = {
     "service": "msctl.commands.service",
     "assemble": "msctl.commands.assemble",
     "agent": "msctl.commands.agent",
+    "bag": "msctl.commands.bag",
 }
 _COMMANDS: dict[str, str] = {
     "up": "msctl.commands.up",
@@ -39,6 +40,7 @@ _COMMANDS: dict[str, str] = {
     "stop": "msctl.commands.stop",
     "router": "msctl.commands.router",
     "run": "msctl.commands.run",
+    "record": "msctl.commands.record",
     "health": "msctl.commands.health",
     "update": "msctl.commands.update",
     "build": "msctl.commands.build",

@@ -337,6 +337,7 @@ def test_recover_of_a_finished_bag_changes_nothing(tmp_path: Path) -> None:
 def test_a_file_killed_before_its_first_flush_is_recovered_empty(tmp_path: Path) -> None:
     writer = BagWriter(tmp_path / "bag")
     writer.add_topic(spec("/chatter", STRING))
+    writer.tick()  # the recorder's housekeeping: metadata.yaml names the topic
     writer.write(0, time.time_ns(), string(0))  # still in the open chunk
     copy = tmp_path / "copy"
     copy.mkdir()

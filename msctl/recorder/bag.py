@@ -357,7 +357,7 @@ def read_messages(
             source = _summary_messages(file_info.path, wanted)
         else:
             source = _scanned_messages(file_info.path, wanted)
-        for channel, schema, message in source:
+        for schema, channel, message in source:
             if channel.message_encoding not in ("cdr", ""):
                 raise BagError(
                     f"{file_info.path}: topic {channel.topic} is {channel.message_encoding}, "
@@ -418,7 +418,7 @@ def _scanned_messages(path: Path, wanted: set[str] | None) -> Iterator[tuple[Any
                 channel = channels.get(record.channel_id)
                 if channel is None or (wanted is not None and channel.topic not in wanted):
                     continue
-                yield channel, schemas.get(channel.schema_id), record
+                yield schemas.get(channel.schema_id), channel, record
             elif isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):

@@ -47,6 +47,8 @@ DEFAULT_QUEUE_MESSAGES = 100_000
 DEFAULT_QUEUE_BYTES = 512 * 1024 * 1024
 #: Seconds between the writer thread's housekeeping (flushes, QoS updates from the graph).
 _HOUSEKEEPING = 0.2
+#: Seconds to wait for the network's answer about a new topic's publishers.
+_QOS_QUERY = 0.5
 _SEQ_STAMP = struct.Struct("<qq")
 _CONTROL = -1
 _IGNORED = -2
@@ -92,6 +94,8 @@ class Recorder:
         queue_messages: Queue bound in messages.
         queue_bytes: Queue bound in bytes.
         fsync: Fsync at each flush (benchmarks of raw throughput turn it off).
+        node: A node of ``session`` to appear on the graph as (the caller closes it); by
+            default the recorder makes its own (``node_name`` in ``namespace``).
         on_stop: Called (from the writer thread) if the recording stops by itself (an error).
 
     Raises:
@@ -114,6 +118,7 @@ class Recorder:
         queue_messages: int = DEFAULT_QUEUE_MESSAGES,
         queue_bytes: int = DEFAULT_QUEUE_BYTES,
         fsync: bool = True,
+        node: Any = None,
         on_stop: Callable[[str], None] | None = None,
     ) -> None:
         self.session = session
@@ -144,10 +149,10 @@ class Recorder:
         self._received = 0
         self._sequences = SequenceTracker()
         self._unknown: list[str] = []
-        self._missing_qos: set[int] = set()
         self._tokens: list[Any] = []
         self._subscribers: list[Any] = []
-        self._node: Any = None
+        self._node: Any = node
+        self._own_node = node is None
         self._graph: Any = None
         self._thread: threading.Thread | None = None
         self._accepting = False
@@ -167,7 +172,8 @@ class Recorder:
         from components.comm.names import key_name
         from components.comm.node import Node
 
-        self._node = Node(self.session, self._node_name, self._namespace, domain=self.domain)
+        if self._node is None:
+            self._node = Node(self.session, self._node_name, self._namespace, domain=self.domain)
         self._graph = Graph(self.session, self.domain)
         self._thread = threading.Thread(target=self._write_loop, name="bag-writer", daemon=True)
         self._thread.start()
@@ -237,7 +243,7 @@ class Recorder:
             self._tokens.clear()
             if self._graph is not None:
                 self._graph.close()
-            if self._node is not None:
+            if self._node is not None and self._own_node:
                 self._node.close()
         if self._error:
             raise BagWriteError(self._error)
@@ -380,26 +386,12 @@ class Recorder:
         self._writer.write(topic_id, log_time, payload, publish_time, sequence)
 
     def _write_held(self, held: dict[int, tuple[int, Any, Any, Any]], _: object) -> None:
-        self._refresh_qos()
         for topic_id, item in sorted(held.items()):
             if topic_id in self._latched:
                 self._write(item)
 
     def _housekeeping(self) -> None:
         self._writer.tick()
-        self._refresh_qos()
-
-    def _refresh_qos(self) -> None:
-        if self._missing_qos:
-            for topic_id in sorted(self._missing_qos):
-                offered = self._offered(self._topic_keys[topic_id])
-                if offered:
-                    self._missing_qos.discard(topic_id)
-                    self._writer.update_topic(
-                        topic_id, offered_qos_profiles=tuple(qos_profiles(offered))
-                    )
-                    if all(q.latched for q in offered):
-                        self._latched.add(topic_id)
 
     def _add_topic(self, topic_id: int, parsed: TopicKey) -> None:
         offered = self._offered(parsed)
@@ -417,17 +409,45 @@ class Recorder:
         )
         if added != topic_id:
             raise AssertionError(f"topic {parsed.topic} got id {added}, expected {topic_id}")
-        if not offered:
-            self._missing_qos.add(topic_id)
-        elif all(q.latched for q in offered):
+        if offered and all(q.latched for q in offered):
             self._latched.add(topic_id)
         self._declare_token(parsed, subscription_qos(offered))
 
     def _offered(self, parsed: TopicKey) -> list[QoS]:
+        """The QoS the topic's publishers offer, from their liveliness tokens.
+
+        Asked of the network when the live graph has not heard of them yet (a sample can
+        outrun the token's history): the QoS goes into the bag once, in the channel and in
+        ``metadata.yaml`` alike, and readers (rosbags) insist that the two agree.
+        """
+        offered = self._matching(self._graph.entities(), parsed)
+        if offered:
+            return offered
+        from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+        from components.comm.names import mangle
+
+        selector = (
+            f"{PREFIX}/{self.domain}/*/*/*/{EntityKind.PUBLISHER.value}/*/*/*/"
+            f"{mangle(parsed.topic)}/*/*/*"
+        )
+        entities = []
+        try:
+            for reply in self.session.liveliness().get(selector, timeout=_QOS_QUERY):
+                if reply.ok is not None:
+                    try:
+                        entities.append(Entity.parse(str(reply.ok.key_expr)))
+                    except TokenError:
+                        continue
+        except Exception:
+            return []
+        return self._matching(entities, parsed)
+
+    @staticmethod
+    def _matching(entities: list[Any], parsed: TopicKey) -> list[QoS]:
         from components.comm.liveliness import EntityKind
 
         offered = []
-        for entity in self._graph.entities():
+        for entity in entities:
             if (
                 entity.kind is EntityKind.PUBLISHER
                 and entity.topic == parsed.topic

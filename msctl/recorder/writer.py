@@ -18,7 +18,7 @@ from __future__ import annotations
 import errno
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -141,6 +141,7 @@ class BagWriter:
         self._bag_last = 0
         self._messages = 0
         self._closed = False
+        self._metadata_dirty = False
         self._create_directory()
         self._open_file()
 
@@ -175,26 +176,19 @@ class BagWriter:
 
     # ------------------------------------------------------------------------ writing
     def add_topic(self, spec: TopicSpec) -> int:
-        """Add a topic; returns its id for :meth:`write`. Rewrites ``metadata.yaml``."""
+        """Add a topic; returns its id for :meth:`write`.
+
+        ``metadata.yaml`` is rewritten at the next :meth:`tick` (many topics appearing at
+        once cost one rewrite, not one fsync each).
+        """
         self._check_open()
         topic_id = len(self._topics)
         self._topics.append(spec)
         self._topic_counts.append(0)
         assert self._file is not None
         self._guard(lambda: self._register(self._file, topic_id), self._file.path)
-        self._write_metadata()
+        self._metadata_dirty = True
         return topic_id
-
-    def update_topic(self, topic_id: int, offered_qos_profiles: tuple[dict[str, Any], ...]) -> None:
-        """Give a topic the QoS its publishers offer (learnt after its first message).
-
-        ``metadata.yaml`` is rewritten now; the channels of the next files carry it too.
-        """
-        self._check_open()
-        self._topics[topic_id] = replace(
-            self._topics[topic_id], offered_qos_profiles=offered_qos_profiles
-        )
-        self._write_metadata()
 
     def write(
         self, topic_id: int, log_time: int, data: bytes, publish_time: int = 0, sequence: int = 0
@@ -251,10 +245,13 @@ class BagWriter:
             current.pending_bytes = 0
 
     def tick(self) -> None:
-        """Flush the open chunk if ``flush_interval`` has passed since the last flush.
+        """Rewrite ``metadata.yaml`` if topics were added, and flush the open chunk if
+        ``flush_interval`` has passed since the last flush.
 
-        Call it often (the recorder's writer thread calls it between batches).
+        Call it often (the recorder's writer thread calls it at least 5 times a second).
         """
+        if self._metadata_dirty:
+            self._write_metadata()
         if self._file is not None and time.monotonic() - self._last_flush >= self._flush_interval:
             self.flush()
 
@@ -445,6 +442,7 @@ class BagWriter:
         )
 
     def _write_metadata(self) -> None:
+        self._metadata_dirty = False
         try:
             write_metadata(self.directory, self.metadata())
         except OSError as exc:

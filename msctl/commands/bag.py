@@ -1,0 +1,263 @@
+"""``msctl bag``: info, play and recover of rosbag2 (MCAP) bags, msctl's and ROS 2's."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import typer
+
+app = typer.Typer(help="Bags: describe, replay, recover after a crash.", no_args_is_help=True)
+
+BAG_ARG = typer.Argument(..., help="The bag directory (or one .mcap file).")
+JSON_OPT = typer.Option(False, "--json", help="Print one JSON document instead of text.")
+
+
+@app.command("info")
+def info(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
+    """Describe a bag as `ros2 bag info` does (an unrecovered bag is scanned)."""
+    from msctl.console import err, out, print_json
+    from msctl.recorder.bag import inspect
+
+    described = inspect(bag)
+    metadata = described.metadata
+    if json_output:
+        print_json(
+            {
+                "path": str(described.path),
+                "files": [
+                    {
+                        "path": f.path.name,
+                        "size": f.size,
+                        "complete": f.complete,
+                        "message_count": f.message_count,
+                    }
+                    for f in described.files
+                ],
+                "size": described.size,
+                "storage_identifier": metadata.storage_identifier,
+                "ros_distro": metadata.ros_distro,
+                "duration_ns": metadata.duration,
+                "starting_time_ns": metadata.starting_time,
+                "end_time_ns": described.end_time,
+                "message_count": metadata.message_count,
+                "topics": [
+                    {
+                        "name": t.name,
+                        "type": t.type,
+                        "count": t.message_count,
+                        "serialization_format": t.serialization_format,
+                        "type_description_hash": t.type_hash,
+                    }
+                    for t in metadata.topics
+                ],
+                "needs_recovery": described.needs_recovery,
+                "reasons": described.reasons,
+            }
+        )
+    else:
+        rows = [
+            ("Files", "\n".join(f.path.name for f in described.files)),
+            ("Bag size", _size(described.size)),
+            ("Storage id", metadata.storage_identifier),
+            ("ROS Distro", metadata.ros_distro),
+            ("Duration", f"{metadata.duration / 1e9:.9f}s"),
+            ("Start", _when(metadata.starting_time)),
+            ("End", _when(described.end_time)),
+            ("Messages", str(metadata.message_count)),
+            (
+                "Topic information",
+                "\n".join(
+                    f"Topic: {t.name} | Type: {t.type} | Count: {t.message_count} | "
+                    f"Serialization Format: {t.serialization_format}"
+                    for t in metadata.topics
+                ),
+            ),
+            ("Services", "0"),
+        ]
+        for label, value in rows:
+            lines = value.splitlines() or [""]
+            out.print(f"{label + ':':<19}{lines[0]}", highlight=False, markup=False)
+            for line in lines[1:]:
+                out.print(f"{'':<19}{line}", highlight=False, markup=False)
+    if described.needs_recovery:
+        err.print(
+            f"[yellow]this bag needs recovery:[/] {'; '.join(described.reasons)} — the counts "
+            f"above come from scanning it; `msctl bag recover {bag}` completes it",
+            highlight=False,
+        )
+
+
+@app.command("recover")
+def recover(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
+    """Complete a bag a crash left unfinished: rebuild file summaries and metadata.yaml."""
+    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
+
+    from msctl.console import err, print_json
+    from msctl.recorder.recover import recover as run
+
+    with Progress(
+        TextColumn("recovering {task.description}"),
+        BarColumn(),
+        DownloadColumn(),
+        console=err,
+        transient=True,
+        disable=not err.is_terminal,
+    ) as progress:
+        task = progress.add_task(str(bag), total=None)
+
+        def advance(name: str, done: int, total: int) -> None:
+            progress.update(task, description=name, completed=done, total=total)
+
+        report = run(bag, progress=advance)
+    if json_output:
+        print_json(
+            {
+                "directory": str(report.directory),
+                "files": [
+                    {
+                        "path": f.path.name,
+                        "action": f.action,
+                        "messages": f.messages,
+                        "salvaged": f.salvaged,
+                        "lost_bytes": f.lost_bytes,
+                        "damaged_chunks": f.damaged_chunks,
+                        "orphans": f.orphans,
+                        "problems": f.problems,
+                    }
+                    for f in report.files
+                ],
+                "message_count": report.metadata.message_count,
+                "lost_anything": report.lost_anything,
+            }
+        )
+        return
+    for outcome in report.files:
+        line = f"{outcome.path.name}: {outcome.action}, {outcome.messages:,} messages"
+        if outcome.salvaged:
+            line += f" ({outcome.salvaged:,} read out of a cut-short chunk)"
+        err.print(line, highlight=False)
+        for problem in outcome.problems:
+            err.print(f"  [yellow]{problem}[/]", highlight=False)
+    if not report.rebuilt:
+        err.print(f"{bag}: every file was complete; metadata.yaml rewritten from the files")
+    verdict = "some data was lost (above)" if report.lost_anything else "nothing lost"
+    err.print(
+        f"recovered {bag}: {report.metadata.message_count:,} messages on "
+        f"{len(report.metadata.topics)} topic(s); {verdict}",
+        highlight=False,
+    )
+
+
+@app.command("play")
+def play(
+    bag: Path = BAG_ARG,
+    rate: float = typer.Option(1.0, "--rate", "-r", help="Speed factor (2: twice as fast)."),
+    loop: bool = typer.Option(False, "--loop", "-l", help="Start over at the end, until Ctrl-C."),
+    topics: list[str] = typer.Option(None, "--topics", help="Only these topics (repeatable)."),
+    start_offset: float = typer.Option(
+        0.0, "--start-offset", help="Seconds into the bag to start at."
+    ),
+    remap: list[str] = typer.Option(
+        None, "--remap", "-m", help="Publish OLD on NEW: OLD:=NEW (repeatable)."
+    ),
+    allow_commands: bool = typer.Option(
+        False,
+        "--allow-commands",
+        help="Play command topics (joint_set, cmd_vel...) onto a running assembly too.",
+    ),
+    json_output: bool = JSON_OPT,
+) -> None:
+    """Republish a bag's messages with their original timing, through msctl's publishers."""
+    from components.comm.graph import snapshot
+    from msctl.console import err, print_json
+    from msctl.plane import connected
+    from msctl.recorder.bag import inspect
+    from msctl.recorder.player import Player, parse_remaps
+
+    described = inspect(bag)
+    if described.needs_recovery:
+        err.print(
+            f"[yellow]playing an unrecovered bag[/] ({'; '.join(described.reasons)})",
+            highlight=False,
+        )
+    remaps = parse_remaps(remap or [])
+    stop = threading.Event()
+    with connected("bag_play") as node:
+        player = Player(
+            node,
+            described,
+            rate=rate,
+            topics=topics or (),
+            start_offset=start_offset,
+            remap=remaps,
+            loop=loop,
+            allow_commands=allow_commands,
+        )
+        graph = snapshot(node.session, node.domain).topics()
+        player.check_commands(lambda t: t in graph and graph[t].subscribers > 0)
+        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in _STOPS}
+        try:
+            report = _play_with_progress(player, stop, described)
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+    for name, why in sorted(report.skipped.items()):
+        err.print(f"[yellow]not played:[/] {name}: {why}", highlight=False)
+    if json_output:
+        print_json(
+            {
+                "published": report.published,
+                "topics": report.topics,
+                "skipped": report.skipped,
+                "loops": report.loops,
+            }
+        )
+    else:
+        err.print(
+            f"published {report.published:,} messages on {len(report.topics)} topic(s)",
+            highlight=False,
+        )
+
+
+_STOPS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _play_with_progress(player: Any, stop: threading.Event, described: Any) -> Any:
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from msctl.console import err
+
+    total = max(described.metadata.duration / 1e9 - player.start_offset, 0.0)
+    with Progress(
+        TextColumn("playing"),
+        BarColumn(),
+        TextColumn("{task.completed:.1f}/{task.total:.1f} s  {task.fields[sent]} msgs"),
+        console=err,
+        transient=True,
+        disable=not err.is_terminal,
+    ) as progress:
+        task = progress.add_task("play", total=total or None, sent=0)
+
+        def update(report: Any, played: float) -> None:
+            progress.update(task, completed=played, sent=report.published)
+
+        return player.play(stop, update)
+
+
+def _size(size: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if size < 1024 or unit == "GiB":
+            return f"{size:.1f} {unit}" if unit != "B" else f"{size} B"
+        size /= 1024  # type: ignore[assignment]
+    return f"{size} B"
+
+
+def _when(stamp: int) -> str:
+    if not stamp:
+        return "-"
+    moment = datetime.fromtimestamp(stamp / 1e9)
+    return f"{moment:%b %d %Y %H:%M:%S}.{stamp % 1_000_000_000:09d} ({stamp / 1e9:.9f})"

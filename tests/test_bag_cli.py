@@ -1,0 +1,513 @@
+"""``msctl record`` and ``msctl bag info/play/recover``: real subprocesses (e2e) for recording,
+SIGTERM, SIGKILL and a full disk; in-process for info, play and the bad-input paths."""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import quick_peer_settings, quick_router, wait_until
+from mcap.reader import make_reader
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from typer.testing import CliRunner
+
+from components.comm import LATCHED, Node
+from components.comm.session import SessionSettings
+from components.comm.types import registry
+from components.messages import msg
+from msctl.app import app
+from msctl.recorder.bag import inspect
+from msctl.recorder.definitions import message_definition, qos_profiles
+from msctl.recorder.errors import BagError
+from msctl.recorder.player import Player, is_command_topic, parse_remaps
+from msctl.recorder.writer import BagWriter, TopicSpec
+
+MSCTL = shutil.which("msctl") or str(Path(sys.executable).with_name("msctl"))
+STRING = "std_msgs/msg/String"
+JOINT_STATE = "sensor_msgs/msg/JointState"
+STORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+@pytest.fixture
+def router_endpoint() -> Iterator[str]:
+    yield from quick_router()
+
+
+@pytest.fixture
+def session_settings(router_endpoint: str) -> SessionSettings:
+    return quick_peer_settings(router_endpoint)
+
+
+@pytest.fixture
+def talker(open_sessions: Callable[[], Any]) -> Iterator[Node]:
+    node = Node(open_sessions(), "talker", "/robot")
+    try:
+        yield node
+    finally:
+        node.close()
+
+
+@pytest.fixture
+def client(router_endpoint: str) -> Iterator[Any]:
+    """A client session, as ``msctl bag play`` opens (no peer links coming up mid-play)."""
+    from components.comm.session import open_session
+
+    session = open_session(
+        SessionSettings(mode="client", connect=(router_endpoint,), listen=(), multicast=False)
+    )
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+@pytest.fixture
+def env(zenoh_env: dict[str, str], tmp_path: Path) -> dict[str, str]:
+    return {**os.environ, **zenoh_env, "MSCTL_HOME": str(tmp_path / "home")}
+
+
+def cli(*args: str) -> Any:
+    """Run msctl in this process (the bag commands need no network)."""
+    return CliRunner().invoke(app, list(args), catch_exceptions=True)
+
+
+def string_bag(directory: Path, count: int) -> Path:
+    serialize = registry().serializer(STRING)
+    with BagWriter(directory) as writer:
+        topic = writer.add_topic(
+            TopicSpec(
+                "/chatter",
+                STRING,
+                registry().type_hash(STRING),
+                tuple(qos_profiles([LATCHED])),
+                message_definition(STRING),
+            )
+        )
+        start = time.time_ns()
+        for i in range(count):
+            writer.write(topic, start + i * 10_000_000, serialize(msg(STRING, data=f"m{i}")))
+    return directory
+
+
+def strings_of(path: Path, topic: str) -> list[str]:
+    with Reader(path) as reader:
+        return [
+            STORE.deserialize_cdr(raw, connection.msgtype).data
+            for connection, _, raw in reader.messages()
+            if connection.topic == topic
+        ]
+
+
+# --------------------------------------------------------------------------- info
+def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: Path) -> None:
+    bag = string_bag(tmp_path / "bag", 30)
+    result = cli("bag", "info", str(bag))
+    assert result.exit_code == 0, result.output
+    text = result.stdout
+    for label in ("Files:", "Bag size:", "Storage id:", "ROS Distro:", "Duration:", "Start:"):
+        assert label in text
+    assert "Storage id:        mcap" in text
+    assert "Messages:          30" in text
+    assert (
+        "Topic: /chatter | Type: std_msgs/msg/String | Count: 30 | Serialization Format: cdr"
+        in text
+    )
+    document = json.loads(cli("bag", "info", str(bag), "--json").stdout)
+    assert document["message_count"] == 30
+    assert document["topics"][0]["count"] == 30
+    assert document["duration_ns"] == 290_000_000
+    assert document["needs_recovery"] is False
+
+
+def test_bag_info_and_play_name_what_is_missing(tmp_path: Path) -> None:
+    (tmp_path / "not_a_bag").mkdir()
+    for args in (("info",), ("play",), ("recover",)):
+        result = cli("bag", *args, str(tmp_path / "not_a_bag"))
+        assert isinstance(result.exception, BagError)
+        assert "metadata.yaml" in str(result.exception)
+        assert str(tmp_path / "not_a_bag") in str(result.exception)
+    result = cli("bag", "info", str(tmp_path / "nowhere"))
+    assert "no such bag directory" in str(result.exception)
+
+
+def test_recover_cli_reports_files_and_json(tmp_path: Path) -> None:
+    bag = string_bag(tmp_path / "bag", 20)
+    document = json.loads(cli("bag", "recover", str(bag), "--json").stdout)
+    assert document["files"][0]["action"] == "kept"
+    assert document["message_count"] == 20 and not document["lost_anything"]
+
+
+# --------------------------------------------------------------------------- play
+class Inbox:
+    """A subscription collecting message data (strings) in arrival order."""
+
+    def __init__(self, node: Node, topic: str, type_name: str = STRING) -> None:
+        self.items: list[Any] = []
+        self.subscription = node.subscription(topic, type_name, self.items.append)
+
+
+def ready(node: Node, topic: str) -> None:
+    """Wait until a subscription to ``topic`` is on the graph (seen from ``node``)."""
+    from components.comm.graph import snapshot
+
+    wait_until(
+        lambda: (snapshot(node.session, timeout=0.3).topics().get(topic) or _NONE).subscribers
+    )
+
+
+class _NoTopic:
+    subscribers = 0
+
+
+_NONE = _NoTopic()
+
+
+def test_play_then_echo_with_timing_rate_offset_and_remap(
+    tmp_path: Path, client: Any, talker: Node
+) -> None:
+    bag = string_bag(tmp_path / "bag", 30)  # 10 ms apart: 0.29 s
+    inbox = Inbox(talker, "/replayed")
+    player_node = Node(client, "player")
+    try:
+        ready(player_node, "/replayed")
+        player = Player(
+            player_node,
+            inspect(bag),
+            rate=2.0,
+            start_offset=0.1,
+            remap=parse_remaps(["/chatter:=/replayed"]),
+        )
+        started = time.monotonic()
+        report = player.play(threading.Event())
+        elapsed = time.monotonic() - started
+    finally:
+        player_node.close()
+    assert report.published == 20  # from 0.1 s on
+    assert report.topics == {"/replayed": 20}
+    wait_until(lambda: len(inbox.items) == 20)
+    assert [m.data for m in inbox.items] == [f"m{i}" for i in range(10, 30)]
+    assert elapsed >= 0.19 / 2  # the spacing is kept (scaled by the rate), never compressed
+
+
+def test_a_bag_written_by_rosbags_plays_with_its_own_definitions(
+    tmp_path: Path, client: Any, talker: Node
+) -> None:
+    """Another tool's bag (rosbags' Writer, its own file naming), with a type msctl lacks."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(
+        get_types_from_msg("float64 x\nstring label\n", "field_msgs/msg/Probe")
+        | get_types_from_msg(
+            "field_msgs/Probe[] probes\nuint8 STATION=3\n", "field_msgs/msg/ProbeArray"
+        )
+    )
+    probe_cls = store.types["field_msgs/msg/Probe"]
+    array_cls = store.types["field_msgs/msg/ProbeArray"]
+    path = tmp_path / "theirs"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        probes = writer.add_connection("/probes", "field_msgs/msg/ProbeArray", typestore=store)
+        chatter = writer.add_connection("/chatter", STRING, typestore=store)
+        start = time.time_ns()
+        for i in range(5):
+            value = array_cls(probes=[probe_cls(x=float(i), label=f"p{i}")])
+            writer.write(probes, start + i * 1000, store.serialize_cdr(value, value.__msgtype__))
+            text = store.types[STRING](data=f"c{i}")
+            writer.write(chatter, start + i * 1000 + 1, store.serialize_cdr(text, STRING))
+    described = inspect(path)
+    assert described.metadata.message_count == 10 and not described.needs_recovery
+    assert not registry().known("field_msgs/msg/ProbeArray")
+    # The custom type is received as raw CDR (this process does not know it either).
+    received: list[bytes] = []
+    (probes,) = [t for t in described.metadata.topics if t.name == "/probes"]
+    raw = talker.session.declare_subscriber(
+        f"0/probes/field_msgs::msg::dds_::ProbeArray_/{probes.type_hash}",
+        lambda sample: received.append(sample.payload.to_bytes()),
+    )
+    strings = Inbox(talker, "/chatter")
+    player_node = Node(client, "player")
+    try:
+        ready(player_node, "/chatter")
+        report = Player(player_node, described).play(threading.Event())
+        assert report.published == 10 and not report.skipped
+        wait_until(lambda: len(received) == 5 and len(strings.items) == 5)
+    finally:
+        player_node.close()
+        raw.undeclare()
+    decoded = [store.deserialize_cdr(r, "field_msgs/msg/ProbeArray") for r in received]
+    assert [m.probes[0].label for m in decoded] == [f"p{i}" for i in range(5)]
+    assert [m.data for m in strings.items] == [f"c{i}" for i in range(5)]
+    # Registered from the bag's definition, with the hash the other tool wrote.
+    assert registry().type_hash("field_msgs/msg/ProbeArray") == probes.type_hash
+
+
+def test_command_topics_are_refused_onto_a_running_assembly(tmp_path: Path) -> None:
+    assert is_command_topic("/limb1/joint_set") and is_command_topic("/cmd_vel")
+    assert not is_command_topic("/limb1/joint_read")
+    with BagWriter(tmp_path / "bag") as writer:
+        for name in ("/limb1/joint_set", "/limb1/joint_read"):
+            topic = writer.add_topic(
+                TopicSpec(name, JOINT_STATE, registry().type_hash(JOINT_STATE), (), None)
+            )
+            writer.write(topic, time.time_ns(), b"\x00\x01\x00\x00")
+    described = inspect(tmp_path / "bag")
+    listened = {"/limb1/joint_set"}
+    with pytest.raises(BagError, match=r"refusing to play command topic\(s\) /limb1/joint_set"):
+        Player(None, described).check_commands(listened.__contains__)
+    Player(None, described, allow_commands=True).check_commands(listened.__contains__)
+    Player(None, described, topics=["/limb1/joint_read"]).check_commands(listened.__contains__)
+    remapped = Player(None, described, remap={"/limb1/joint_set": "/test/joint_set"})
+    remapped.check_commands(listened.__contains__)  # nobody listens where it would go
+    with pytest.raises(BagError, match="no topic /nope"):
+        Player(None, described, topics=["/nope"])
+    with pytest.raises(BagError, match="OLD:=NEW"):
+        parse_remaps(["/a=/b"])
+
+
+# --------------------------------------------------------------------------- record (e2e)
+def start_record(env: dict[str, str], *args: str, **popen: Any) -> subprocess.Popen:
+    return subprocess.Popen(
+        [MSCTL, "record", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **popen,
+    )
+
+
+class Flood:
+    """Publishes numbered strings on a thread until closed."""
+
+    def __init__(self, node: Node, topic: str = "chatter", period: float = 0.002) -> None:
+        self.publisher = node.publisher(topic, STRING)
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+        self._thread.start()
+
+    def _run(self, period: float) -> None:
+        while not self._stop.wait(period):
+            self.sent += 1
+            self.publisher.publish(msg(STRING, data=str(self.sent)))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def recorded_so_far(bag: Path) -> int:
+    """Messages on disk now (scanning the open file)."""
+    try:
+        return inspect(bag).metadata.message_count
+    except BagError:
+        return 0
+
+
+def consecutive(values: list[str]) -> bool:
+    numbers = [int(v) for v in values]
+    return numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+
+
+@pytest.mark.e2e
+def test_record_sigterm_closes_cleanly_and_readers_agree(
+    tmp_path: Path, env: dict[str, str], talker: Node
+) -> None:
+    latched = talker.publisher("robot_description", STRING, LATCHED)
+    latched.publish(msg(STRING, data="<robot/>"))
+    bag = tmp_path / "bag"
+    proc = start_record(env, "--all", "-o", str(bag), "--json", "--compression", "zstd")
+    flood = Flood(talker)
+    try:
+        wait_until(lambda: recorded_so_far(bag) > 300, timeout=30, what="messages on disk")
+    finally:
+        flood.close()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    summary = json.loads(out)
+    assert summary["messages"] == summary["topics"]["/robot/chatter"] + 1
+    chatter = strings_of(bag, "/robot/chatter")
+    assert consecutive(chatter) and len(chatter) == summary["topics"]["/robot/chatter"]
+    assert strings_of(bag, "/robot/robot_description") == ["<robot/>"]
+    with Reader(bag) as reader:
+        assert sum(c.msgcount for c in reader.connections) == reader.message_count
+        assert reader.message_count == summary["messages"]
+    with open(bag / "bag_0.mcap", "rb") as stream:
+        assert make_reader(stream).get_summary().statistics.message_count == summary["messages"]
+    assert not inspect(bag).needs_recovery
+
+
+@pytest.mark.e2e
+def test_sigkill_mid_recording_then_recover(
+    tmp_path: Path, env: dict[str, str], talker: Node
+) -> None:
+    bag = tmp_path / "bag"
+    proc = start_record(env, "/robot/chatter", "-o", str(bag))
+    flood = Flood(talker)
+    try:
+        wait_until(lambda: recorded_so_far(bag) > 400, timeout=30, what="flushed messages")
+        flushed = recorded_so_far(bag)
+        proc.kill()
+        proc.communicate(timeout=10)
+    finally:
+        flood.close()
+    info = subprocess.run(
+        [MSCTL, "bag", "info", str(bag)], env=env, capture_output=True, text=True, check=False
+    )
+    assert info.returncode == 0, info.stderr
+    assert "needs recovery" in info.stderr and "msctl bag recover" in info.stderr
+    with pytest.raises(Exception):  # noqa: B017  (readers need the summary)
+        strings_of(bag, "/robot/chatter")
+    result = subprocess.run(
+        [MSCTL, "bag", "recover", str(bag), "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["files"][0]["action"] == "rebuilt"
+    chatter = strings_of(bag, "/robot/chatter")
+    assert len(chatter) >= flushed and consecutive(chatter)
+    with Reader(bag) as reader:
+        assert reader.message_count == len(chatter)
+
+
+@pytest.mark.e2e
+def test_record_splits_by_size_and_duration_without_losing_a_message(
+    tmp_path: Path, env: dict[str, str], talker: Node
+) -> None:
+    for name, option in (("by_size", ("-b", "16K")), ("by_time", ("-d", "0.5"))):
+        bag = tmp_path / name
+        proc = start_record(env, "/robot/chatter", "-o", str(bag), *option)
+        flood = Flood(talker)
+        try:
+            wait_until(
+                lambda bag=bag: len(list(bag.glob("*.mcap"))) >= 3, timeout=30, what="3 files"
+            )
+        finally:
+            flood.close()
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err
+        chatter = strings_of(bag, "/robot/chatter")
+        assert consecutive(chatter), name
+        described = inspect(bag)
+        assert len(described.files) >= 3 and all(f.complete for f in described.files)
+        assert not described.needs_recovery
+
+
+@pytest.mark.e2e
+def test_a_full_disk_stops_cleanly_and_keeps_what_was_written(
+    tmp_path: Path, env: dict[str, str], talker: Node
+) -> None:
+    """The file size limit (RLIMIT_FSIZE) stands in for a full disk: writes fail with EFBIG."""
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (256 * 1024, 256 * 1024))
+
+    bag = tmp_path / "bag"
+    proc = start_record(env, "/robot/chatter", "-o", str(bag), preexec_fn=limit)
+    flood = Flood(talker, period=0.0005)
+    try:
+        _, err = proc.communicate(timeout=60)
+    finally:
+        flood.close()
+    assert proc.returncode == 6, err
+    assert "file size limit" in err and "msctl bag recover" in err
+    assert "Traceback" not in err
+    subprocess.run([MSCTL, "bag", "recover", str(bag)], env=env, check=True, capture_output=True)
+    chatter = strings_of(bag, "/robot/chatter")
+    assert len(chatter) > 100 and consecutive(chatter)
+
+
+@pytest.mark.e2e
+def test_record_refuses_an_existing_directory_and_bad_options(
+    tmp_path: Path, env: dict[str, str]
+) -> None:
+    (tmp_path / "bag").mkdir()
+    for args, words in (
+        (("--all", "-o", str(tmp_path / "bag")), "already exists"),
+        ((), "nothing to record"),
+        (
+            (
+                "--regex",
+                "(",
+            ),
+            "not a regular expression",
+        ),
+        (("--all", "-b", "lots"), "not a size"),
+    ):
+        result = subprocess.run(
+            [MSCTL, "record", *args], env=env, capture_output=True, text=True, check=False
+        )
+        assert result.returncode == 2, (args, result.stderr)
+        assert words in result.stderr and "Traceback" not in result.stderr
+
+
+# --------------------------------------------------------------------------- a simulated Dragon
+@pytest.mark.e2e
+@pytest.mark.timeout(400)
+def test_round_trip_of_a_simulated_dragon(tmp_path: Path) -> None:
+    from running import Up
+
+    up = Up(tmp_path / "home", "dragon")
+    try:
+        bag = tmp_path / "dragon_bag"
+        proc = subprocess.Popen(
+            [MSCTL, "record", "--all", "-o", str(bag), "--json"],
+            env=up.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            wait_until(
+                lambda: recorded_so_far(bag) > 1000,
+                timeout=60,
+                interval=0.2,
+                what="1000 messages of the Dragon",
+            )
+        finally:
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+    finally:
+        up.down()
+    summary = json.loads(out)
+    metadata = inspect(bag).metadata
+    assert metadata.message_count == summary["messages"]
+    counts = {t.name: t.message_count for t in metadata.topics}
+    assert any(name.endswith("/joint_read") for name in counts)
+    decoded = 0
+    with Reader(bag) as reader:
+        assert {c.topic: c.msgcount for c in reader.connections} == counts
+        for connection, _, raw in reader.messages():
+            STORE.deserialize_cdr(raw, connection.msgtype)  # every payload decodes
+            decoded += 1
+    assert decoded == metadata.message_count
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(bag / f"{bag.name}_0.mcap", "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        joints = [
+            m.decoded_message
+            for m in reader.iter_decoded_messages()
+            if m.channel.topic.endswith("/joint_read")
+        ]
+    assert joints and all(len(j.name) == len(j.position) for j in joints)
+    assert np.isfinite([p for j in joints for p in j.position]).all()
