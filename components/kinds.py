@@ -33,6 +33,7 @@ BUILTIN: tuple[str, ...] = (
     "components.kinematics.kind",
     "components.simulator.kind",
     "components.data_monitor.kind",
+    "components.data_archiver.kind",
     "components.stations",
 )
 #: Entry-point group through which other packages add kinds.

@@ -19,9 +19,4 @@ KINDS = (
         summary="a supervised Python-API script, main(robot)",
         placement=Placement.STATION,
     ),
-    ComponentKind(
-        name="data_archiver",
-        summary="records the data plane to rosbag2 (MCAP) bags",
-        placement=Placement.STATION,
-    ),
 )

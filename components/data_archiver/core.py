@@ -8,13 +8,14 @@ decision; ``msctl record`` and the ``data_archiver`` component share it.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from components.comm.qos import QoS
 from components.config import require
-from components.messages import Level
+from components.executor.core import Core
+from components.messages import Level, diagnostic_array, diagnostic_status
 
 #: Topics a recording of "everything" leaves out unless named: the graph's own machinery.
 HIDDEN_PREFIXES = ("/_",)
@@ -181,7 +182,6 @@ class ArchiverConfig:
         max_bag_size: Split files at this many bytes (0: never).
         max_bag_duration: Split files at this many seconds (0: never).
         compression: ``zstd`` or ``none`` (chunk compression inside the MCAP files).
-        status_period: Seconds between status reports on diagnostics.
     """
 
     topics: str = "*"
@@ -191,12 +191,9 @@ class ArchiverConfig:
     max_bag_size: int = 0
     max_bag_duration: float = 0.0
     compression: str = "zstd"
-    status_period: float = 1.0
 
     def __post_init__(self) -> None:
-        require(
-            self, positive=("status_period",), non_negative=("max_bag_size", "max_bag_duration")
-        )
+        require(self, non_negative=("max_bag_size", "max_bag_duration"))
         if self.compression not in ("zstd", "none"):
             raise ValueError(
                 f"ArchiverConfig.compression must be 'zstd' or 'none', not {self.compression!r}"
@@ -275,3 +272,30 @@ def params_of(config: ArchiverConfig) -> Mapping[str, Any]:
         "max_bytes": config.max_bag_size,
         "max_duration": config.max_bag_duration,
     }
+
+
+class DataArchiverCore(Core):
+    """The data archiver component's logic: report the recording on diagnostics.
+
+    The recording itself runs beside the executor (it is I/O: a Zenoh subscriber and a
+    writer thread); its builder hands this core a ``status`` function reading it.
+
+    Args:
+        name: The component's name.
+        status: Returns the recording's current :class:`RecorderStatus`.
+        hardware_id: The station's host, named in the diagnostic.
+    """
+
+    def __init__(
+        self, name: str, status: Callable[[], RecorderStatus], hardware_id: str = ""
+    ) -> None:
+        super().__init__(name)
+        self._status = status
+        self._report = ArchiverCore(name)
+        self._hardware_id = hardware_id
+
+    def tick(self, now: float) -> None:
+        """Publish the recording's status (every second)."""
+        level, message, values = self._report.report(self._status(), now)
+        status = diagnostic_status(self.name, level, message, self._hardware_id, values)
+        self.outbox.publish("diagnostics", diagnostic_array([status], now + self.wall_offset))

@@ -1,0 +1,14 @@
+"""The data archiver kind: the recorder (``msctl record``) as a supervised ground-station
+component, recording what the station's data says into rosbag2 (MCAP) bags."""
+
+from components.kinds import ComponentKind, Placement
+
+KIND = ComponentKind(
+    name="data_archiver",
+    summary="records the data plane to rosbag2 (MCAP) bags; its status on diagnostics",
+    placement=Placement.STATION,
+    config=("components.data_archiver.core:ArchiverConfig",),
+    builder="components.data_archiver.build:build",
+    interface="components.data_archiver.interface:DATA_ARCHIVER",
+    healthy_output="diagnostics",
+)
