@@ -28,6 +28,7 @@ from components.comm.node import Node
 from components.comm.services import PendingRequest
 from components.comm.session import SessionSettings, open_session
 from components.executor.core import Core
+from components.executor.heartbeat import Heartbeat
 from components.executor.interface import InterfaceSpec, Serve, Subscribe
 
 log = logging.getLogger("msctl.executor")
@@ -90,6 +91,9 @@ class Executor:
         settings: Session settings (default: from the environment).
         session: An already open session to use instead (the caller closes it).
         clock: Monotonic clock giving ``now`` to handlers (tests may pass a fake).
+        heartbeat: Beaten from the loop and between handler calls, so the supervisor can
+            tell a frozen or stuck process from a quiet one
+            (:mod:`components.executor.heartbeat`).
     """
 
     def __init__(
@@ -97,6 +101,7 @@ class Executor:
         settings: SessionSettings | None = None,
         session: Any = None,
         clock: Callable[[], float] = time.monotonic,
+        heartbeat: Heartbeat | None = None,
     ) -> None:
         self._settings = settings or SessionSettings.from_env()
         self._owns_session = session is None
@@ -109,6 +114,7 @@ class Executor:
         self._stopping = threading.Event()
         self._closed = False
         self._wall_offset = time.time() - time.monotonic()
+        self._heartbeat = heartbeat
 
     # ------------------------------------------------------------------ building
     def add(
@@ -216,6 +222,8 @@ class Executor:
                 self._call(component, component.core.start, start)
             deadline = None if duration is None else time.monotonic() + duration
             while not self._stopping.is_set():
+                if self._heartbeat is not None:
+                    self._heartbeat.beat()
                 timeout = self._next_timeout(deadline)
                 try:
                     item = (
@@ -257,6 +265,8 @@ class Executor:
             wait = min(wait, self._timers[0][0] - now)
         if deadline is not None:
             wait = min(wait, deadline - time.monotonic())
+        if self._heartbeat is not None:
+            wait = min(wait, self._heartbeat.period)
         return max(wait, 0.0)
 
     def _dispatch(self, item: Any) -> None:
@@ -295,6 +305,9 @@ class Executor:
             heapq.heappush(self._timers, (following, seq, component, handler, period))
 
     def _call(self, component: Component, handler: Callable, *args: Any) -> Any:
+        if self._heartbeat is not None:
+            # A loop kept busy by a flood of samples is alive; one stuck in a handler is not.
+            self._heartbeat.beat()
         component.handled += 1
         try:
             return handler(*args)

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from components.comm.session import SessionSettings, open_session
 from components.executor.executor import Executor
+from components.executor.heartbeat import Heartbeat
 
 if TYPE_CHECKING:
     from components.build import BuiltComponent
@@ -30,6 +31,7 @@ def run_built(
     settings: SessionSettings | None = None,
     duration: float | None = None,
     on_ready: Callable[[Executor], None] | None = None,
+    heartbeat: Heartbeat | None = None,
 ) -> None:
     """Run ``built`` components in one process until stopped, then release everything.
 
@@ -39,6 +41,7 @@ def run_built(
         duration: Seconds to run (``None``: until a signal or ``Executor.stop``).
         on_ready: Called with the executor once every component is bound, just before it
             runs (lets a caller keep a handle to stop it from another thread).
+        heartbeat: The supervisor's proof-of-life pipe, beaten by the executor loop.
 
     Raises:
         Exception: Whatever adding a component or an ``on_bound`` hook raised; what was
@@ -47,7 +50,7 @@ def run_built(
     settings = settings or SessionSettings.from_env()
     session = open_session(settings)
     try:
-        executor = Executor(settings, session=session)
+        executor = Executor(settings, session=session, heartbeat=heartbeat)
         try:
             for item in built:
                 component = executor.add(item.core, item.spec, item.namespace, item.node_name)

@@ -5,6 +5,9 @@ station) with an argument list made only from the assembly's own data::
 
     python -m components.executor.worker --lock PATH --component limb1/joint_manager ...
 
+Under a supervisor, the executor loop beats a heartbeat pipe the supervisor hands down
+(``MSCTL_HEARTBEAT_FD``, :mod:`components.executor.heartbeat`), so a frozen worker is noticed.
+
 Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 3 when a component cannot be built (the
 reason is the last line of stderr, which the launcher shows), 2 for bad arguments.
 """
@@ -21,6 +24,7 @@ from components import kinds
 from components.assembly import AssemblyError, load_assembly
 from components.build import BuildError, build_component, simulator_plan
 from components.comm.session import SessionConfigError
+from components.executor.heartbeat import Heartbeat
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     log = logging.getLogger("msctl.worker")
+    # Taken first, so that nothing built below inherits the supervisor's pipe.
+    heartbeat = Heartbeat.from_env()
     try:
         assembly = load_assembly(args.lock)
     except AssemblyError as exc:
@@ -68,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         elif transport == "zenoh":
             from components.executor.runner import run_built
 
-            run_built(built, duration=args.duration)
+            run_built(built, duration=args.duration, heartbeat=heartbeat)
         else:
             print(f"error: MSCTL_TRANSPORT={transport!r}: use zenoh or rclpy", file=sys.stderr)
             return 2

@@ -35,7 +35,12 @@ def command(
     for column in ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"):
         table.add_column(column, overflow="fold")
     for r in rows:
-        style = {"running": "green", "failed": "red", "restarting": "yellow"}.get(r["state"], "")
+        style = {
+            "running": "green",
+            "failed": "red",
+            "unresponsive": "red",
+            "restarting": "yellow",
+        }.get(r["state"], "")
         table.add_row(
             r["name"],
             r["kind"],

@@ -57,6 +57,13 @@ def command(
     ),
     speed: float = typer.Option(1.0, "--speed", help="Simulation speed factor."),
     timeout: float = typer.Option(60.0, "--timeout", help="Seconds to wait for all-healthy."),
+    kill_unresponsive: float = typer.Option(
+        5.0,
+        "--kill-unresponsive-after",
+        envvar="MSCTL_KILL_UNRESPONSIVE_AFTER",
+        help="Seconds a component process may stay unresponsive (no heartbeat) before it is "
+        "killed and restarted [env MSCTL_KILL_UNRESPONSIVE_AFTER].",
+    ),
 ) -> None:
     """Start the components of this computer, wait until every one is healthy, then run."""
     from msctl.launcher import state
@@ -64,6 +71,8 @@ def command(
 
     if speed <= 0:
         raise InputError(f"--speed must be positive, not {speed}")
+    if not kill_unresponsive > 0:
+        raise InputError(f"--kill-unresponsive-after must be positive, not {kill_unresponsive}")
     if all_hosts:
         from msctl.launcher.remote import up_all
 
@@ -96,9 +105,9 @@ def command(
                 hint="use --host to act as one of its computers, or --sim to run it all here",
             )
         if detach and os.environ.get(_DAEMON_ENV) != "1":
-            _detach(plan, sim, duration, host, speed, timeout, lock)
+            _detach(plan, sim, duration, host, speed, timeout, kill_unresponsive, lock)
             return
-        _run_foreground(assembly, plan, duration, speed, timeout)
+        _run_foreground(assembly, plan, duration, speed, timeout, kill_unresponsive)
     finally:
         lock.release()
 
@@ -144,14 +153,22 @@ def _refuse_if_agent_serves(host: str) -> None:
 
 
 def _run_foreground(
-    assembly: Any, plan: Any, duration: float | None, speed: float, timeout: float
+    assembly: Any,
+    plan: Any,
+    duration: float | None,
+    speed: float,
+    timeout: float,
+    kill_unresponsive: float,
 ) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from msctl.console import err
     from msctl.launcher.run import Launch
+    from msctl.launcher.supervisor import LivenessPolicy
 
-    launch = Launch(assembly, plan, speed=speed)
+    launch = Launch(
+        assembly, plan, speed=speed, liveness=LivenessPolicy(kill_after=kill_unresponsive)
+    )
     previous = {
         s: signal.signal(s, lambda *_: launch.request_stop())
         # SIGHUP: the operator's terminal or SSH link went away; stop as for Ctrl-C, or
@@ -329,6 +346,7 @@ def _detach(
     host: str,
     speed: float,
     timeout: float,
+    kill_unresponsive: float,
     lock: Any,
 ) -> None:
     from msctl.console import err
@@ -345,6 +363,8 @@ def _detach(
         repr(speed),
         "--timeout",
         repr(timeout),
+        "--kill-unresponsive-after",
+        repr(kill_unresponsive),
     ]
     if sim is not None:
         argv.append("--sim" if sim else "--real")

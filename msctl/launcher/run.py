@@ -22,7 +22,13 @@ from components.comm.session import SessionSettings, open_session
 from msctl.launcher import state
 from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
 from msctl.launcher.plan import HostPlan
-from msctl.launcher.supervisor import ManagedProcess, ProcessState, RestartPolicy, Supervisor
+from msctl.launcher.supervisor import (
+    LivenessPolicy,
+    ManagedProcess,
+    ProcessState,
+    RestartPolicy,
+    Supervisor,
+)
 from msctl.launcher.watch import HealthWatch
 
 ROUTER_PROCESS = "router"
@@ -132,6 +138,7 @@ class Launch:
         settings: Session settings components will use (from the environment).
         speed: Simulation speed factor.
         policy: Restart policy.
+        liveness: When a worker that stopped beating is unresponsive, then killed.
         serve_control: Serve ``/msctl/<host>/request`` itself; an agent, which serves it for
             its whole life and forwards requests to :meth:`_do`, turns this off.
     """
@@ -141,12 +148,13 @@ class Launch:
     settings: SessionSettings = field(default_factory=SessionSettings.from_env)
     speed: float = 1.0
     policy: RestartPolicy = field(default_factory=RestartPolicy)
+    liveness: LivenessPolicy = field(default_factory=LivenessPolicy)
     events: list[str] = field(default_factory=list)
     started_router: bool = False
     serve_control: bool = True
 
     def __post_init__(self) -> None:
-        self.supervisor = Supervisor(state.log_dir(), self.policy)
+        self.supervisor = Supervisor(state.log_dir(), self.policy, liveness=self.liveness)
         self.endpoint = self.settings.connect[0] if self.settings.connect else ""
         self.session: Any = None
         self.watch: HealthWatch | None = None
@@ -194,6 +202,7 @@ class Launch:
                 argv,
                 components=[c.name for c in process.components],
                 final_exits=WORKER_FINAL_EXITS,
+                heartbeat=True,
             )
             self.supervisor.start(process.name)
 

@@ -7,6 +7,12 @@ window, after which it is FAILED with the reason. A process whose exit code says
 would fail the same way (its ``final_exits``: the component worker's "cannot be built") is
 FAILED at once, with the line that says why. Shutdown is SIGINT, then SIGTERM, then
 SIGKILL to the whole group, with short timeouts: never a 19-second hang.
+
+A process started with a heartbeat (the component workers) gets the write end of a pipe
+(:mod:`components.executor.heartbeat`); once it has beaten, silence for
+:attr:`LivenessPolicy.unresponsive_after` makes it UNRESPONSIVE (a stopped or stuck process
+keeps its pid and its sockets, so nothing else would tell), and silence for
+:attr:`LivenessPolicy.kill_after` more gets it SIGKILLed and restarted as for a crash.
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any, TextIO
 
+from components.executor.heartbeat import FD_ENV as HEARTBEAT_FD_ENV
+
 
 class ProcessState(StrEnum):
     """Lifecycle of a supervised process (and of the components in it)."""
@@ -31,6 +39,7 @@ class ProcessState(StrEnum):
     STARTING = "starting"
     RUNNING = "running"
     RESTARTING = "restarting"
+    UNRESPONSIVE = "unresponsive"
     FAILED = "failed"
     STOPPED = "stopped"
 
@@ -52,6 +61,21 @@ class RestartPolicy:
     backoff_initial: float = 0.25
     backoff_max: float = 8.0
     stable_after: float = 10.0
+
+
+@dataclass(frozen=True)
+class LivenessPolicy:
+    """When a process with a heartbeat that stopped beating is unresponsive, then killed.
+
+    Attributes:
+        unresponsive_after: Seconds without a beat before it is UNRESPONSIVE (it beats
+            every 0.25 s; a loaded machine delays beats by far less than this).
+        kill_after: Further seconds of silence before it is SIGKILLed and restarted; until
+            then it may come back by itself (a long garbage collection, a SIGCONT).
+    """
+
+    unresponsive_after: float = 1.0
+    kill_after: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -125,6 +149,10 @@ class ManagedProcess:
     backoff: float = 0.0
     wanted: bool = True
     pump: threading.Thread | None = None
+    heartbeat: bool = False
+    beat_fd: int | None = None
+    last_beat: float | None = None
+    state_before_silence: ProcessState | None = None
 
     @property
     def pid(self) -> int | None:
@@ -148,9 +176,11 @@ class Supervisor:
         log_dir: Path,
         policy: RestartPolicy | None = None,
         shutdown: ShutdownPolicy | None = None,
+        liveness: LivenessPolicy | None = None,
     ) -> None:
         self.log_dir = log_dir
         self.policy = policy or RestartPolicy()
+        self.liveness = liveness or LivenessPolicy()
         self.shutdown_policy = shutdown or ShutdownPolicy()
         self.processes: dict[str, ManagedProcess] = {}
 
@@ -161,6 +191,7 @@ class Supervisor:
         env: dict[str, str] | None = None,
         components: Sequence[str] = (),
         final_exits: Mapping[int, str] | None = None,
+        heartbeat: bool = False,
     ) -> ManagedProcess:
         """Register a process (not started yet).
 
@@ -171,6 +202,7 @@ class Supervisor:
             components: The components it runs.
             final_exits: Exit codes after which it is FAILED at once, never restarted, each
                 with what it means (see :class:`ManagedProcess`).
+            heartbeat: Hand it a heartbeat pipe (``MSCTL_HEARTBEAT_FD``) and watch it.
         """
         process = ManagedProcess(
             name=name,
@@ -179,6 +211,7 @@ class Supervisor:
             log=RotatingLog(self.log_dir / f"{name.replace('/', '_')}.log"),
             components=tuple(components),
             final_exits=dict(final_exits or {}),
+            heartbeat=heartbeat,
         )
         self.processes[name] = process
         return process
@@ -200,22 +233,33 @@ class Supervisor:
 
     def _spawn(self, process: ManagedProcess) -> None:
         process.log.write_line(f"--- msctl: starting {process.name}: {' '.join(process.argv)}")
+        _close_heartbeat(process)
+        env, pass_fds, writer = process.env, (), None
         try:
+            if process.heartbeat:
+                process.beat_fd, writer = os.pipe()
+                os.set_blocking(process.beat_fd, False)
+                env, pass_fds = {**process.env, HEARTBEAT_FD_ENV: str(writer)}, (writer,)
             popen = subprocess.Popen(
                 process.argv,
-                env=process.env,
+                env=env,
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 text=True,
                 bufsize=1,
                 start_new_session=True,  # its own process group: nothing outlives a kill
+                pass_fds=pass_fds,
             )
         except OSError as exc:
+            _close_heartbeat(process)
             process.state = ProcessState.FAILED
             process.last_error = f"cannot start: {exc}"
             process.log.write_line(f"--- msctl: {process.last_error}")
             return
+        finally:
+            if writer is not None:
+                os.close(writer)  # the child's copy only: its death closes the pipe
         process.popen = popen
         process.started_at = time.monotonic()
         process.state = ProcessState.STARTING
@@ -240,8 +284,10 @@ class Supervisor:
             popen = process.popen
             if popen is not None and popen.poll() is not None:
                 events.append(self._on_exit(process, popen.returncode, now))
-            elif popen is not None and process.state is ProcessState.STARTING:
-                pass  # the launcher marks it RUNNING once its components are healthy
+            elif popen is not None and process.heartbeat:
+                event = self._check_heartbeat(process, popen, now)
+                if event:
+                    events.append(event)
             if (
                 process.next_start is not None
                 and now >= process.next_start
@@ -259,7 +305,48 @@ class Supervisor:
                 process.backoff = 0.0
         return events
 
-    def _on_exit(self, process: ManagedProcess, code: int, now: float) -> str:
+    def _check_heartbeat(
+        self, process: ManagedProcess, popen: subprocess.Popen, now: float
+    ) -> str | None:
+        """Read the beats of a live process; mark it UNRESPONSIVE, or kill it, when silent.
+
+        Returns:
+            An event, or ``None`` when nothing changed.
+        """
+        if _read_beats(process):
+            process.last_beat = now  # stamped on reading: our own delays are never its
+        if process.last_beat is None:
+            return None  # not beating yet (still importing, building): nothing to judge
+        silent = now - process.last_beat
+        policy = self.liveness
+        if silent >= policy.unresponsive_after + policy.kill_after:
+            why = f"unresponsive (no heartbeat for {silent:.1f} s), killed"
+            _signal_group(popen, signal.SIGKILL)  # a stopped process dies of it too
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                popen.wait(timeout=5.0)
+            return self._on_exit(process, popen.returncode or -signal.SIGKILL, now, why)
+        if silent >= policy.unresponsive_after:
+            if process.state in (ProcessState.STARTING, ProcessState.RUNNING):
+                process.state_before_silence = process.state
+                process.state = ProcessState.UNRESPONSIVE
+                process.log.write_line(
+                    f"--- msctl: {process.name} unresponsive: no heartbeat for {silent:.1f} s"
+                )
+                return (
+                    f"{process.name}: unresponsive (no heartbeat for {silent:.1f} s); "
+                    f"killed and restarted if still silent in {policy.kill_after:g} s"
+                )
+            return None
+        if process.state is ProcessState.UNRESPONSIVE:
+            process.state = process.state_before_silence or ProcessState.STARTING
+            process.state_before_silence = None
+            process.log.write_line(f"--- msctl: {process.name} responsive again")
+            return f"{process.name}: responsive again"
+        return None
+
+    def _on_exit(
+        self, process: ManagedProcess, code: int, now: float, cause: str | None = None
+    ) -> str:
         assert process.popen is not None
         # The leader is gone; whatever it started in its group goes too (no orphans), and
         # before the pump is joined, since an orphan holding the pipe would stall it.
@@ -267,8 +354,11 @@ class Supervisor:
         if process.pump is not None:
             process.pump.join(timeout=1.0)  # the last lines carry the reason
         process.popen = None
-        reason = _describe_exit(code)
-        tail = _last_meaningful(process.log.tail)
+        _close_heartbeat(process)
+        process.state_before_silence = None
+        reason = cause or _describe_exit(code)
+        # A cause of our own says it all: its last line was written before it froze.
+        tail = "" if cause else _last_meaningful(process.log.tail)
         process.last_error = f"{reason}: {tail}" if tail else reason
         if not process.wanted:
             process.log.write_line(f"--- msctl: {process.name} {reason}")
@@ -358,6 +448,8 @@ class Supervisor:
         ):
             for process in live:
                 _signal_group(process.popen, signum)
+                # A stopped (SIGSTOP) process handles nothing until continued.
+                _signal_group(process.popen, signal.SIGCONT)
             deadline = time.monotonic() + wait
             while live and time.monotonic() < deadline:
                 live = [p for p in live if p.popen.poll() is None]
@@ -372,6 +464,8 @@ class Supervisor:
                     process.popen.wait(timeout=1.0)
             if process.pump is not None:
                 process.pump.join(timeout=1.0)
+            _close_heartbeat(process)
+            process.state_before_silence = None
 
     # ------------------------------------------------------------------ reporting
     def snapshot(self, now: float | None = None) -> list[dict[str, Any]]:
@@ -386,11 +480,39 @@ class Supervisor:
                 "uptime": round(p.uptime(now), 1),
                 "restarts": p.restarts,
                 "last_error": p.last_error,
+                # Seconds since its last heartbeat (None: it has none, or none yet).
+                "heartbeat_age": (
+                    round(now - p.last_beat, 1)
+                    if p.last_beat is not None and p.pid is not None
+                    else None
+                ),
                 "log": str(p.log.path),
                 "components": list(p.components),
             }
             for p in self.processes.values()
         ]
+
+
+def _read_beats(process: ManagedProcess) -> bool:
+    """Drain a process's heartbeat pipe; whether it held at least one beat."""
+    if process.beat_fd is None:
+        return False
+    beaten = False
+    with contextlib.suppress(BlockingIOError, OSError):
+        while True:
+            data = os.read(process.beat_fd, 4096)
+            if not data:
+                break  # every writer closed: its exit is noticed on its own
+            beaten = True
+    return beaten
+
+
+def _close_heartbeat(process: ManagedProcess) -> None:
+    if process.beat_fd is not None:
+        with contextlib.suppress(OSError):
+            os.close(process.beat_fd)
+        process.beat_fd = None
+    process.last_beat = None
 
 
 def _signal_group(popen: subprocess.Popen, signum: int) -> None:
