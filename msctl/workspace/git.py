@@ -106,28 +106,89 @@ class Target:
 class Clone:
     """One local clone, asked about its state (no network).
 
+    What it reads most (its HEAD, and every branch and tag with its commit) takes one git
+    call each and is kept until the next :meth:`git` or :meth:`ok` call, which may change
+    it: a repository with nothing to do costs four git calls, fetch included.
+
     Args:
         path: The clone's working tree.
     """
 
     def __init__(self, path: Path):
         self.path = path
+        self._state: tuple[str | None, str | None, str | None] | None = None
+        self._refs: dict[str, tuple[str, str]] | None = None
+
+    def forget(self) -> None:
+        """Drop what was read: the clone may have changed."""
+        self._state = None
+        self._refs = None
+
+    def forget_refs(self) -> None:
+        """Drop the branches and tags read (after a fetch: HEAD did not move)."""
+        self._refs = None
 
     def git(self, *args: str, check: bool = True) -> str:
         """``git <args>`` in this clone; its stdout, stripped."""
+        self.forget()
         return run_git(args, self.path, check=check).stdout.strip()
 
     def ok(self, *args: str) -> bool:
         """Whether ``git <args>`` succeeds in this clone."""
+        self.forget()
         return run_git(args, self.path, check=False).returncode == 0
+
+    def _read_state(self) -> tuple[str | None, str | None, str | None]:
+        """(top of the working tree, HEAD commit, branch) in one call."""
+        if self._state is None:
+            result = run_git(
+                ["rev-parse", "--show-toplevel", "HEAD", "--symbolic-full-name", "HEAD"],
+                self.path,
+                check=False,
+            )
+            lines = result.stdout.splitlines()
+            top = lines[0] if lines and lines[0].startswith("/") else None
+            if result.returncode != 0 or len(lines) != 3:
+                # No commit yet (or not a clone): ask for the top alone.
+                again = run_git(["rev-parse", "--show-toplevel"], self.path, check=False)
+                top = again.stdout.strip() if again.returncode == 0 else None
+                self._state = (top, None, None)
+            else:
+                symbolic = lines[2]
+                branch = (
+                    symbolic[len("refs/heads/") :] if symbolic.startswith("refs/heads/") else None
+                )
+                self._state = (top, lines[1], branch)
+        return self._state
+
+    def refs(self) -> dict[str, tuple[str, str]]:
+        """Every local branch, ``origin`` branch and tag: ``{refname: (commit, symref)}``
+        (annotated tags peeled to their commit), in one call."""
+        if self._refs is None:
+            text = run_git(
+                [
+                    "for-each-ref",
+                    "--format=%(refname)%09%(objectname)%09%(*objectname)%09%(symref)",
+                    "refs/heads",
+                    "refs/remotes/origin",
+                    "refs/tags",
+                ],
+                self.path,
+            ).stdout
+            refs = {}
+            for line in text.splitlines():
+                name, obj, peeled, symref = [*line.split("\t"), "", "", ""][:4]
+                refs[name] = (peeled or obj, symref)
+            self._refs = refs
+        return self._refs
 
     # ------------------------------------------------------------------ what it is
     def is_clone(self) -> bool:
         """Whether the path is the top of a git working tree."""
         if not (self.path / ".git").exists():
             return False
-        top = run_git(["rev-parse", "--show-toplevel"], self.path, check=False)
-        return top.returncode == 0 and Path(top.stdout.strip()).resolve() == self.path.resolve()
+        top = self._read_state()[0]
+        return top is not None and Path(top).resolve() == self.path.resolve()
 
     def remote_url(self) -> str | None:
         """``origin``'s URL, or ``None`` without an ``origin``."""
@@ -136,19 +197,16 @@ class Clone:
 
     def head(self) -> str | None:
         """The commit checked out (``None`` in a clone with no commit yet)."""
-        result = run_git(
-            ["rev-parse", "--verify", "--quiet", "HEAD^{commit}"], self.path, check=False
-        )
-        return result.stdout.strip() or None
+        return self._read_state()[1]
 
     def branch(self) -> str | None:
         """The branch checked out, or ``None`` on a detached HEAD."""
-        result = run_git(["symbolic-ref", "--short", "-q", "HEAD"], self.path, check=False)
-        return result.stdout.strip() or None
+        return self._read_state()[2]
 
     def is_shallow(self) -> bool:
         """Whether the clone is shallow (``--shallow``)."""
-        return self.git("rev-parse", "--is-shallow-repository") == "true"
+        result = run_git(["rev-parse", "--is-shallow-repository"], self.path, check=False)
+        return result.stdout.strip() == "true"
 
     def changes(self) -> list[str]:
         """Tracked files with changes, staged or not (``git status --porcelain``, untracked
@@ -160,26 +218,28 @@ class Clone:
 
     def commit_of(self, ref: str) -> str | None:
         """The commit ``ref`` names, or ``None``."""
+        if ref.startswith("refs/"):
+            known = self.refs().get(ref)
+            return known[0] if known else None
         result = run_git(
             ["rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}"], self.path, check=False
         )
         return result.stdout.strip() or None
 
-    def has_ref(self, ref: str) -> bool:
-        """Whether the full ref name exists (``refs/heads/x``, ``refs/tags/x`` ...)."""
-        return self.ok("show-ref", "--verify", "--quiet", ref)
-
     def is_ancestor(self, older: str, newer: str) -> bool:
         """Whether ``older`` is an ancestor of (or the same as) ``newer``."""
-        return self.ok("merge-base", "--is-ancestor", older, newer)
+        result = run_git(["merge-base", "--is-ancestor", older, newer], self.path, check=False)
+        return result.returncode == 0
 
     def count(self, *rev_list: str) -> int:
         """``git rev-list --count <rev_list>``."""
-        return int(self.git("rev-list", "--count", *rev_list) or 0)
+        return int(run_git(["rev-list", "--count", *rev_list], self.path).stdout.strip() or 0)
 
     def ahead_behind(self, local: str, upstream: str) -> tuple[int, int]:
         """Commits only on ``local`` and only on ``upstream``."""
-        text = self.git("rev-list", "--left-right", "--count", f"{local}...{upstream}")
+        text = run_git(
+            ["rev-list", "--left-right", "--count", f"{local}...{upstream}"], self.path
+        ).stdout
         ahead, behind = text.split()
         return int(ahead), int(behind)
 
@@ -193,21 +253,16 @@ class Clone:
 
     def default_branch(self) -> str | None:
         """The remote's default branch as this clone last saw it (``origin/HEAD``)."""
-        result = run_git(
-            ["symbolic-ref", "--short", "-q", "refs/remotes/origin/HEAD"], self.path, check=False
-        )
-        name = result.stdout.strip()
-        return name.split("/", 1)[1] if name.startswith("origin/") else None
+        symref = self.refs().get("refs/remotes/origin/HEAD", ("", ""))[1]
+        prefix = "refs/remotes/origin/"
+        return symref[len(prefix) :] if symref.startswith(prefix) else None
 
     def versions(self) -> list[str]:
         """The branch and tag names this clone knows of its remote (for "did you mean")."""
-        text = self.git("for-each-ref", "--format=%(refname)", "refs/remotes/origin", "refs/tags")
         names = []
-        for ref in text.splitlines():
-            if ref.startswith("refs/remotes/origin/"):
-                name = ref[len("refs/remotes/origin/") :]
-                if name != "HEAD":
-                    names.append(name)
+        for ref in self.refs():
+            if ref.startswith("refs/remotes/origin/") and ref != "refs/remotes/origin/HEAD":
+                names.append(ref[len("refs/remotes/origin/") :])
             elif ref.startswith("refs/tags/"):
                 names.append(ref[len("refs/tags/") :])
         return names

@@ -126,8 +126,7 @@ def update_repository(
     try:
         tell(repo.path, "checking")
         if not where.exists() or (where.is_dir() and not any(where.iterdir())):
-            commit = _clone(repo, where, options, tell)
-            after = Clone(where).describe()
+            commit, after = _clone(repo, where, options, tell)
             return Outcome(repo.path, repo.url, repo.version, "cloned", before, after, commit)
         if not clone.is_clone():
             raise _Stop(
@@ -221,8 +220,11 @@ def _network(args: list[str], cwd: Path | None, options: UpdateOptions) -> None:
                 raise
 
 
-def _clone(repo: Repository, where: Path, options: UpdateOptions, tell: Report) -> str | None:
-    """Clone into a temporary sibling, put it on its version, then rename it into place."""
+def _clone(
+    repo: Repository, where: Path, options: UpdateOptions, tell: Report
+) -> tuple[str | None, str]:
+    """Clone into a temporary sibling, put it on its version, then rename it into place;
+    returns its commit and ``branch@commit``."""
     if options.offline:
         raise _Stop(
             "failed",
@@ -260,6 +262,7 @@ def _clone(repo: Repository, where: Path, options: UpdateOptions, tell: Report) 
         if version is not None and not by_name:
             if options.shallow:
                 _network(["fetch", "--quiet", "--depth", "1", "origin", version], partial, options)
+                clone.forget()
             target = clone.resolve(version)
             if target is None and options.shallow:
                 commit = clone.commit_of("FETCH_HEAD")
@@ -268,11 +271,11 @@ def _clone(repo: Repository, where: Path, options: UpdateOptions, tell: Report) 
             if target is None:
                 raise _Stop("failed", _missing(repo, clone.versions()), _missing_fix(repo))
             _checkout(clone, target)
-        commit = clone.head()
+        commit, shown = clone.head(), clone.describe()
         if where.exists():
             where.rmdir()  # the empty directory found in its place
         os.rename(partial, where)
-        return commit
+        return commit, shown
     finally:
         if partial.exists():
             shutil.rmtree(partial, ignore_errors=True)
@@ -298,6 +301,7 @@ def _check_remote(clone: Clone, repo: Repository) -> None:
 def _fetch(clone: Clone, options: UpdateOptions) -> None:
     # --prune drops remote branches that are gone; tags fetched by --tags are not pruned.
     _network(["fetch", "--quiet", "--prune", "--tags", "origin"], clone.path, options)
+    clone.forget_refs()
 
 
 def _resolve(clone: Clone, repo: Repository, options: UpdateOptions) -> Target:
