@@ -79,6 +79,17 @@ def test_models_to_stdout_or_file(env: dict[str, str], tmp_path: Path) -> None:
     urdf = msctl(env, "urdf").stdout
     assert urdf.startswith("<?xml") and "<robot" in urdf
     target = tmp_path / "out" / "model.xml"
+    # A missing directory is named, not made: a typo in -o must not scatter files.
+    refused = subprocess.run(
+        [sys.executable, "-m", "msctl", "assemble", "mjcf", "-o", str(target)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
+    assert refused.returncode == 2 and f"no directory {target.parent}" in refused.stderr
+    assert not target.parent.exists()
+    target.parent.mkdir()
     result = msctl(env, "mjcf", "-o", str(target))
     assert result.stdout == "" and target.read_text().startswith("<mujoco")
     # Written atomically, yet with the mode a plain write gives (not the temp file's 0600).
