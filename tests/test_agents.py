@@ -407,6 +407,7 @@ def test_unreachable_agent_is_named_and_the_others_start(
     up = msctl(ground_home, net_env, "up", "--all", "--sim", "--timeout", "45")
     assert up.returncode == 3, up.stderr + agents.logs()
     assert "no agent answered for hl-wheel-02" in up.stderr
+    assert "started: gl-pi-01, hl-wheel-01, ground1" in " ".join(up.stderr.split())
     rows = by_host(ps(ground_home, net_env))
     assert set(rows) == {"gl-pi-01", "hl-wheel-01", GROUND}
     assert all(r["state"] == "running" for h in rows.values() for r in h.values()), rows

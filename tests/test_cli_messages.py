@@ -150,3 +150,38 @@ def test_up_with_nothing_resolved_says_what_to_run_once(tmp_path: Path) -> None:
     assert line.startswith("error: no resolved assembly at ") and "\n" not in line
     assert line.count("msctl assemble dragon") == 1, line
     assert " — " not in line, line  # no second hint repeating the first
+
+
+@pytest.mark.e2e
+def test_up_all_with_no_agent_says_no_host_was_started(
+    tmp_path: Path, zenoh_env: dict[str, str]
+) -> None:
+    env = {**zenoh_env, "MSCTL_HOME": str(tmp_path / "home")}
+    assert _msctl("assemble", "dragon", env=env).returncode == 0
+    result = _msctl("up", "--all", "--sim", "--timeout", "5", env=env)
+    assert result.returncode == 3, result.stderr
+    assert "no host was started" in result.stderr, result.stderr
+    assert "other hosts were started" not in result.stderr
+    # Each of the template's computers is named as not answering.
+    last = result.stderr.strip().splitlines()[-1]
+    for host in ("hl-limb-01", "hl-limb-02", "hl-wheel-01", "hl-wheel-02", "ground1"):
+        assert host in last, last
+
+
+@pytest.mark.e2e
+def test_down_all_with_nothing_running_is_done(tmp_path: Path, zenoh_env: dict[str, str]) -> None:
+    home = {"MSCTL_HOME": str(tmp_path / "home")}
+    # No router at all: no agent can run anything an operator reaches through it.
+    alone = {
+        **home,
+        "MSCTL_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}",
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+    }
+    result = _msctl("down", "--all", env=alone)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.startswith("nothing is running"), result.stderr
+    # A router, and no agent or supervisor behind it.
+    result = _msctl("down", "--all", env={**zenoh_env, **home})
+    assert result.returncode == 0, result.stderr
+    assert "nothing is running" in result.stderr, result.stderr

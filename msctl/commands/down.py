@@ -36,15 +36,11 @@ def command(
     """Stop the run on this computer (and every host with --all), then check nothing is left."""
     from msctl.console import err
 
-    if all_hosts:
-        from msctl.launcher.fleet import ask_all
-        from msctl.plane import connected
-
-        with connected("down") as node:
-            for namespace, answer in ask_all(node, "down").items():
-                err.print(f"{namespace}: {answer.get('error', 'stopping')}", highlight=False)
     document = state.read_state()
-    if not document or not state.supervisor_alive(document):
+    local_runs = bool(document) and state.supervisor_alive(document)
+    if all_hosts:
+        _down_every_host(local_runs)
+    if not local_runs:
         # A supervisor that died (SIGKILL, OOM) leaves its process groups behind: kill them,
         # say so, and make the state file stop claiming they run.
         left = state.groups_left(document) if document else []
@@ -87,6 +83,29 @@ def command(
         f"[green]down[/]: {document.get('template')} stopped on {document.get('host')}, "
         "nothing left"
     )
+
+
+def _down_every_host(local_runs: bool) -> None:
+    """Ask every agent to stop its run; no router and nothing here means nothing runs."""
+    from msctl.console import err
+    from msctl.errors import NetworkError
+    from msctl.launcher.fleet import ask_all
+    from msctl.plane import connected
+
+    try:
+        with connected("down") as node:
+            answers = ask_all(node, "down")
+    except NetworkError as exc:
+        if local_runs:
+            raise  # a supervisor runs here, yet its router is gone: worth saying loudly
+        # Agents and supervisors serve through a router; with none, none can run anything
+        # the operator could reach: the goal of `down` is met.
+        err.print(f"nothing is running ({exc.message}, and no supervisor runs here)")
+        return
+    for namespace, answer in answers.items():
+        err.print(f"{namespace}: {answer.get('error', 'stopping')}", highlight=False)
+    if not answers and not local_runs:
+        err.print("nothing is running: no agent or supervisor answered")
 
 
 def _down_through_agent(document: dict) -> None:

@@ -92,6 +92,7 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         encode_args,
         host_namespace,
     )
+    from msctl.launcher.fleet import supervisors
     from msctl.plane import connected
 
     document = json.loads(assembly.lock_path.read_text()) if assembly.lock_path else {}
@@ -114,11 +115,15 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         return "error" not in d and all(c["state"] == "running" for c in d.get("components", []))
 
     with connected("up_all") as node:
+        # An agent the router's graph does not show gets a short wait, not the full one:
+        # with no agent anywhere, `up --all` says so in seconds.
+        present = set(supervisors(node))
         for host in hosts:
             err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
+            wait = 10.0 if host_namespace(host) in present else 2.0
             try:
                 started[host] = call_supervisor(
-                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 10.0
+                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, wait
                 )
             except ServiceTimeout:
                 unreachable.append((host, f"no agent serves {host_namespace(host)}/request"))
@@ -182,14 +187,16 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         table.add_row(host, "-", "-", f"[red]{escape(why)}[/]")
     err.print(table)
     also = f"; refused: {'; '.join(why for _, why in refused)}" if refused else ""
+    # Exactly which hosts did start: an operator decides from it whether to `down --all`.
+    outcome = f"started: {', '.join(started)}" if started else "no host was started"
     if unreachable:
         names = ", ".join(h for h, _ in unreachable)
         raise NetworkError(
-            f"no agent answered for {names}{also} (the other hosts were started)",
+            f"no agent answered for {names}{also} ({outcome})",
             hint="start `msctl agent` there (or `msctl agent install`), check its network",
         )
     if refused:
-        raise MsctlError("; ".join(why for _, why in refused) + " (the other hosts were started)")
+        raise MsctlError("; ".join(why for _, why in refused) + f" ({outcome})")
     late = [
         f"{h}: {c['name']}"
         for h, d in status.items()
