@@ -3,6 +3,7 @@ change it under its feet (a real detached ``msctl up minimal``)."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import pytest
@@ -49,3 +50,12 @@ def test_assembling_while_it_runs_is_refused_and_the_lock_file_kept(minimal: Up)
     assert "assembly minimal is running" in line and "msctl down" in line
     assert lock.read_bytes() == before
     assert minimal.msctl("ps", "--json").returncode == 0
+
+
+def test_logs_mark_the_run_and_stamp_every_line(minimal: Up) -> None:
+    result = minimal.msctl("logs", "limb1/joint_manager", "-n", "500")
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stdout.splitlines() if line.strip()]
+    assert any("===== msctl up minimal on test-laptop started" in line for line in lines), lines
+    stamped = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d[.,]\d{3} ")
+    assert all(stamped.match(line) for line in lines), lines

@@ -8,6 +8,7 @@ shuts its supervisor down, and the fixture kills whatever group is left.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
 import time
@@ -158,7 +159,8 @@ def test_crash_loop_backs_off_doubling_then_fails_with_the_last_error(supervisor
     snapshot = {p["name"]: p for p in supervisor.snapshot()}["crasher"]
     assert snapshot["state"] == "failed" and snapshot["last_error"] == process.last_error
     log = Path(snapshot["log"]).read_text()
-    assert log.splitlines().count("error: boom 42") == 4 and "exited with code 3" in log
+    unstamped = [line[24:] for line in log.splitlines()]  # each line has its time in front
+    assert unstamped.count("error: boom 42") == 4 and "exited with code 3" in log
     # A FAILED process stays down.
     time.sleep(0.3)
     supervisor.poll()
@@ -332,12 +334,30 @@ def test_log_rotates_past_max_bytes_and_keeps_the_tail(tmp_path: Path) -> None:
     assert path.exists() and all(p.exists() for p in rotated)
     assert not path.with_name("limb1.log.3").exists()
     for p in (path, *rotated):
-        assert p.stat().st_size <= 200 + 21
+        assert p.stat().st_size <= 200 + 45  # one stamped line past the size at most
     # Newest in the live file, older ones in .1 then .2, none repeated, order kept.
     kept = rotated[1].read_text().splitlines() + rotated[0].read_text().splitlines()
     kept += path.read_text().splitlines()
-    assert kept == lines[-len(kept) :]
+    assert [line[24:] for line in kept] == lines[-len(kept) :]
     assert list(log.tail) == lines[-5:]
+    assert [line[24:] for line in log.recent] == lines[-5:]
+
+
+def test_every_log_line_is_stamped_and_each_run_marked(tmp_path: Path) -> None:
+    for run in ("first", "second"):
+        supervisor = Supervisor(tmp_path, run=f"msctl up minimal ({run})")
+        process = supervisor.add("limb1", [PY, "-c", "pass"])
+        process.log.write_line("Traceback (most recent call last):")
+        process.log.write_line("2026-11-23 01:02:03,456 INFO msctl.worker: built limb1")
+        process.log.close()
+    lines = (tmp_path / "limb1.log").read_text().splitlines()
+    stamped = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d[.,]\d{3} ")
+    assert all(stamped.match(line) for line in lines), lines
+    marks = [line for line in lines if "=====" in line]
+    assert len(marks) == 2 and "msctl up minimal (first) started" in marks[0]
+    assert "(second)" in marks[1] and lines.index(marks[1]) == 3
+    # A line that has its own time (Python logging) is not stamped twice.
+    assert lines[2] == "2026-11-23 01:02:03,456 INFO msctl.worker: built limb1"
 
 
 @pytest.mark.e2e

@@ -18,6 +18,8 @@ def command(
     from msctl.launcher.fleet import fleet_state
 
     documents, notes = fleet_state(timeout)
+    # A supervisor that cannot write its logs or state file (a full disk) says so here.
+    notes = [*notes, *(f"{d['host']}: {fault}" for d in documents for fault in d.get("faults", []))]
     rows = [
         {**c, "host": d["host"], "template": d.get("template")}
         for d in documents

@@ -154,7 +154,12 @@ class Launch:
     serve_control: bool = True
 
     def __post_init__(self) -> None:
-        self.supervisor = Supervisor(state.log_dir(), self.policy, liveness=self.liveness)
+        self.supervisor = Supervisor(
+            state.log_dir(),
+            self.policy,
+            liveness=self.liveness,
+            run=f"msctl up {self.assembly.template} on {self.plan.host}",
+        )
         self.endpoint = self.settings.connect[0] if self.settings.connect else ""
         self.session: Any = None
         self.watch: HealthWatch | None = None
@@ -164,6 +169,7 @@ class Launch:
         self._started = time.time()
         self._last_state_write = 0.0
         self._router_restart_at: float | None = None
+        self._state_fault = ""  # the state file's write error, while writing fails
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
@@ -307,14 +313,14 @@ class Launch:
         name = args.get("component")
         if name is None and verb == "logs":
             return {
-                p: list(self.supervisor.processes[p].log.tail) for p in self.supervisor.processes
+                p: list(self.supervisor.processes[p].log.recent) for p in self.supervisor.processes
             }
         if name is None:
             raise RequestError(f"{verb} needs a component")
         process = self._process_of(name)
         if verb == "logs":
             lines = int(args.get("lines", 50))
-            return {process: list(self.supervisor.processes[process].log.tail)[-lines:]}
+            return {process: list(self.supervisor.processes[process].log.recent)[-lines:]}
         if process == ROUTER_PROCESS and verb == "stop":
             # Every request and reply goes through it: stopped alone, nothing could reach
             # this supervisor again, not even to start it.
@@ -387,12 +393,25 @@ class Launch:
                 for c in self.components()
             ],
             "not_built": [{"name": n, "kind": k} for n, k in self.plan.not_built],
+            # What is wrong with the supervisor's own files (a full disk): `ps` warns of it.
+            "faults": self.supervisor.faults() + ([self._state_fault] if self._state_fault else []),
         }
 
     def write_state(self) -> None:
-        """Rewrite the state file."""
+        """Rewrite the state file; a failure (full disk) is reported once, never fatal: the
+        supervisor keeps supervising, and ``msctl ps`` asks it over the network."""
         self._last_state_write = time.monotonic()
-        state.write_state(self.document())
+        try:
+            state.write_state(self.document())
+        except OSError as exc:
+            fault = f"cannot write the state file {state.state_path()}: {exc.strerror or exc}"
+            if fault != self._state_fault:
+                self.events.append(f"supervisor: {fault}; still supervising")
+            self._state_fault = fault
+            return
+        if self._state_fault:
+            self.events.append("supervisor: the state file is written again")
+        self._state_fault = ""
 
     # ------------------------------------------------------------------ stop
     def shutdown(self) -> None:

@@ -18,7 +18,9 @@ keeps its pid and its sockets, so nothing else would tell), and silence for
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
 import signal
 import subprocess
 import threading
@@ -28,7 +30,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 from components.executor.heartbeat import FD_ENV as HEARTBEAT_FD_ENV
 
@@ -86,41 +88,113 @@ class ShutdownPolicy:
     after_sigterm: float = 1.0
 
 
+#: A line that already starts with a date and time (Python logging's ``asctime``).
+_STAMPED = re.compile(r"^\d{4}-\d\d-\d\d[ T]\d\d:\d\d:\d\d")
+
+
+def stamp(line: str, now: float | None = None) -> str:
+    """``line`` with the local date and time in front, unless it already starts with one
+    (a traceback or a ``print`` has none; a logging line has its own)."""
+    if _STAMPED.match(line):
+        return line
+    when = time.time() if now is None else now
+    day_time = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(when))
+    return f"{day_time}.{int(when % 1 * 1000):03d} {line}"
+
+
 class RotatingLog:
-    """A log file that rotates to ``.1`` .. ``.N`` past a size, keeping the last lines in memory."""
+    """A log file that rotates to ``.1`` .. ``.N`` past a size, keeping the last lines in memory.
+
+    Every line in the file carries the date and time it arrived (:func:`stamp`). Writing never
+    raises: on a full disk (or any other write error) the line is dropped and counted, the
+    supervisor warns once (:attr:`dropped`, :attr:`fault`), and once writing works again a
+    line in the file says how many were lost. The lines stay in memory either way.
+
+    Attributes:
+        tail: The last lines as the process wrote them (error reasons are read from these).
+        recent: The same lines as the file has them, with their times (``msctl logs``).
+        dropped: Lines that could not be written to the file.
+        fault: The last write error, while writing fails (``""`` when it works).
+    """
 
     def __init__(self, path: Path, max_bytes: int = 5_000_000, backups: int = 3, tail: int = 50):
         self.path = path
         self.max_bytes = max_bytes
         self.backups = backups
         self.tail: deque[str] = deque(maxlen=tail)
+        self.recent: deque[str] = deque(maxlen=tail)
+        self.dropped = 0
+        self.fault = ""
+        self._unreported = 0
         self._lock = threading.Lock()
+        self._closed = False
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: TextIO = path.open("a", encoding="utf-8")
+        # A raw descriptor: a failed write leaves nothing buffered to fail again later.
+        self._fd: int | None = self._open()
+
+    def _open(self) -> int:
+        return os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)
 
     def write_line(self, line: str) -> None:
-        """Append one line (thread-safe), rotating first if the file is too big."""
+        """Append one line, stamped (thread-safe), rotating first if the file is too big."""
+        line = line.rstrip("\n")
+        stamped = stamp(line)
         with self._lock:
-            self.tail.append(line.rstrip("\n"))
-            if self._file.tell() > self.max_bytes:
-                self._rotate()
-            self._file.write(line if line.endswith("\n") else line + "\n")
-            self._file.flush()
+            self.tail.append(line)
+            self.recent.append(stamped)
+            if self._closed:
+                return
+            data = (stamped + "\n").encode("utf-8", "replace")
+            if self._unreported:
+                note = stamp(f"--- msctl: {self._unreported} log lines lost: {self.fault}")
+                data = (note + "\n").encode() + data
+            try:
+                if self._fd is None:
+                    self._fd = self._open()  # a rotation that could not reopen it
+                if os.fstat(self._fd).st_size > self.max_bytes:
+                    self._rotate()
+                _write_all(self._fd, data)
+            except OSError as exc:
+                self.dropped += 1
+                self._unreported += 1
+                self.fault = os.strerror(exc.errno) if exc.errno else str(exc)
+                return
+            self._unreported = 0
+            self.fault = ""
+
+    def mark_run(self, what: str) -> None:
+        """Write the line that separates this run from the previous ones in the file."""
+        self.write_line(f"===== {what} =====")
 
     def _rotate(self) -> None:
-        self._file.close()
+        assert self._fd is not None
         for index in range(self.backups - 1, 0, -1):
             older = self.path.with_name(f"{self.path.name}.{index}")
             if older.exists():
                 older.replace(self.path.with_name(f"{self.path.name}.{index + 1}"))
         self.path.replace(self.path.with_name(f"{self.path.name}.1"))
-        self._file = self.path.open("a", encoding="utf-8")
+        os.close(self._fd)
+        self._fd = None
+        self._fd = self._open()
 
     def close(self) -> None:
         """Close the file (idempotent)."""
         with self._lock:
-            if not self._file.closed:
-                self._file.close()
+            self._closed = True
+            if self._fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(self._fd)
+                self._fd = None
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    """Write every byte, or raise (a short write on a full disk is ENOSPC for the rest)."""
+    view = memoryview(data)
+    while view:
+        written = os.write(fd, view)
+        if written == 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        view = view[written:]
 
 
 @dataclass
@@ -177,12 +251,15 @@ class Supervisor:
         policy: RestartPolicy | None = None,
         shutdown: ShutdownPolicy | None = None,
         liveness: LivenessPolicy | None = None,
+        run: str = "",
     ) -> None:
         self.log_dir = log_dir
         self.policy = policy or RestartPolicy()
         self.liveness = liveness or LivenessPolicy()
         self.shutdown_policy = shutdown or ShutdownPolicy()
+        self.run = run
         self.processes: dict[str, ManagedProcess] = {}
+        self._log_faults: dict[str, str] = {}  # process -> the fault warned about
 
     def add(
         self,
@@ -204,11 +281,14 @@ class Supervisor:
                 with what it means (see :class:`ManagedProcess`).
             heartbeat: Hand it a heartbeat pipe (``MSCTL_HEARTBEAT_FD``) and watch it.
         """
+        log = RotatingLog(self.log_dir / f"{name.replace('/', '_')}.log")
+        # The file keeps earlier runs' lines: this one starts here.
+        log.mark_run(f"{self.run or 'run'} started, supervisor pid {os.getpid()}")
         process = ManagedProcess(
             name=name,
             argv=list(argv),
             env={**os.environ, **(env or {})},
-            log=RotatingLog(self.log_dir / f"{name.replace('/', '_')}.log"),
+            log=log,
             components=tuple(components),
             final_exits=dict(final_exits or {}),
             heartbeat=heartbeat,
@@ -279,7 +359,7 @@ class Supervisor:
     def poll(self, now: float | None = None) -> list[str]:
         """Notice dead processes and (re)start what is due. Returns human-readable events."""
         now = time.monotonic() if now is None else now
-        events = []
+        events = self._log_events()
         for process in self.processes.values():
             popen = process.popen
             if popen is not None and popen.poll() is not None:
@@ -304,6 +384,33 @@ class Supervisor:
             if process.pid is not None and process.uptime(now) > self.policy.stable_after:
                 process.backoff = 0.0
         return events
+
+    def _log_events(self) -> list[str]:
+        """One warning when a process's log stops being written, one when it works again."""
+        events = []
+        for process in self.processes.values():
+            fault, warned = process.log.fault, self._log_faults.get(process.name)
+            if fault and not warned:
+                self._log_faults[process.name] = fault
+                events.append(
+                    f"{process.name}: cannot write its log {process.log.path} ({fault}); "
+                    "dropping lines and counting them, still supervising"
+                )
+            elif not fault and warned:
+                del self._log_faults[process.name]
+                events.append(
+                    f"{process.name}: its log is written again "
+                    f"({process.log.dropped} lines lost in all)"
+                )
+        return events
+
+    def faults(self) -> list[str]:
+        """What is wrong with this supervisor's own files now (``msctl ps`` shows it)."""
+        return [
+            f"log of {p.name}: {p.log.fault}; {p.log.dropped} lines lost"
+            for p in self.processes.values()
+            if p.log.fault
+        ]
 
     def _check_heartbeat(
         self, process: ManagedProcess, popen: subprocess.Popen, now: float
@@ -487,6 +594,7 @@ class Supervisor:
                     else None
                 ),
                 "log": str(p.log.path),
+                "log_lines_lost": p.log.dropped,
                 "components": list(p.components),
             }
             for p in self.processes.values()
