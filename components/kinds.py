@@ -83,6 +83,9 @@ class ComponentKind:
             ``ValueError`` naming what is wrong), for values no dataclass describes.
         extensions: Modules registering its injections and overrides (imported on lookup).
         namespace: Its namespace when it belongs to no module or station (``/sim``).
+        not_rebuilt_alone: Why one of its components cannot be rebuilt inside its running
+            process while the process's other components run on (``msctl restart
+            --only``), or ``""`` when it can.
     """
 
     name: str
@@ -98,6 +101,7 @@ class ComponentKind:
     checks: Mapping[str, str] = dataclasses.field(default_factory=dict)
     extensions: tuple[str, ...] = ()
     namespace: str = ""
+    not_rebuilt_alone: str = ""
 
     @property
     def runnable(self) -> bool:

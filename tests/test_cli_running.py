@@ -3,10 +3,12 @@ change it under its feet (a real detached ``msctl up minimal``)."""
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterator
 
 import pytest
+from conftest import wait_until
 from running import Up
 
 pytestmark = pytest.mark.e2e
@@ -59,3 +61,74 @@ def test_logs_mark_the_run_and_stamp_every_line(minimal: Up) -> None:
     assert any("===== msctl up minimal on test-laptop started" in line for line in lines), lines
     stamped = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d[.,]\d{3} ")
     assert all(stamped.match(line) for line in lines), lines
+
+
+def _ps(up: Up) -> dict[str, dict]:
+    result = up.msctl("ps", "--json")
+    assert result.returncode == 0, result.stderr
+    return {row["name"]: row for row in json.loads(result.stdout)["components"]}
+
+
+def _all_running(up: Up) -> dict[str, dict] | None:
+    rows = _ps(up)
+    return rows if all(r["state"] == "running" for r in rows.values()) else None
+
+
+def _joint_read(up: Up) -> dict:
+    result = up.msctl("topic", "echo", "/limb1/joint_read", "--once", "--json", "--timeout", "10")
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_restart_names_what_it_takes_and_only_rebuilds_one_component(minimal: Up) -> None:
+    before = wait_until(lambda: _all_running(minimal), 60.0, interval=0.5)
+    siblings = sorted(
+        n for n, r in before.items() if r["process"] == "limb1" and "joint_m" not in n
+    )
+    assert len(siblings) >= 2, before
+
+    # A plain restart says which components go with the process, and how to spare them.
+    result = minimal.msctl("restart", "limb1/joint_manager")
+    assert result.returncode == 0, result.stderr
+    said = " ".join(result.stderr.split())
+    assert all(name in said for name in siblings), said
+    assert "share the process" in said and "msctl restart --only limb1/joint_manager" in said
+    restarted = wait_until(
+        lambda: (
+            (rows := _all_running(minimal))
+            and rows["limb1/joint_manager"]["pid"] != before["limb1/joint_manager"]["pid"]
+            and rows
+        ),
+        60.0,
+        interval=0.5,
+    )
+
+    # --only: the same pid, the siblings untouched, the rebuilt one commanding the limb.
+    result = minimal.msctl("restart", "--only", "limb1/joint_manager", timeout=90.0)
+    assert result.returncode == 0, result.stderr
+    said = " ".join(result.stderr.split())
+    assert "rebuilt alone in process limb1" in said and "ran on untouched" in said, said
+    after = _ps(minimal)
+    pid = restarted["limb1/joint_manager"]["pid"]
+    assert {after[n]["pid"] for n in [*siblings, "limb1/joint_manager"]} == {pid}
+    assert all(after[n]["state"] == "running" for n in siblings)
+    log = minimal.msctl("logs", "limb1/joint_manager", "-n", "500").stdout
+    assert log.count("rebuilt limb1/joint_manager") == 1
+    assert log.count("built limb1/health_monitor") == 2  # start, then the plain restart only
+
+    name = _joint_read(minimal)["name"][0]
+    pub = minimal.msctl(
+        "topic", "pub", "/limb1/joint_set", "sensor_msgs/msg/JointState",
+        f"{{name: [{name}], position: [0.3]}}", "-r", "10", "-t", "30",
+    )  # fmt: skip
+    assert pub.returncode == 0, pub.stderr
+    wait_until(lambda: abs(_joint_read(minimal)["position"][0] - 0.3) < 0.05, 60.0, interval=0.5)
+
+
+def test_restart_only_says_when_it_cannot(minimal: Up) -> None:
+    result = minimal.msctl("restart", "--only", "limb1")
+    assert result.returncode == 1, result.stderr
+    assert "--only restarts one component, and limb1 is a process" in result.stderr
+    result = minimal.msctl("restart", "--only", "sim/simulator")
+    # Alone in its process, it is restarted as it is: --only changes nothing there.
+    assert result.returncode == 0, result.stderr

@@ -47,6 +47,7 @@ class Component:
     publishers: dict[str, Any] = field(default_factory=dict)
     errors: int = 0
     handled: int = 0
+    removed: bool = False
 
     def publish(self, topic: str, message: Any) -> None:
         """The core's outbox: publish on a declared output."""
@@ -82,6 +83,15 @@ class _Call:
         self.component = component
         self.handler = handler
         self.args = args
+
+
+class _Task:
+    """Work for the executor itself, posted with :meth:`Executor.post`."""
+
+    __slots__ = ("work",)
+
+    def __init__(self, work: Callable[[], Any]) -> None:
+        self.work = work
 
 
 class Executor:
@@ -212,6 +222,36 @@ class Executor:
             handler = self._handler(component.core, handler)
         self._work.put(_Call(component, handler, args))
 
+    def post(self, work: Callable[[], Any]) -> None:
+        """Have the executor thread call ``work()`` between handlers (thread-safe).
+
+        For work on the executor itself rather than on one core (rebuilding a component);
+        what it raises is logged, and the loop goes on.
+        """
+        self._work.put(_Task(work))
+
+    def start_component(self, component: Component) -> None:
+        """Call the core's ``start`` now: for a component added while the loop runs (those
+        added before :meth:`run` are started by it)."""
+        self._call(component, component.core.start, self.clock())
+
+    def remove(self, component: Component) -> None:
+        """Stop one component and take it off the data plane; the others run on.
+
+        Its core's ``stop`` is called, its node (publishers, subscriptions, services,
+        liveliness) is closed, its timers are dropped, and samples or calls already queued
+        for it are discarded. Call from the executor thread (a :meth:`post`), or before
+        :meth:`run`.
+        """
+        if component.removed:
+            return
+        self._call(component, component.core.stop, self.clock())
+        component.removed = True
+        component.node.close()
+        self._timers = [t for t in self._timers if t[2] is not component]
+        heapq.heapify(self._timers)
+        self.components.remove(component)
+
     # ------------------------------------------------------------------ running
     def run(self, duration: float | None = None) -> None:
         """Run until :meth:`stop`, a signal, or ``duration`` seconds; then shut down cleanly."""
@@ -270,6 +310,12 @@ class Executor:
         return max(wait, 0.0)
 
     def _dispatch(self, item: Any) -> None:
+        if isinstance(item, _Task):
+            try:
+                item.work()
+            except Exception:
+                log.exception("executor task %s failed", getattr(item.work, "__name__", item))
+            return
         if isinstance(item, _Inbox):
             while True:
                 with item.lock:
@@ -308,6 +354,8 @@ class Executor:
         if self._heartbeat is not None:
             # A loop kept busy by a flood of samples is alive; one stuck in a handler is not.
             self._heartbeat.beat()
+        if component.removed:
+            return None  # queued before it was removed: its core is stopped
         component.handled += 1
         try:
             return handler(*args)

@@ -15,15 +15,23 @@ do not each reinvent it:
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from components.comm.session import SessionSettings, open_session
-from components.executor.executor import Executor
+from components.executor.executor import Component, Executor
 from components.executor.heartbeat import Heartbeat
+from components.executor.orders import Orders
 
 if TYPE_CHECKING:
     from components.build import BuiltComponent
+
+log = logging.getLogger("msctl.worker")
+
+
+class RebuildFailed(RuntimeError):
+    """A component could not be rebuilt in place: its process must restart whole."""
 
 
 def run_built(
@@ -32,37 +40,104 @@ def run_built(
     duration: float | None = None,
     on_ready: Callable[[Executor], None] | None = None,
     heartbeat: Heartbeat | None = None,
+    rebuild: Callable[[str], BuiltComponent] | None = None,
 ) -> None:
     """Run ``built`` components in one process until stopped, then release everything.
 
     Args:
-        built: The components, as :func:`components.build.build_component` returns them.
+        built: The components, in the order they are added.
         settings: Session settings (default: from the environment).
         duration: Seconds to run (``None``: until a signal or ``Executor.stop``).
         on_ready: Called with the executor once every component is bound, just before it
             runs (lets a caller keep a handle to stop it from another thread).
         heartbeat: The supervisor's proof-of-life pipe, beaten by the executor loop.
+        rebuild: Builds one component anew by name; with it, the supervisor's ``rebuild``
+            orders (``MSCTL_ORDERS_FD``, :mod:`components.executor.orders`) replace that one
+            component while the others run on.
 
     Raises:
+        RebuildFailed: If a rebuild order failed: the process stopped, to be restarted.
         Exception: Whatever adding a component or an ``on_bound`` hook raised; what was
-            opened so far is closed first.
+            opened is closed first.
     """
     settings = settings or SessionSettings.from_env()
+    live = list(built)  # what is bound now, in order; rebuilt ones are replaced in place
+    failed: list[str] = []
     session = open_session(settings)
     try:
         executor = Executor(settings, session=session, heartbeat=heartbeat)
         try:
-            for item in built:
+            components: dict[str, Component] = {}
+            for item in live:
                 component = executor.add(item.core, item.spec, item.namespace, item.node_name)
+                components[component.name] = component
                 if item.on_bound is not None:
                     item.on_bound(executor, component)
+            if rebuild is not None:
+
+                def on_order(order: str, name: str) -> None:
+                    del order  # the only order is rebuild
+                    executor.post(
+                        lambda: _rebuild(executor, live, components, name, rebuild, failed)
+                    )
+
+                orders = Orders.from_env(on_order)
+                if orders is not None:
+                    orders.start()
             if on_ready is not None:
                 on_ready(executor)
             executor.run(duration)
         finally:
             # run() closes the nodes; this covers a failure before run() was reached.
             executor.close()
-            for item in reversed(built):
+            for item in reversed(live):
                 item.close()
     finally:
         session.close()
+    if failed:
+        raise RebuildFailed(failed[0])
+
+
+def _rebuild(
+    executor: Executor,
+    live: list[BuiltComponent],
+    components: dict[str, Component],
+    name: str,
+    rebuild: Callable[[str], BuiltComponent],
+    failed: list[str],
+) -> None:
+    """Replace one running component by a freshly built one (on the executor thread).
+
+    The old one is stopped and released first: a new motor interface needs the bus the old
+    one holds. Should the new one fail to build or bind, the process stops (its siblings
+    with it) and the supervisor restarts it whole, as for a crash: a process missing one of
+    its components must not go on looking healthy.
+    """
+    old = components.get(name)
+    if old is None:
+        log.error("cannot rebuild %s: this process runs %s", name, ", ".join(components))
+        return
+    index = next(i for i, item in enumerate(live) if item.core is old.core)
+    log.info("rebuilding %s (its siblings run on)", name)
+    executor.remove(old)
+    live.pop(index).close()
+    try:
+        item = rebuild(name)
+    except Exception as exc:
+        log.exception("cannot rebuild %s; the process stops to be restarted whole", name)
+        failed.append(f"cannot rebuild {name}: {exc}")
+        executor.stop()
+        return
+    live.insert(index, item)
+    try:
+        component = executor.add(item.core, item.spec, item.namespace, item.node_name)
+        if item.on_bound is not None:
+            item.on_bound(executor, component)
+    except Exception as exc:
+        log.exception("cannot bind the rebuilt %s; the process stops to be restarted", name)
+        failed.append(f"cannot bind the rebuilt {name}: {exc}")
+        executor.stop()
+        return
+    components[name] = component
+    executor.start_component(component)
+    log.info("rebuilt %s", name)

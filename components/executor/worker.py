@@ -19,6 +19,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from components import kinds
 from components.assembly import AssemblyError, load_assembly
@@ -53,15 +54,17 @@ def main(argv: list[str] | None = None) -> int:
     # Assembly-wide stand-ins (the simulator) are in no lock file: the launcher names them.
     stand_ins = {k.component_name: k.name for k in kinds.simulators()}
     options = {"sim": any(name in stand_ins for name in args.component), "speed": args.speed}
+
+    def build(name: str) -> Any:
+        plan = simulator_plan(stand_ins[name]) if name in stand_ins else assembly.component(name)
+        item = build_component(plan, assembly, options)
+        log.info("built %s (%s)", name, plan.kind)
+        return item
+
     built = []
     try:
         for name in args.component:
-            if name in stand_ins:
-                plan = simulator_plan(stand_ins[name])
-            else:
-                plan = assembly.component(name)
-            built.append(build_component(plan, assembly, options))
-            log.info("built %s (%s)", name, plan.kind)
+            built.append(build(name))
     except (BuildError, AssemblyError, KeyError) as exc:
         for item in built:
             item.close()
@@ -72,9 +75,14 @@ def main(argv: list[str] | None = None) -> int:
         if transport == "rclpy":
             _run_on_rclpy(built, args.duration)
         elif transport == "zenoh":
-            from components.executor.runner import run_built
+            from components.executor.runner import RebuildFailed, run_built
 
-            run_built(built, duration=args.duration, heartbeat=heartbeat)
+            try:
+                run_built(built, duration=args.duration, heartbeat=heartbeat, rebuild=build)
+            except RebuildFailed as exc:
+                # Not a final exit: restarted whole, the process builds everything afresh.
+                print(f"error: {exc}; restarting the whole process", file=sys.stderr)
+                return 1
         else:
             print(f"error: MSCTL_TRANSPORT={transport!r}: use zenoh or rclpy", file=sys.stderr)
             return 2

@@ -12,4 +12,6 @@ KIND = ComponentKind(
     healthy_output="/sim/diagnostics",
     stands_in_for=("motor_interface",),
     namespace="/sim",
+    # A new world starts from the initial pose: the robot would jump, and every motor with it.
+    not_rebuilt_alone="a new MuJoCo world would start the robot again from its initial pose",
 )

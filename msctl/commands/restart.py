@@ -7,8 +7,17 @@ import typer
 COMMAND_SETTINGS = {"help": "Restart one component (its process), on whichever host runs it."}
 
 
-def command(component: str = typer.Argument(..., help="Component or process name.")) -> None:
-    """Restart the process that runs COMPONENT."""
+def command(
+    component: str = typer.Argument(..., help="Component or process name."),
+    only: bool = typer.Option(
+        False,
+        "--only",
+        help="Rebuild just this component inside its process; the components sharing the "
+        "process run on untouched.",
+    ),
+) -> None:
+    """Restart the process that runs COMPONENT (and so every component sharing it), or with
+    --only just COMPONENT."""
     from msctl.launcher.remote import control_component
 
-    control_component("restart", component)
+    control_component("restart", component, only=only)

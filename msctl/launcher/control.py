@@ -20,7 +20,7 @@ VERBS = ("ps", "logs", "restart", "stop", "start", "down", "up")
 _ARG_KEYS: dict[str, set[str]] = {
     "ps": set(),
     "logs": {"component", "lines"},
-    "restart": {"component"},
+    "restart": {"component", "only"},
     "stop": {"component"},
     "start": {"component"},
     "down": set(),
@@ -88,6 +88,8 @@ def parse_request(verb: str, args_text: str) -> Request:
     for key in ("component",):
         if key in args and not (isinstance(args[key], str) and len(args[key]) < 128):
             raise RequestError(f"{key} must be a component or process name")
+    if "only" in args and not isinstance(args["only"], bool):
+        raise RequestError("only must be true or false")
     if "lines" in args and not (isinstance(args["lines"], int) and 0 < args["lines"] <= 10000):
         raise RequestError("lines must be a whole number from 1 to 10000")
     if "speed" in args and not (

@@ -43,23 +43,78 @@ def host_of(component: str, node: Any) -> str:
     )
 
 
-def control_component(verb: str, component: str) -> None:
-    """Send ``verb`` (restart/stop/start) for ``component`` to the host that runs it."""
+def control_component(verb: str, component: str, only: bool = False) -> None:
+    """Send ``verb`` (restart/stop/start) for ``component`` to the host that runs it.
+
+    Says which components the verb takes with it (every one sharing the process). With
+    ``only`` (restart), the component is rebuilt alone inside its process, and this waits
+    until it runs again.
+    """
     from components.comm.services import ServiceTimeout
     from msctl.console import err
     from msctl.launcher.control import call_supervisor
     from msctl.plane import connected
 
+    args: dict[str, Any] = {"component": component}
+    if only:
+        args["only"] = True
     with connected(verb) as node:
         host = host_of(component, node)
         try:
-            answer = call_supervisor(node, host, verb, {"component": component})
+            answer = call_supervisor(node, host, verb, args)
         except ServiceTimeout as exc:
             raise NetworkError(f"the supervisor of {host} did not answer: {exc}") from exc
         except RequestError as exc:
             raise MsctlError(str(exc)) from exc
+        if answer.get("only"):
+            _wait_rebuilt(node, host, component, answer["process"])
+            return
+    siblings = answer.get("siblings", [])
+    taken = ""
+    if siblings:
+        taken = f", and with it {', '.join(siblings)} (they share the process)"
+        if verb == "restart":
+            taken += f"; `msctl restart --only {component}` restarts it alone"
     err.print(
-        f"[green]{verb}[/] {component} on {host}: process {answer['process']} is {answer['state']}",
+        f"[green]{verb}[/] {component} on {host}: process {answer['process']} is "
+        f"{answer['state']}{taken}",
+        highlight=False,
+    )
+
+
+def _wait_rebuilt(
+    node: Any, host: str, component: str, process: str, timeout: float = 60.0
+) -> None:
+    """Until ``component``, rebuilt alone, runs again (its siblings never stopped)."""
+    import time
+
+    from msctl.console import err
+    from msctl.errors import OperationTimeout
+    from msctl.launcher.control import call_supervisor
+
+    deadline = time.monotonic() + timeout
+    with err.status(f"rebuilding {component} in process {process} on {host}..."):
+        while True:
+            rows = call_supervisor(node, host, "ps", timeout=5.0).get("components", [])
+            row = next((r for r in rows if r["name"] == component), None)
+            if row is not None and row["state"] == "running":
+                break
+            if row is not None and row["state"] in ("failed", "restarting"):
+                raise MsctlError(
+                    f"{component} could not be rebuilt alone; its process {process} is "
+                    f"{row['state']}: {row['last_error'] or 'see `msctl logs ' + component + '`'}"
+                )
+            if time.monotonic() > deadline:
+                raise OperationTimeout(
+                    f"{component} was not running again {timeout:g} s after its rebuild",
+                    hint=f"see `msctl logs {component}`",
+                )
+            time.sleep(0.2)
+    siblings = [r["name"] for r in rows if r.get("process") == process and r["name"] != component]
+    err.print(
+        f"[green]restart[/] {component} on {host}: rebuilt alone in process {process} "
+        f"(pid {row['pid']} unchanged)"
+        + (f"; {', '.join(siblings)} ran on untouched" if siblings else ""),
         highlight=False,
     )
 

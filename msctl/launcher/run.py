@@ -170,6 +170,9 @@ class Launch:
         self._last_state_write = 0.0
         self._router_restart_at: float | None = None
         self._state_fault = ""  # the state file's write error, while writing fails
+        # Components rebuilt alone and not seen again yet: the process log's line count when
+        # the order went (their worker says "rebuilt <name>" in it once done).
+        self._rebuilding: dict[str, int] = {}
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
@@ -333,6 +336,9 @@ class Launch:
             self._router_restart_at = time.monotonic() + 0.3
             self.events.append(f"{process}: restart requested")
             return {"process": process, "state": ProcessState.RESTARTING.value}
+        members = self.supervisor.processes[process].components
+        if verb == "restart" and args.get("only") and len(members) > 1:
+            return self._rebuild_alone(process, name)
         if verb == "restart":
             self.supervisor.restart(process)
         elif verb == "stop":
@@ -340,9 +346,50 @@ class Launch:
         elif verb == "start":
             self.supervisor.start(process)
         if self.watch is not None:
-            self.watch.forget(self.supervisor.processes[process].components)
+            self.watch.forget(members)
+        for member in members:
+            self._rebuilding.pop(member, None)
         self.events.append(f"{process}: {verb} requested")
-        return {"process": process, "state": self.supervisor.processes[process].state.value}
+        return {
+            "process": process,
+            "state": self.supervisor.processes[process].state.value,
+            # What the verb takes with it: every component sharing the process.
+            "components": list(members),
+            "siblings": [c for c in members if c != name],
+        }
+
+    def _rebuild_alone(self, process: str, name: str) -> dict[str, Any]:
+        """``restart --only``: one component rebuilt in its process, the others untouched."""
+        if name == process:
+            raise RequestError(
+                f"--only restarts one component, and {name} is a process "
+                f"(of {', '.join(self.supervisor.processes[process].components)})"
+            )
+        kind = next((c.kind for c in self.plan.components if c.name == name), "")
+        why = kinds.get(kind).not_rebuilt_alone if kind else ""
+        if not why and os.environ.get("MSCTL_TRANSPORT", "zenoh") != "zenoh":
+            why = "the rclpy executor cannot rebuild one node of a running process"
+        if not why:
+            try:
+                self.supervisor.rebuild(process, name)
+            except ValueError as exc:
+                why = str(exc)
+        if why:
+            raise RequestError(
+                f"cannot restart {name} alone: {why}; `msctl restart {name}` restarts its "
+                f"process {process} whole"
+            )
+        self._rebuilding[name] = self.supervisor.processes[process].log.lines
+        if self.watch is not None:
+            self.watch.forget([name])
+        self.events.append(f"{name}: rebuild requested (alone in {process})")
+        return {
+            "process": process,
+            "state": "rebuilding",
+            "components": [name],
+            "siblings": [],
+            "only": True,
+        }
 
     # ------------------------------------------------------------------ state
     def components(self) -> list[ComponentView]:
@@ -355,6 +402,17 @@ class Launch:
                 component_state = process.state.value
                 if process.state is ProcessState.STARTING and node_seen and output_seen:
                     component_state = ProcessState.RUNNING.value
+                if name in self._rebuilding:
+                    # Rebuilt alone: starting until its worker says it is rebuilt, and it is
+                    # seen and publishing again.
+                    done = any(
+                        line.endswith(f"rebuilt {name}")
+                        for line in process.log.since(self._rebuilding[name])
+                    )
+                    if done and node_seen and output_seen:
+                        del self._rebuilding[name]
+                    elif process.state is ProcessState.RUNNING:
+                        component_state = ProcessState.STARTING.value
                 kind = next((c.kind for c in self.plan.components if c.name == name), "")
                 views.append(
                     ComponentView(name, kind, process.name, component_state, node_seen, output_seen)

@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 from components.executor.heartbeat import FD_ENV as HEARTBEAT_FD_ENV
+from components.executor.orders import FD_ENV as ORDERS_FD_ENV
+from components.executor.orders import REBUILD, encode
 
 
 class ProcessState(StrEnum):
@@ -114,6 +116,7 @@ class RotatingLog:
         tail: The last lines as the process wrote them (error reasons are read from these).
         recent: The same lines as the file has them, with their times (``msctl logs``).
         dropped: Lines that could not be written to the file.
+        lines: Lines written since it was opened.
         fault: The last write error, while writing fails (``""`` when it works).
     """
 
@@ -125,6 +128,7 @@ class RotatingLog:
         self.recent: deque[str] = deque(maxlen=tail)
         self.dropped = 0
         self.fault = ""
+        self.lines = 0  # written since it was opened (to find the lines after a moment)
         self._unreported = 0
         self._lock = threading.Lock()
         self._closed = False
@@ -140,6 +144,7 @@ class RotatingLog:
         line = line.rstrip("\n")
         stamped = stamp(line)
         with self._lock:
+            self.lines += 1
             self.tail.append(line)
             self.recent.append(stamped)
             if self._closed:
@@ -161,6 +166,13 @@ class RotatingLog:
                 return
             self._unreported = 0
             self.fault = ""
+
+    def since(self, lines: int) -> list[str]:
+        """The lines (as the process wrote them) after the first ``lines``, as far as the
+        tail still holds them."""
+        with self._lock:
+            count = min(self.lines - lines, len(self.tail))
+            return list(self.tail)[len(self.tail) - count :] if count > 0 else []
 
     def mark_run(self, what: str) -> None:
         """Write the line that separates this run from the previous ones in the file."""
@@ -225,6 +237,7 @@ class ManagedProcess:
     pump: threading.Thread | None = None
     heartbeat: bool = False
     beat_fd: int | None = None
+    orders_fd: int | None = None
     last_beat: float | None = None
     state_before_silence: ProcessState | None = None
 
@@ -314,12 +327,16 @@ class Supervisor:
     def _spawn(self, process: ManagedProcess) -> None:
         process.log.write_line(f"--- msctl: starting {process.name}: {' '.join(process.argv)}")
         _close_heartbeat(process)
-        env, pass_fds, writer = process.env, (), None
+        env, pass_fds, writer, reader = process.env, (), None, None
         try:
             if process.heartbeat:
+                # Two pipes: its heartbeat up, our orders down (components.executor.orders).
                 process.beat_fd, writer = os.pipe()
                 os.set_blocking(process.beat_fd, False)
-                env, pass_fds = {**process.env, HEARTBEAT_FD_ENV: str(writer)}, (writer,)
+                reader, process.orders_fd = os.pipe()
+                os.set_blocking(process.orders_fd, False)
+                env = {**process.env, HEARTBEAT_FD_ENV: str(writer), ORDERS_FD_ENV: str(reader)}
+                pass_fds = (writer, reader)
             popen = subprocess.Popen(
                 process.argv,
                 env=env,
@@ -338,8 +355,9 @@ class Supervisor:
             process.log.write_line(f"--- msctl: {process.last_error}")
             return
         finally:
-            if writer is not None:
-                os.close(writer)  # the child's copy only: its death closes the pipe
+            for child_end in (writer, reader):
+                if child_end is not None:
+                    os.close(child_end)  # the child's copies only: its death closes the pipes
         process.popen = popen
         process.started_at = time.monotonic()
         process.state = ProcessState.STARTING
@@ -521,6 +539,24 @@ class Supervisor:
         process.backoff = 0.0
         self.start(name)
 
+    def rebuild(self, name: str, component: str) -> None:
+        """Order process ``name`` to rebuild ``component`` alone, its siblings running on.
+
+        Raises:
+            ValueError: If the process cannot take the order (no orders pipe, not alive, or
+                ``component`` is not one of its components), saying why.
+        """
+        process = self.processes[name]
+        if component not in process.components:
+            raise ValueError(f"process {name} does not run {component}")
+        if process.orders_fd is None or process.pid is None:
+            raise ValueError(f"process {name} is {process.state.value}: restart it whole")
+        try:
+            os.write(process.orders_fd, encode(REBUILD, component))
+        except OSError as exc:
+            raise ValueError(f"process {name} takes no orders now ({exc.strerror})") from exc
+        process.log.write_line(f"--- msctl: rebuilding {component} alone in {name}")
+
     def stop(self, name: str) -> None:
         """Stop one process and keep it stopped."""
         process = self.processes[name]
@@ -616,10 +652,12 @@ def _read_beats(process: ManagedProcess) -> bool:
 
 
 def _close_heartbeat(process: ManagedProcess) -> None:
-    if process.beat_fd is not None:
-        with contextlib.suppress(OSError):
-            os.close(process.beat_fd)
-        process.beat_fd = None
+    """Close our ends of its heartbeat and orders pipes."""
+    for fd in (process.beat_fd, process.orders_fd):
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+    process.beat_fd = process.orders_fd = None
     process.last_beat = None
 
 
