@@ -49,9 +49,12 @@ FLOOD_NAMES = 100_000
 FLOOD_MESSAGES = 10  # per topic
 JOINT = "limb1_joint2"
 #: Generous: decoding a 100k-name message costs ~10 MB and the allocator keeps some of it
-#: (measured: +61 MiB after the first 10 + 10 messages, none after the next); keeping every
-#: name seen (before the fix) grows without end.
+#: (measured: +61 MiB after the first 10 + 10 messages on a quiet machine, +101 MiB on a
+#: loaded one, where more of them wait in queues at once; none after the next); keeping
+#: every name seen (before the fix) grows without end, which the second round shows.
 RSS_GROWTH_BOUND = 100 * 2**20
+#: The first round only warms the allocators up: its bound is twice as loose.
+WARM_UP_BOUND = 2 * RSS_GROWTH_BOUND
 COUNTED = ("refused_", "feedback_")
 #: (status, counter) of the flood counts of the cores that read both topics: the joint
 #: manager (joint_states) and the health monitor (both). The simulator's count is printed only:
@@ -260,7 +263,7 @@ def test_a_100k_name_flood_leaves_memory_flat_and_the_limb_responsive(
             memory[1][name] - memory[0][name],
             memory[2][name] - memory[1][name],
         )
-        assert first < RSS_GROWTH_BOUND, (name, memory)
+        assert first < WARM_UP_BOUND, (name, memory)
         assert second < RSS_GROWTH_BOUND / 2, (name, memory)  # flat: nothing kept
 
 
