@@ -368,7 +368,7 @@ def test_up_all_ps_restart_down(
                 ),
                 None,
             ),
-            timeout=20.0,
+            timeout=60.0,
         )
     )
     # `logs` reaches the agent too, directly and through `msctl logs` from the ground station.

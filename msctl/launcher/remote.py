@@ -170,15 +170,17 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         return "error" not in d and all(c["state"] == "running" for c in d.get("components", []))
 
     with connected("up_all") as node:
-        # An agent the router's graph does not show gets a short wait, not the full one:
-        # with no agent anywhere, `up --all` says so in seconds.
+        # An agent the router's graph does not show is first asked a cheap `ps` with a short
+        # wait: with no agent anywhere, `up --all` says so in seconds, while an agent that is
+        # there (the graph may lag) still gets the full wait for its `up`.
         present = set(supervisors(node))
         for host in hosts:
             err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
-            wait = 10.0 if host_namespace(host) in present else 2.0
             try:
+                if host_namespace(host) not in present:
+                    call_supervisor(node, host, "ps", timeout=2.0)
                 started[host] = call_supervisor(
-                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, wait
+                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 10.0
                 )
             except ServiceTimeout:
                 unreachable.append((host, f"no agent serves {host_namespace(host)}/request"))
