@@ -254,6 +254,7 @@ def _report_failure(launch: Any, what: str) -> None:
 
     failed = [p for p in launch.supervisor.snapshot() if p["state"] == "failed"]
     if failed:
+        shown: set[str] = set()  # processes crashing alike show their traceback once
         for process in launch.failed():
             if process.final_exits:
                 continue  # its one line says it all
@@ -264,7 +265,9 @@ def _report_failure(launch: Any, what: str) -> None:
                 if line.strip()
                 and not line.startswith("--- msctl:")
                 and line.strip() not in process.last_error
+                and line.strip() not in shown
             ]
+            shown.update(line.strip() for line in context)
             for line in context:
                 err.print(f"    {process.name}: {line}", highlight=False, markup=False)
         raise _failure_error(failed)
@@ -299,12 +302,23 @@ def _failure_error(failed: list[dict[str, Any]]) -> MsctlError:
     """The one error naming each FAILED process (rows of a run document's ``processes``), the
     component its cause names, and the cause; the others of its process are listed first.
 
-    The cause is printed on this line only: a newcomer reads the last line first.
+    The cause is printed on this line only, and each cause once: a newcomer reads the last
+    line first, and processes failing alike (every worker refusing MSCTL_TRANSPORT=rclpy
+    without ROS) are named together before their one cause.
     """
     from msctl.console import err
 
-    causes = []
+    alike: dict[str, list[dict[str, Any]]] = {}
     for process in failed:
+        alike.setdefault(process["last_error"] or "no error printed", []).append(process)
+    causes = []
+    for cause, processes in alike.items():
+        if len(processes) > 1:
+            count = sum(len(p.get("components") or []) for p in processes)
+            names = ", ".join(p["name"] for p in processes)
+            causes.append(f"processes {names} ({count} components) failed, each: {cause}")
+            continue
+        process = processes[0]
         components = list(process.get("components") or [])
         named = [c for c in components if _names(process["last_error"], c)] or components
         others = [c for c in components if c not in named]
@@ -314,7 +328,7 @@ def _failure_error(failed: list[dict[str, Any]]) -> MsctlError:
                 highlight=False,
             )
         who = f"{', '.join(named)} (process {process['name']})" if named else process["name"]
-        causes.append(f"{who} failed: {process['last_error'] or 'no error printed'}")
+        causes.append(f"{who} failed: {cause}")
     if len(failed) == 1:
         where = f"log {failed[0]['log']}; see `msctl logs {failed[0]['name']}`"
     else:
