@@ -99,7 +99,16 @@ def test_an_overlay_naming_an_unknown_repository_without_url_is_a_typo() -> None
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
-        ("repositories:\n  a:\n    type: git\n    url: [x\n", ["f.repos:", "not valid YAML"]),
+        (
+            "repositories:\n  a:\n    type: git\n    url: [x\n",
+            ["f.repos:4: not valid YAML (in repository 'a')"],
+        ),
+        (
+            "repositories:\n  a:\n    type: git\n    url: /x\n"
+            "  'moonbot/wheel':\n    type: git\n   url: /y\n",
+            ["f.repos:7: not valid YAML (in repository 'moonbot/wheel')"],
+        ),
+        ("repositories:\n  a:\n    type: git\n\turl: /x\n", ["f.repos:4", "repository 'a'"]),
         ("repositories:\n  a:\n    type: gti\n    url: /x\n", ["f.repos:2", "'a'", "'gti'", "git"]),
         ("repositories:\n  a:\n    type: hg\n    url: /x\n", ["'a'", "git repositories only"]),
         ("repositories:\n  a:\n    type: git\n", ["f.repos:2", "'a'", "missing 'url'"]),

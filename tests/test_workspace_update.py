@@ -7,18 +7,21 @@ others update.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
-from workspace_rigs import Remote, branch, git, head, repos_text
+from workspace_rigs import TERMINAL, Remote, branch, git, head, progress_rows, repos_text
 
 from msctl.errors import MsctlError
 from msctl.workspace import workspace_lock
+from msctl.workspace.git import Clone, _state_from_files
 from msctl.workspace.repos import load, merge, parse_repos
 from msctl.workspace.update import (
     UpdateOptions,
@@ -63,8 +66,22 @@ def test_ten_repositories_clone_in_parallel_on_branches_tags_and_commits(tmp_pat
         else:
             wanted[f"src/r{i}"] = (remote.url, None)
             expected[f"src/r{i}"] = ("main", first)
-    outcomes = _update(tmp_path, wanted, jobs=4)
+    jobs = 4
+    meeting = threading.Barrier(jobs, timeout=120)
+    arrivals = itertools.count()
+
+    def report(path: str, stage: str) -> None:
+        # The first `jobs` repositories to reach the network meet here, and go on only
+        # once all of them are fetching at once: an update one at a time breaks the
+        # barrier (BrokenBarrierError ends the update).
+        if stage == "fetching" and next(arrivals) < jobs:
+            meeting.wait()
+
+    repos = merge(parse_repos(repos_text(wanted), "ws.repos"))
+    done = update_workspace(repos, tmp_path / "ws", UpdateOptions(jobs=jobs), report)
+    outcomes = {o.path: o for o in done}
     assert {p: o.result for p, o in outcomes.items()} == {p: "cloned" for p in wanted}
+    assert not meeting.broken
     for path, (on_branch, commit) in expected.items():
         clone = tmp_path / "ws" / path
         assert (branch(clone), head(clone)) == (on_branch, commit), path
@@ -162,6 +179,54 @@ def test_a_detached_head_with_local_commits_is_refused(tmp_path: Path) -> None:
     assert "detached HEAD has 1 commit(s) on no branch" in outcome.reason
     assert "switch -c" in outcome.fix
     assert _state(clone) == before
+
+
+def test_a_detached_head_without_local_commits_moves_onto_a_branch(tmp_path: Path) -> None:
+    # vcstool #165: `vcs pull` fails on a detached HEAD; an update puts it on its branch.
+    remote = Remote(tmp_path, "limb")
+    tagged = remote.tag("v1")
+    newer = remote.push({"n": "n"}, "after v1")
+    _update(tmp_path, {"limb": (remote.url, "v1")})
+    clone = tmp_path / "ws" / "limb"
+    assert (branch(clone), head(clone)) == ("", tagged)
+    outcome = _update(tmp_path, {"limb": (remote.url, "main")})["limb"]
+    assert outcome.result == "updated"
+    assert (outcome.before, outcome.after) == (f"(detached)@{tagged[:7]}", f"main@{newer[:7]}")
+    assert (branch(clone), head(clone)) == ("main", newer)
+
+
+def test_head_read_from_the_clones_files_agrees_with_git(tmp_path: Path) -> None:
+    remote = Remote(tmp_path, "limb")
+    remote.push({"x": "x"}, "on a branch with a slash", branch="feature/x")
+    clone = tmp_path / "clone"
+    git("clone", "-q", remote.url, str(clone))
+
+    def agrees() -> bool:
+        ours = Clone(clone)
+        return (ours.branch() or "", ours.head(), ours.is_clone()) == (
+            branch(clone),
+            head(clone),
+            True,
+        )
+
+    assert _state_from_files(clone) is not None and agrees()  # main, its ref packed by clone
+    git("checkout", "-q", "feature/x", cwd=clone)  # a loose ref in a subdirectory
+    assert _state_from_files(clone) is not None and agrees()
+    git("pack-refs", "--all", cwd=clone)
+    assert agrees()
+    git("checkout", "-q", "--detach", "HEAD", cwd=clone)
+    assert _state_from_files(clone) is not None and agrees()
+    # Layouts it does not read are asked of git: a worktree's .git file, a branch with no
+    # commit yet, a config moving the working tree.
+    git("worktree", "add", "-q", str(tmp_path / "other"), "main", cwd=clone)
+    assert _state_from_files(tmp_path / "other") is None
+    assert Clone(tmp_path / "other").branch() == "main" and Clone(tmp_path / "other").is_clone()
+    git("init", "-q", str(tmp_path / "empty"))
+    empty = Clone(tmp_path / "empty")
+    assert _state_from_files(empty.path) is None
+    assert (empty.is_clone(), empty.head(), empty.describe()) == (True, None, "(no commit)")
+    git("config", "core.worktree", str(tmp_path), cwd=clone)
+    assert _state_from_files(clone) is None and not Clone(clone).is_clone()
 
 
 def test_a_clone_of_another_remote_is_refused(tmp_path: Path) -> None:
@@ -306,8 +371,8 @@ def test_a_second_update_of_one_workspace_is_refused_while_one_runs(tmp_path: Pa
     assert f"pid {os.getpid()}" in str(caught.value)
 
 
-def _msctl(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "MSCTL_HOME": str(tmp_path / "home"), "COLUMNS": "200"}
+def _msctl(tmp_path: Path, *args: str, **extra: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "MSCTL_HOME": str(tmp_path / "home"), "COLUMNS": "200", **extra}
     env.pop("MSCTL_WORKSPACE", None)
     return subprocess.run(
         [sys.executable, "-m", "msctl", *args],
@@ -329,16 +394,28 @@ def test_msctl_update_end_to_end(tmp_path: Path) -> None:
     )
     overlay = tmp_path / "sand.repos"
     overlay.write_text("repositories:\n  src/wheel:\n    version: sand-field\n")
-    first = _msctl(tmp_path, "update", "-w", "ws", "--overlay", str(overlay), "--json")
+    first = _msctl(tmp_path, "update", "-w", "ws", "--overlay", str(overlay), "--json", **TERMINAL)
     assert first.returncode == 0, first.stderr
     document = json.loads(first.stdout)
     assert document["ok"] is True
     assert [r["result"] for r in document["repositories"]] == ["cloned", "cloned"]
     assert branch(tmp_path / "ws" / "src/wheel") == "sand-field"
+    # A progress bar per repository on stderr, each ending in its result.
+    assert progress_rows(first.stderr) == {"src/limb": "cloned", "src/wheel": "cloned"}
     # The next bare update reads the same files; the table goes to stdout.
+    old_limb = head(tmp_path / "ws" / "src/limb")
+    new_limb = limb.push({"n": "n"}, "upstream work")
     second = _msctl(tmp_path, "update", "-w", "ws", "--lock", "exact.repos")
     assert second.returncode == 0, second.stderr
-    assert "unchanged" in second.stdout and "src/wheel" in second.stdout
+    table = {line.split("│")[1].strip(): line for line in second.stdout.splitlines()[3:-1]}
+    # repository, from -> to, result
+    assert [c.strip() for c in table["src/limb"].split("│")[1:5]] == [
+        "src/limb",
+        f"main@{old_limb[:7]}",
+        f"main@{new_limb[:7]}",
+        "updated",
+    ]
+    assert [c.strip() for c in table["src/wheel"].split("│")[3:5]] == ["=", "unchanged"]
     assert "wrote exact.repos" in second.stderr
     exact = load(tmp_path / "exact.repos")
     assert exact[1].version == head(tmp_path / "ws" / "src/wheel")

@@ -8,6 +8,7 @@ credential question on a robot would hang forever), git's ``transport::`` helper
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -106,9 +107,10 @@ class Target:
 class Clone:
     """One local clone, asked about its state (no network).
 
-    What it reads most (its HEAD, and every branch and tag with its commit) takes one git
-    call each and is kept until the next :meth:`git` or :meth:`ok` call, which may change
-    it: a repository with nothing to do costs four git calls, fetch included.
+    What it reads most is kept until the next :meth:`git` or :meth:`ok` call, which may
+    change it: its HEAD (read from its files, see :func:`_state_from_files`) and every
+    branch and tag with its commit (one git call). A repository with nothing to do costs
+    three git calls: its remote's URL, the fetch, and its refs.
 
     Args:
         path: The clone's working tree.
@@ -139,7 +141,10 @@ class Clone:
         return run_git(args, self.path, check=False).returncode == 0
 
     def _read_state(self) -> tuple[str | None, str | None, str | None]:
-        """(top of the working tree, HEAD commit, branch) in one call."""
+        """(top of the working tree, HEAD commit, branch): from the clone's own files when
+        they have the plain layout, else in one git call."""
+        if self._state is None:
+            self._state = _state_from_files(self.path)
         if self._state is None:
             result = run_git(
                 ["rev-parse", "--show-toplevel", "HEAD", "--symbolic-full-name", "HEAD"],
@@ -297,6 +302,65 @@ class Clone:
         if head is None:
             return "(no commit)"
         return f"{self.branch() or '(detached)'}@{head[:7]}"
+
+
+_COMMIT_ID = re.compile(r"^(?:[0-9a-f]{40}|[0-9a-f]{64})$")
+
+
+def _state_from_files(path: Path) -> tuple[str, str, str | None] | None:
+    """(top, HEAD commit, branch) read from ``path/.git`` without running git, or ``None``
+    whenever the layout is not the plain one this reads (then git is asked).
+
+    Every update reads HEAD at least once per repository; on a robot's small CPU with a dozen
+    repositories, a process per read is a noticeable part of an update with nothing to do.
+    Only the layout ``git clone`` makes is read here: a ``.git`` directory (not a worktree's
+    or submodule's ``.git`` file), files refs (not reftable), no ``core.worktree`` or
+    ``core.bare`` in its config, and HEAD on a branch whose ref is a commit id, or detached.
+    """
+    gitdir = path / ".git"
+    try:
+        if not gitdir.is_dir() or (gitdir / "commondir").exists():
+            return None
+        if (gitdir / "reftable").exists():
+            return None
+        config = (gitdir / "config").read_text(encoding="utf-8", errors="replace")
+        if re.search(r"^\s*(worktree|bare\s*=\s*true)", config, re.MULTILINE | re.IGNORECASE):
+            return None
+        head = (gitdir / "HEAD").read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    if _COMMIT_ID.match(head):
+        return str(path), head, None
+    if not head.startswith("ref: refs/heads/"):
+        return None
+    ref = head[len("ref: ") :]
+    commit = _ref_from_files(gitdir, ref)
+    if commit is None:
+        return None  # a branch with no commit yet, or a ref this does not read: ask git
+    return str(path), commit, ref[len("refs/heads/") :]
+
+
+def _ref_from_files(gitdir: Path, ref: str) -> str | None:
+    """The commit of ``ref`` from its loose file, else from ``packed-refs``."""
+    try:
+        loose = (gitdir / ref).read_text(encoding="utf-8").strip()
+    except FileNotFoundError:
+        loose = None
+    except (OSError, UnicodeDecodeError):
+        return None
+    if loose is not None:
+        return loose if _COMMIT_ID.match(loose) else None
+    try:
+        packed = (gitdir / "packed-refs").read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError):
+        return None
+    for line in packed.splitlines():
+        commit, _, name = line.partition(" ")
+        if name == ref and _COMMIT_ID.match(commit):
+            return commit
+    return None
 
 
 def remote_versions(url: str) -> list[str]:

@@ -228,10 +228,14 @@ def parse_repos(text: str, name: str, *, overlay: bool = False) -> ReposFile:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
-        line = f":{mark.line + 1}" if mark is not None else ""
+        # At the end of the stream YAML's mark is past the last line: name the last line.
+        last = max(1, len(text.splitlines()))
+        line = f":{min(mark.line + 1, last)}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        repository = _repository_at(text, mark.line) if mark is not None else None
+        inside = f" (in repository {repository!r})" if repository else ""
         raise InputError(
-            f"{name}{line}: not valid YAML: {problem}",
+            f"{name}{line}: not valid YAML{inside}: {problem}",
             hint="a .repos file is a `repositories:` mapping of path: {type, url, version}",
         ) from None
     if root is None:
@@ -277,6 +281,33 @@ def parse_repos(text: str, name: str, *, overlay: bool = False) -> ReposFile:
         entries.append(_entry(path, value, line, where, overlay))
     _refuse_nesting([e.path for e in entries], name)
     return ReposFile(name, tuple(entries))
+
+
+_KEY_LINE = re.compile(r"""^(\s+)(?:'([^']*)'|"([^"]*)"|([^\s#'"{\[][^:#]*?))\s*:(?:\s|$)""")
+
+
+def _repository_at(text: str, line: int) -> str | None:
+    """The repository whose entry holds (0-based) ``line``, read from the text itself: a
+    file YAML cannot parse has no tree to ask. The entries are the keys indented like the
+    first one under ``repositories:``; the last of them at or before ``line`` is the one."""
+    lines = text.splitlines()
+    start = next(
+        (i for i, t in enumerate(lines) if re.match(r"^repositories\s*:\s*(#.*)?$", t)), None
+    )
+    if start is None:
+        return None
+    indent = None
+    found = None
+    for number in range(start + 1, min(line, len(lines) - 1) + 1):
+        match = _KEY_LINE.match(lines[number])
+        if match is None or lines[number].lstrip().startswith("#"):
+            continue
+        width = len(match.group(1))
+        if indent is None:
+            indent = width
+        if width == indent:
+            found = next(g for g in match.groups()[1:] if g is not None)
+    return found
 
 
 def _entry(path: str, node: yaml.Node, line: int, where: str, overlay: bool) -> Entry:
