@@ -197,6 +197,26 @@ def test_each_package_is_a_doit_task_on_its_sources_and_its_dependencies_stamps(
     assert "--packages-select" in colcon.argv and "limb_msgs" in colcon.argv
 
 
+def test_colcon_sees_every_ros_package_a_package_depends_on(tmp_path: Path) -> None:
+    ws = tmp_path / "ws"
+    msgs, driver, bringup = (
+        _ros(ws, "limb_msgs"),
+        _ros(ws, "limb_driver", ["limb_msgs"]),
+        _ros(ws, "limb_bringup", ["limb_driver"]),
+    )
+    graph = find_packages(ws)
+    builder = Builder(graph, BuildOptions(python="/p", colcon="/usr/bin/colcon"))
+    (step,) = builder.steps(graph.packages["limb-bringup"])
+    argv = list(step.argv)
+    # Its own directory and those of its ROS dependencies, direct or not: colcon builds it in
+    # their installs' environment; only it is selected.
+    paths = argv[argv.index("--base-paths") + 1 : argv.index("--packages-select")]
+    assert paths == [str(bringup), str(msgs), str(driver)]
+    assert argv[argv.index("--packages-select") + 1] == "limb_bringup"
+    # colcon exits 0 for a package it did not find: its own line for the package is required.
+    assert step.expect == "Finished <<< limb_bringup"
+
+
 def test_ros_packages_without_colcon_are_skipped_and_named(tmp_path: Path) -> None:
     graph = find_packages(_workspace(tmp_path))
     builder, tasks, skipped = _tasks(graph, colcon=None)

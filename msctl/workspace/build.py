@@ -186,12 +186,17 @@ class Step:
         argv: The command (no shell).
         cwd: Where it runs.
         serial: Run under the builder's lock (pip installing shared dependencies).
+        expect: Text its output must hold for a success (a tool that exits 0 having done
+            nothing, as colcon does for a package it did not find, has failed).
+        unmet: What to say when ``expect`` is missing.
     """
 
     label: str
     argv: tuple[str, ...]
     cwd: Path
     serial: bool = False
+    expect: str = ""
+    unmet: str = ""
 
 
 class _Failed(Exception):
@@ -313,11 +318,16 @@ class Builder:
 
     def _ros_steps(self, package: Package) -> list[Step]:
         root = self.graph.root
+        # colcon builds a package in the environment of the installs of the dependencies it
+        # discovers: it must be shown their directories too (selecting only this one), or a
+        # dependent builds without them (an ament_cmake find_package fails).
+        base_paths = [str(package.path)]
+        base_paths += [str(self.graph.packages[k].path) for k in self._ros_dependencies(package)]
         argv = (
             self.options.colcon or "colcon",
             "build",
             "--base-paths",
-            str(package.path),
+            *base_paths,
             "--packages-select",
             package.name,
             "--build-base",
@@ -325,7 +335,26 @@ class Builder:
             "--install-base",
             str(root / "install"),
         )
-        return [Step("colcon", argv, root)]
+        unmet = (
+            f"colcon exited 0 without building {package.name}: it did not take "
+            f"{package.manifest} for a ROS package (see `colcon --log-level info list "
+            f"--base-paths {package.path}`: a malformed package.xml, e.g. a maintainer's "
+            "email, makes colcon ignore it)"
+        )
+        return [Step("colcon", argv, root, expect=f"Finished <<< {package.name}", unmet=unmet)]
+
+    def _ros_dependencies(self, package: Package) -> list[str]:
+        """Every ROS package ``package`` depends on, directly or not, in build order."""
+        wanted: set[str] = set()
+        stack = list(self.graph.edges[package.key])
+        while stack:
+            key = stack.pop()
+            if key not in wanted:
+                wanted.add(key)
+                stack.extend(self.graph.edges[key])
+        return [
+            k for k in self.graph.order() if k in wanted and self.graph.packages[k].type == "ros"
+        ]
 
     @staticmethod
     def _command_steps(package: Package) -> list[Step]:
@@ -384,6 +413,8 @@ class Builder:
     def _skip(self, key: str, step: str, why: str) -> None:
         result = self.results[key]
         result.status, result.step, result.message = "skipped", step, why
+        # No doit task will report on it: say it here, or a progress view waits for it.
+        self.events(result.name, "skipped", why)
 
     # ------------------------------------------------------------------ actions
     def _download(self, requirements: list[str]) -> Any:
@@ -492,6 +523,7 @@ class Builder:
     def _run(self, step: Step, out: Any, log: Path) -> None:
         out.write(f"$ {' '.join(step.argv)}\n")
         out.flush()
+        start = out.tell()
         env = {
             **os.environ,
             "MSCTL_WORKSPACE": str(self.graph.root),
@@ -509,6 +541,8 @@ class Builder:
         if code != 0:
             out.flush()
             raise _Failed(step.label, f"exit status {code}; last lines of {log}:\n{_tail(log)}")
+        if step.expect and step.expect not in _read_from(log, start):
+            raise _Failed(step.label, f"{step.unmet}; last lines of {log}:\n{_tail(log)}")
         if step.serial:
             with self._environment_lock:
                 self._environment = None  # pip installed things: read the environment again
@@ -619,6 +653,16 @@ def _recipe(config: dict[str, Any]) -> Any:
     from doit.tools import config_changed
 
     return config_changed(config)
+
+
+def _read_from(log: Path, offset: int) -> str:
+    """What a step wrote to its package's log (from ``offset`` on)."""
+    try:
+        with log.open("rb") as handle:
+            handle.seek(offset)
+            return handle.read().decode("utf-8", errors="replace")
+    except OSError:
+        return ""
 
 
 def _tail(log: Path, lines: int = LOG_TAIL) -> str:
