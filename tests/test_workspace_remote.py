@@ -3,21 +3,24 @@ real agent on loopback updating and building its own workspace."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-from conftest import free_port, wait_until
-from workspace_rigs import Remote, branch, head, repos_text
+from conftest import quick_peer_settings, quick_router, wait_until
+from workspace_rigs import TERMINAL, Remote, branch, head, progress_rows, repos_text
 
 from components.comm.node import Node
-from components.comm.session import SessionSettings, open_session
+from components.comm.session import open_session
+from msctl.launcher.control import host_namespace
 from msctl.workspace.remote import Refused, WorkspaceAgent, check_request, workspace_services
 
 GOOD = "repositories:\n  src/limb:\n    type: git\n    url: file:///srv/limb.git\n"
@@ -101,12 +104,72 @@ def _env(tmp_path: Path, endpoint: str, **extra: str) -> dict[str, str]:
 @pytest.fixture
 def router() -> Iterator[str]:
     """A loopback router for the agent and the ground station."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = open_session(SessionSettings(mode="router", connect=(), listen=(endpoint,)))
+    yield from quick_router()
+
+
+@contextmanager
+def _agent(tmp_path: Path, router: str, host: str, **env: str) -> Iterator[subprocess.Popen]:
+    """``msctl agent`` as ``host`` (its own home and workspace under ``tmp_path``), serving
+    its workspace service; its whole process group is stopped after."""
+    log = (tmp_path / f"{host}.log").open("w")
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "msctl", "agent"],
+        env=_env(
+            tmp_path,
+            router,
+            MSCTL_HOST=host,
+            MSCTL_HOME=str(tmp_path / f"{host}-home"),
+            MSCTL_WORKSPACE=str(tmp_path / f"{host}-ws"),
+            **env,
+        ),
+        stdin=subprocess.DEVNULL,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     try:
-        yield endpoint
+        session = open_session(quick_peer_settings(router))
+        try:
+            with Node(session, "watcher", "/") as node:
+                wait_until(
+                    lambda: host_namespace(host) in workspace_services(node),
+                    timeout=60,
+                    what=f"{host}'s workspace service",
+                )
+        finally:
+            session.close()
+        yield agent
     finally:
-        session.close()
+        if agent.poll() is None:
+            os.killpg(agent.pid, signal.SIGTERM)
+            try:
+                agent.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(agent.pid, signal.SIGKILL)
+                agent.wait()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(agent.pid, signal.SIGKILL)  # whatever it left running (git, ssh)
+        log.close()
+
+
+def _ground(
+    tmp_path: Path, router: str, files: Path, home: str = "ground-home", **extra: str
+) -> Callable[..., subprocess.CompletedProcess[str]]:
+    """``msctl`` run from the ground station (in ``files``, with its own MSCTL_HOME)."""
+    env = _env(tmp_path, router, MSCTL_HOST="ground", MSCTL_HOME=str(tmp_path / home), **extra)
+
+    def msctl(*args: str, **more: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env={**env, **more},
+            cwd=files,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+
+    return msctl
 
 
 @pytest.mark.e2e
@@ -131,46 +194,12 @@ def test_an_agent_on_loopback_updates_and_builds_its_own_workspace(
         repos_text({"src/limb": (limb.url, "main"), "src/wheel": (wheel.url, "main")})
     )
     (files / "sand.repos").write_text("repositories:\n  src/limb:\n    version: sand-field\n")
-    robot_ws = tmp_path / "robot-ws"
-    agent = subprocess.Popen(
-        [sys.executable, "-m", "msctl", "agent"],
-        env=_env(
-            tmp_path,
-            router,
-            MSCTL_HOST="limb1-pc",
-            MSCTL_HOME=str(tmp_path / "robot-home"),
-            MSCTL_WORKSPACE=str(robot_ws),
-        ),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    session = open_session(
-        SessionSettings(
-            mode="peer", connect=(router,), listen=("tcp/127.0.0.1:0",), multicast=False
+    robot_ws = tmp_path / "limb1-pc-ws"
+    msctl = _ground(tmp_path, router, files)
+    with _agent(tmp_path, router, "limb1-pc"):
+        update = msctl(
+            "update", "--all", "workspace.repos", "--overlay", "sand.repos", "--json", **TERMINAL
         )
-    )
-    try:
-        with Node(session, "watcher", "/") as node:
-            wait_until(
-                lambda: "/msctl/limb1_pc" in workspace_services(node),
-                timeout=60,
-                what="the agent's workspace service",
-            )
-        ground = _env(tmp_path, router, MSCTL_HOST="ground", MSCTL_HOME=str(tmp_path / "gh"))
-
-        def msctl(*args: str) -> subprocess.CompletedProcess[str]:
-            return subprocess.run(
-                [sys.executable, "-m", "msctl", *args],
-                env=ground,
-                cwd=files,
-                capture_output=True,
-                text=True,
-                timeout=300,
-                check=False,
-            )
-
-        update = msctl("update", "--all", "workspace.repos", "--overlay", "sand.repos", "--json")
         assert update.returncode == 0, update.stderr
         (host,) = json.loads(update.stdout)["hosts"]
         assert host["host"] == "limb1-pc" and host["ok"] is True
@@ -178,15 +207,10 @@ def test_an_agent_on_loopback_updates_and_builds_its_own_workspace(
         assert sorted(host["done"]) == ["src/limb", "src/wheel"]
         assert branch(robot_ws / "src/limb") == "sand-field"
         assert head(robot_ws / "src/limb") == head(limb.scratch)
+        # One combined progress view: a row per agent, its repositories done of all.
+        assert progress_rows(update.stderr) == {"limb1-pc": "2/2 done"}
         # The robot keeps the files it was sent: its own `--status` reads them.
-        status = subprocess.run(
-            [sys.executable, "-m", "msctl", "update", "--status", "--json", "-w", str(robot_ws)],
-            env=ground,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=False,
-        )
+        status = msctl("update", "--status", "--json", "-w", str(robot_ws))
         rows = json.loads(status.stdout)["repositories"]
         assert [(r["path"], r["on_version"]) for r in rows] == [
             ("src/limb", True),
@@ -204,14 +228,98 @@ def test_an_agent_on_loopback_updates_and_builds_its_own_workspace(
         assert failed.returncode == 1
         assert "limb1-pc" in failed.stdout and "uncommitted changes" in failed.stdout
         assert "update did not succeed on limb1-pc" in failed.stderr
-    finally:
-        session.close()
-        agent.send_signal(signal.SIGTERM)
+
+
+#: An ssh that reaches no server: it says it started, then waits for ever (a radio link that
+#: went silent), so the update using it is still running when its agent is killed.
+_SILENT_SSH = """#!/bin/sh
+: > "$SILENT_SSH_MARK"
+exec cat > /dev/null
+"""
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(600)
+def test_unreachable_agents_are_named_before_and_during_a_job(tmp_path: Path, router: str) -> None:
+    limb = Remote(tmp_path, "limb")
+    files = tmp_path / "ground"
+    files.mkdir()
+    (files / "workspace.repos").write_text(repos_text({"src/limb": (limb.url, "main")}))
+    (files / "far.repos").write_text(
+        "repositories:\n  src/far:\n    type: git\n    url: ssh://far.example.org/far.git\n"
+    )
+    # A ground station whose resolved assembly (a Dragon) names four computers.
+    station = _ground(tmp_path, router, files, home="station-home")
+    assembled = station(
+        "assemble", "dragon", "--use", "limb1=gl-limb-01", "--use", "limb2=gl-limb-02"
+    )
+    assert assembled.returncode == 0, assembled.stderr
+    ssh = tmp_path / "silent-ssh"
+    ssh.write_text(_SILENT_SSH)
+    ssh.chmod(0o755)
+    mark = tmp_path / "ssh-started"
+    with _agent(
+        tmp_path, router, "gl-pi-01", GIT_SSH_COMMAND=str(ssh), SILENT_SSH_MARK=str(mark)
+    ) as agent:
+        # Only gl-pi-01 has an agent: it updates, the three others are named.
+        update = station("update", "--all", "workspace.repos", "--json")
+        assert update.returncode == 1, update.stderr
+        hosts = {h["host"]: h for h in json.loads(update.stdout)["hosts"]}
+        assert hosts["gl-pi-01"]["ok"] and hosts["gl-pi-01"]["done"] == ["src/limb"]
+        for other in ("hl-wheel-01", "hl-wheel-02", "ground1"):
+            assert hosts[other]["ok"] is False
+            assert hosts[other]["note"] == (
+                f"unreachable: no agent serves {host_namespace(other)}/workspace"
+            )
+        assert "update did not succeed on ground1, hl-wheel-01, hl-wheel-02" in " ".join(
+            update.stderr.split()
+        )
+        # An agent that dies while its job runs is named as soon as it has left the network
+        # (not after --timeout), with how far it had got. Another ground home: no assembly,
+        # so no other computer is expected.
+        running = subprocess.Popen(
+            [sys.executable, "-m", "msctl", "update", "--all", "far.repos", "--json"],
+            env=_env(
+                tmp_path, router, MSCTL_HOST="ground", MSCTL_HOME=str(tmp_path / "lone"), **TERMINAL
+            ),
+            cwd=files,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+        shown: list[bytes] = []
+        reader = threading.Thread(
+            target=lambda: shown.extend(iter(lambda: os.read(running.stderr.fileno(), 4096), b""))
+        )
+        reader.start()
         try:
-            agent.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            agent.kill()
-            agent.wait()
+            # The ground station has seen src/far under way, and the clone is in its ssh.
+            wait_until(
+                lambda: (
+                    progress_rows(b"".join(shown).decode(errors="replace")).get("gl-pi-01")
+                    == "0/1 src/far"
+                ),
+                timeout=120,
+                what="the ground station showing src/far under way",
+            )
+            wait_until(mark.exists, timeout=120, what="the agent's clone reaching its ssh")
+            os.killpg(agent.pid, signal.SIGKILL)
+            out = running.stdout.read()
+            running.wait(timeout=240)
+        finally:
+            if running.poll() is None:
+                running.kill()
+                running.wait()
+            reader.join(30)
+        assert running.returncode == 1, b"".join(shown).decode(errors="replace")
+        (host,) = json.loads(out)["hosts"]
+        assert host["host"] == "gl-pi-01" and host["ok"] is False
+        assert host["note"] == (
+            "unreachable during the update: its agent left the network "
+            "(last seen: 0/1 done, src/far)"
+        )
+        assert progress_rows(b"".join(shown).decode(errors="replace")) == {
+            "gl-pi-01": "0/1 unreachable"
+        }
 
 
 def test_an_agent_runs_one_job_at_a_time_and_reports_its_progress(tmp_path: Path) -> None:

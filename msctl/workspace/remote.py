@@ -20,7 +20,10 @@ the packages in that workspace.
 
 An update or build runs on the agent's own worker thread, one at a time (a second request
 meanwhile is refused, naming the first); the ground station asks for ``progress`` every
-half second until every agent is done, and shows one combined view.
+half second until every agent is done, and shows one combined view. Unreachable agents are
+named: those of the resolved assembly's computers that serve nothing, and those that stop
+answering mid-job (at once when the agent has left the graph, after
+:data:`MAX_MISSES` unanswered asks otherwise), with how far they had got.
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ VERBS = ("update", "build", "progress")
 MAX_ARGS_BYTES = 512 * 1024
 MAX_OVERLAYS = 16
 MAX_PACKAGES = 256
+#: Unanswered progress asks in a row after which an agent still in the graph is unreachable.
+MAX_MISSES = 3
 _ARG_KEYS = {
     "update": {"repos", "overlays", "offline", "shallow"},
     "build": {"packages_up_to", "offline"},
@@ -423,17 +428,46 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
                 for ns, answer in started.items()
             }
             waiting = set(started)
+            misses: dict[str, int] = {}
+            last_seen: dict[str, str] = {}
             while waiting and time.monotonic() < deadline:
                 for namespace in sorted(waiting):
                     try:
                         state = _call(node, services[namespace], "progress", {}, 3.0)
                     except (Refused, ServiceError) as exc:
-                        progress.update(rows[namespace], stage=f"[yellow]{exc}[/]")
+                        # A robot whose agent died or whose radio link dropped mid-job is
+                        # named now, not after the whole --timeout: at once when its agent
+                        # has left the graph, else after a few unanswered asks.
+                        misses[namespace] = misses.get(namespace, 0) + 1
+                        gone = namespace not in workspace_services(node)
+                        if gone or misses[namespace] >= MAX_MISSES:
+                            why = "its agent left the network" if gone else str(exc)
+                            seen = last_seen.get(namespace)
+                            problems[namespace] = f"unreachable during the {verb}: {why}" + (
+                                f" (last seen: {seen})" if seen else ""
+                            )
+                            waiting.discard(namespace)
+                            progress.update(rows[namespace], stage="[red]unreachable[/]")
+                        else:
+                            progress.update(rows[namespace], stage=f"[yellow]{exc}[/]")
                         continue
+                    misses[namespace] = 0
                     job = state.get("job") or {}
+                    asked = (started[namespace].get("job") or {}).get("id")
+                    if job.get("id") != asked:
+                        problems[namespace] = (
+                            f"its agent restarted during the {verb} (job {asked} is gone); "
+                            "ask again"
+                        )
+                        waiting.discard(namespace)
+                        progress.update(rows[namespace], stage="[red]restarted[/]")
+                        continue
                     items = job.get("items", {})
                     done = sum(stage in _DONE for stage in items.values())
                     busy = [n for n, s in items.items() if s not in _DONE and s != "waiting"]
+                    last_seen[namespace] = f"{done}/{len(items)} done" + (
+                        f", {', '.join(busy[:3])}" if busy else ""
+                    )
                     progress.update(
                         rows[namespace],
                         total=len(items) or None,
@@ -447,7 +481,9 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
                     time.sleep(0.5)
             for namespace in waiting:
                 problems[namespace] = f"still running after {timeout:g} s (see its agent's log)"
-    document = _summarise(verb, final, problems, expected)
+    # Each agent said its host's name when it started: name it so, not by its namespace.
+    hosts = {**expected, **{ns: a["host"] for ns, a in started.items() if a.get("host")}}
+    document = _summarise(verb, final, problems, hosts)
     if json_output:
         print_json(document)
     else:
