@@ -4,6 +4,11 @@
   ``MSCTL_TRANSPORT=rclpy`` on a computer without ROS 2 printed the same long cause once per
   process, five or six times on one line; processes failing alike are now named together
   before their one cause, and the command ends at once (exit 3), never running its ``--for``.
+- Point 18: a Ctrl-C while it is still starting stops it within moments (it took 13 s: the
+  launcher waited for the router, opened its session, then gave every interrupted worker 2 s),
+  exits 130 with one line, and leaves no ``KeyboardInterrupt`` traceback in any log (every
+  worker interrupted while Python started, imported or built printed one, and so did the
+  ``glfw`` probe MuJoCo's import starts in the simulator's process group).
 
 Each test runs the real command in a subprocess with its own MSCTL_HOME and router port.
 """
@@ -18,17 +23,29 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_port
+from conftest import free_port, wait_until
 
 from msctl.commands.up import _failure_error
-from msctl.launcher import state
+from msctl.launcher import boot, state
 
 ROOT = Path(__file__).resolve().parents[1]
+
+#: The Dragon's processes on a computer that is none of its own (all simulated).
+DRAGON_PROCESSES = {"router", "sim", "limb1", "limb2", "wheel1", "wheel2"}
+
+#: Seconds a Ctrl-C may take to stop everything here: generous, for a loaded machine (on a
+#: quiet one it takes about a second; the figure is printed).
+STOP_BOUND = 15.0
+
+#: What no log may hold after a Ctrl-C: Python's traceback of an interrupted program, and its
+#: own when it is interrupted before it runs a line (while importing ``site``).
+TRACEBACK_SIGNS = ("Traceback", "KeyboardInterrupt", "Fatal Python error")
 
 
 class Foreground:
@@ -161,6 +178,102 @@ def foreground(tmp_path: Path) -> Iterator[Foreground]:
         yield current
     finally:
         current.clean_up()
+
+
+# ------------------------------------------------------------------------------ point 18
+@pytest.mark.e2e
+@pytest.mark.parametrize("moment", ["announced", "spawned", "building"])
+def test_ctrl_c_while_starting_stops_at_once_with_one_line_and_no_traceback(
+    foreground: Foreground, moment: str
+) -> None:
+    """Ctrl-C at three moments of the start: as the command announces what it starts, once
+    every process is spawned (each still in Python's start-up or its imports), and once a
+    worker builds its components."""
+    proc = foreground.start("up", "dragon", "--for", "600")
+    # The line it prints as it starts the router and the processes.
+    wait_until(lambda: foreground.said("components in"), timeout=120.0, what="the start")
+    if moment == "spawned":
+        wait_until(
+            lambda: foreground.logs_saying("--- msctl: starting") >= DRAGON_PROCESSES,
+            timeout=60.0,
+            what="every process spawned",
+        )
+    elif moment == "building":
+        wait_until(
+            lambda: foreground.logs_saying("INFO msctl.worker: built "),
+            timeout=120.0,
+            what="a worker building",
+        )
+    interrupted = time.monotonic()
+    foreground.interrupt()
+    try:
+        code = proc.wait(timeout=STOP_BOUND)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(
+            f"msctl up still running {STOP_BOUND:g} s after Ctrl-C:\n" + foreground.stderr()
+        ) from None
+    took = time.monotonic() - interrupted
+    print(f"\nCtrl-C ({moment}) -> msctl up exited in {took:.2f} s")
+    stderr = foreground.stderr()
+    assert " up in " not in stderr, "it was up before the Ctrl-C: nothing was tested"
+    # Interrupted before it did what it was asked: 130 and one line, as every msctl command.
+    assert code == 130, stderr
+    assert stderr.splitlines()[-1] == "interrupted", stderr
+    assert "dragon stopped on test-laptop" in stderr
+    assert "Traceback" not in stderr
+    logs = sorted(foreground.log_dir().glob("*.log"))
+    if moment != "announced":  # (announced: it may stop before it started anything)
+        assert {log.stem for log in logs} >= DRAGON_PROCESSES, logs
+    for log in logs:
+        text = log.read_text(errors="replace")
+        for sign in TRACEBACK_SIGNS:
+            assert sign not in text, f"{log.name}:\n{text}"
+    document = foreground.state()
+    assert document is not None and document["state"] == "stopped"
+    assert not [p for p in document["processes"] if p["pid"] is not None], document
+    assert not foreground.leftovers()
+
+
+@pytest.mark.e2e
+def test_a_booted_process_interrupted_before_its_first_line_ends_quietly(tmp_path: Path) -> None:
+    """What the launcher starts, it starts through :mod:`msctl.launcher.boot` with SIGINT held:
+    a SIGINT while the interpreter still starts (which printed "Fatal Python error:
+    init_import_site" and a traceback) waits, then ends it, silently, before the program runs.
+    """
+    (tmp_path / "never_reached.py").write_text("print('ran')\n")
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
+    with boot.held_sigint():
+        proc = subprocess.Popen(
+            boot.argv("never_reached"),
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        os.killpg(proc.pid, signal.SIGINT)  # before it can have run a line
+    out, err = proc.communicate(timeout=60.0)
+    assert proc.returncode == -signal.SIGINT, err
+    assert (out, err) == ("", "")
+
+
+@pytest.mark.e2e
+def test_boot_runs_the_module_as_main_with_its_arguments(tmp_path: Path) -> None:
+    (tmp_path / "echo_args.py").write_text(
+        "import signal, sys\n"
+        "print(__name__, sys.argv[1:], signal.getsignal(signal.SIGINT) is signal.SIG_DFL)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
+    result = subprocess.run(
+        boot.argv("echo_args", "--lock", "x", "-v"),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60.0,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "__main__ ['--lock', 'x', '-v'] True"
 
 
 # ------------------------------------------------------------------------------ point 15

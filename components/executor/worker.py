@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -61,17 +63,38 @@ def main(argv: list[str] | None = None) -> int:
         log.info("built %s (%s)", name, plan.kind)
         return item
 
+    # Started through msctl.launcher.boot, a SIGINT ended this process at once until here
+    # (nothing to close). While building (the supervisor stopping a run still starting), one
+    # is noted and acted on between components, what was built closed: raised as
+    # KeyboardInterrupt inside the builders' imports instead, it can turn into another error
+    # (MuJoCo's extension then fails with an ImportError) and a traceback.
+    interrupted = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: interrupted.set())
     built = []
     try:
         for name in args.component:
+            if interrupted.is_set():
+                raise KeyboardInterrupt
             built.append(build(name))
+        if interrupted.is_set():
+            raise KeyboardInterrupt
     except (BuildError, AssemblyError, KeyError) as exc:
         for item in built:
             item.close()
         print(f"error: cannot build {name}: {exc}", file=sys.stderr)
         return 3
+    except KeyboardInterrupt:
+        for item in built:
+            item.close()
+        log.info("stopped while building (SIGINT)")
+        return 0
     transport = os.environ.get("MSCTL_TRANSPORT", "zenoh")
     try:
+        # Built: until the executor takes SIGINT over, it interrupts at once, not after
+        # every component is bound.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        if interrupted.is_set():
+            raise KeyboardInterrupt
         if transport == "rclpy":
             _run_on_rclpy(built, args.duration)
         elif transport == "zenoh":
@@ -89,6 +112,11 @@ def main(argv: list[str] | None = None) -> int:
     except (SessionConfigError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3
+    except KeyboardInterrupt:  # before the executor ran
+        for item in built:
+            item.close()  # what run_built had not closed yet (closing is idempotent)
+        log.info("stopped while starting (SIGINT)")
+        return 0
     log.info("stopped cleanly")
     return 0
 

@@ -169,13 +169,20 @@ def _run_foreground(
     launch = Launch(
         assembly, plan, speed=speed, liveness=LivenessPolicy(kill_after=kill_unresponsive)
     )
+    signals: list[int] = []  # the stop signals received, first first
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        signals.append(signum)
+        launch.request_stop()
+
     previous = {
-        s: signal.signal(s, lambda *_: launch.request_stop())
+        s: signal.signal(s, on_signal)
         # SIGHUP: the operator's terminal or SSH link went away; stop as for Ctrl-C, or
         # every process group would be left running with a state file naming a dead pid.
         for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
     daemon = os.environ.get(_DAEMON_ENV) == "1"
+    interrupted_starting = False
     try:
         mode = "simulation" if plan.simulated else "hardware"
         err.print(
@@ -208,7 +215,7 @@ def _run_foreground(
             disable=daemon,
         ) as progress:
             task = progress.add_task("starting", total=len(plan.components))
-            while not launch.all_healthy():
+            while not launch._stop and not launch.all_healthy():
                 launch.step()
                 views = launch.components()
                 healthy = sum(v.state == "running" for v in views)
@@ -228,11 +235,19 @@ def _run_foreground(
             launch.write_state()
             _print_summary(launch, elapsed)
             launch.run(None if duration is None else max(0.0, duration - elapsed), _print_events)
+        else:
+            # A Ctrl-C before the run was up: it never did what was asked, so the command
+            # ends as every interrupted msctl command does (one line, 130), and a script's
+            # `msctl up dragon && ...` goes no further. Once up, Ctrl-C is how a foreground
+            # run ends: 0, as for SIGTERM and SIGHUP at any time.
+            interrupted_starting = bool(signals) and signals[0] == signal.SIGINT
     finally:
         launch.shutdown()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         err.print(f"{assembly.template} stopped on {plan.host}", highlight=False)
+    if interrupted_starting:
+        raise KeyboardInterrupt
 
 
 _printed_events = 0

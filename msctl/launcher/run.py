@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import queue
 import socket
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -19,7 +18,7 @@ from typing import Any
 from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionSettings, open_session
-from msctl.launcher import state
+from msctl.launcher import boot, state
 from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
 from msctl.launcher.plan import HostPlan
 from msctl.launcher.supervisor import (
@@ -89,24 +88,43 @@ def listen_endpoint_for(connect_endpoint: str) -> str:
 def start_router(supervisor: Supervisor, endpoint: str) -> ManagedProcess:
     """Start an embedded router (``msctl router``) as a supervised process for ``endpoint``."""
     router = supervisor.add(
-        ROUTER_PROCESS,
-        [sys.executable, "-m", "msctl", "router", "--listen", listen_endpoint_for(endpoint)],
+        ROUTER_PROCESS, boot.argv("msctl", "router", "--listen", listen_endpoint_for(endpoint))
     )
-    supervisor.start(router.name)
+    # Stopped while it still starts, it ends quietly (msctl.launcher.boot).
+    with boot.held_sigint():
+        supervisor.start(router.name)
     return router
 
 
 def wait_for_router(
-    supervisor: Supervisor, router: ManagedProcess, endpoint: str, timeout: float = 10.0
-) -> None:
+    supervisor: Supervisor,
+    router: ManagedProcess,
+    endpoint: str,
+    timeout: float = 10.0,
+    stopping: Callable[[], bool] | None = None,
+) -> bool:
     """Wait until the embedded router answers on ``endpoint``; mark it running.
+
+    Args:
+        supervisor: The supervisor that started it.
+        router: Its process.
+        endpoint: Where it listens.
+        timeout: Seconds to wait for it.
+        stopping: Polled while waiting: once it says so, stop waiting (a Ctrl-C during
+            start-up must not wait for a router that is about to be stopped anyway).
+
+    Returns:
+        Whether it answers (``False``: ``stopping`` said to stop first).
 
     Raises:
         RuntimeError: If it failed or did not answer within ``timeout`` (with its last error).
     """
     deadline = time.monotonic() + timeout
     while not router_reachable(endpoint):
-        supervisor.poll()
+        if stopping is not None and stopping():
+            return False
+        with boot.held_sigint():  # it may restart the router
+            supervisor.poll()
         if router.state is ProcessState.FAILED or time.monotonic() > deadline:
             raise RuntimeError(
                 f"the embedded router could not listen on {endpoint}: "
@@ -114,6 +132,7 @@ def wait_for_router(
             )
         time.sleep(0.02)
     supervisor.mark_running(ROUTER_PROCESS)
+    return True
 
 
 @dataclass
@@ -183,25 +202,38 @@ class Launch:
         the router's start-up, so waiting for it first only added its start-up time. The
         launcher's own session (and so the health watch) opens once the router answers,
         still before any component has been built.
+
+        A :meth:`request_stop` meanwhile (a Ctrl-C) ends it early, before the session opens:
+        what was started is stopped by :meth:`shutdown`, and nothing waits for what would
+        only be closed again.
         """
         router = None
+        if self._stop:
+            return
         if self.endpoint and not router_reachable(self.endpoint):
             router = start_router(self.supervisor, self.endpoint)
             self.started_router = True
             self._start_processes()
-            wait_for_router(self.supervisor, router, self.endpoint)
+            if not wait_for_router(
+                self.supervisor, router, self.endpoint, stopping=lambda: self._stop
+            ):
+                return
+        if self._stop:
+            return
         self.session = open_session(replace(self.settings, mode="peer"))
         self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
+        if self._stop:
+            return  # serving requests would first import the node machinery, for nothing
         if self.serve_control:
             self._serve_control()
-        if router is None:
+        if router is None and not self._stop:
             self._start_processes()
         self.write_state()
 
     def _start_processes(self) -> None:
         lock = self.assembly.lock_path
         for process in self.plan.processes:
-            argv = [sys.executable, "-m", "components.executor.worker", "--lock", str(lock)]
+            argv = boot.argv("components.executor.worker", "--lock", str(lock))
             for component in process.components:
                 argv += ["--component", component.name]
             if any(kinds.get(c.kind).stands_in_for for c in process.components):
@@ -213,7 +245,10 @@ class Launch:
                 final_exits=WORKER_FINAL_EXITS,
                 heartbeat=True,
             )
-            self.supervisor.start(process.name)
+            # A Ctrl-C on a run still starting ends a worker quietly, even one that has
+            # not reached its first line yet (msctl.launcher.boot).
+            with boot.held_sigint():
+                self.supervisor.start(process.name)
 
     def _serve_control(self) -> None:
         from components.comm.node import Node
@@ -226,6 +261,11 @@ class Launch:
     # ------------------------------------------------------------------ loop
     def step(self) -> None:
         """One turn of the loop: processes, health, requests, state file."""
+        # What it restarts starts like the first ones (see _start_processes).
+        with boot.held_sigint():
+            self._step()
+
+    def _step(self) -> None:
         events = self.supervisor.poll()
         for event in events:
             self.events.append(event)
