@@ -43,8 +43,14 @@ def main() -> None:
                 raise
             from rich.markup import escape
 
+            from components.comm.session import SessionConfigError
             from msctl.console import err
 
+            if isinstance(exc, SessionConfigError):
+                # Session settings come from MSCTL_ZENOH_* in the environment, whichever
+                # command reads them: the operator's input, not our bug.
+                err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
+                sys.exit(2)
             err.print(
                 f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))} "
                 "(run again with MSCTL_DEBUG=1 for the traceback, and report it)",

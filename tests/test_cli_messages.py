@@ -185,3 +185,18 @@ def test_down_all_with_nothing_running_is_done(tmp_path: Path, zenoh_env: dict[s
     result = _msctl("down", "--all", env={**zenoh_env, **home})
     assert result.returncode == 0, result.stderr
     assert "nothing is running" in result.stderr, result.stderr
+
+
+@pytest.mark.e2e
+def test_a_bad_session_variable_is_the_operators_error_naming_it(tmp_path: Path) -> None:
+    env = {
+        "MSCTL_HOME": str(tmp_path / "home"),
+        "MSCTL_HOST": "test-laptop",
+        "MSCTL_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}",
+        "MSCTL_ZENOH_LISTEN": "garbage",
+        "MSCTL_ZENOH_MULTICAST": "0",
+    }
+    result = _msctl("up", "minimal", "--for", "1", env=env)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().startswith("error: MSCTL_ZENOH_LISTEN: endpoint 'garbage'")
+    assert "internal error" not in result.stderr
