@@ -3,10 +3,13 @@
 The launcher starts one of these per process group (a module, the simulator, a ground
 station) with an argument list made only from the assembly's own data::
 
-    python -m components.executor.worker --lock PATH --component limb1/joint_manager ...
+    python -m msctl.launcher.boot components.executor.worker --lock PATH --component ...
 
-Under a supervisor, the executor loop beats a heartbeat pipe the supervisor hands down
-(``MSCTL_HEARTBEAT_FD``, :mod:`components.executor.heartbeat`), so a frozen worker is noticed.
+(:mod:`msctl.launcher.boot` first makes an early Ctrl-C end it silently; run by hand,
+``python -m components.executor.worker ...`` works the same.) Under a supervisor, the executor
+loop beats a heartbeat pipe the supervisor hands down (``MSCTL_HEARTBEAT_FD``,
+:mod:`components.executor.heartbeat`), so a frozen worker is noticed, and reads its orders
+(``MSCTL_ORDERS_FD``, :mod:`components.executor.orders`: rebuild one component alone).
 
 Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 3 when a component cannot be built (the
 reason is the last line of stderr, which the launcher shows), 2 for bad arguments.
