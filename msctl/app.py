@@ -42,6 +42,7 @@ _COMMANDS: dict[str, str] = {
     "run": "msctl.commands.run",
     "record": "msctl.commands.record",
     "health": "msctl.commands.health",
+    "teleop": "msctl.commands.teleop",
     "update": "msctl.commands.update",
     "build": "msctl.commands.build",
 }

@@ -364,19 +364,7 @@ class IkSyncer(Commander):
         slots = list(goals or twists)
         lines = {}
         for slot in slots:
-            limb = self.limbs[slot]
-            measured_q = self._measured_q(limb)  # every joint heard from, or a clear error
-            start = limb.solver.chain.tip(measured_q)
-            # Continue from the last joint command while the joints are near it: restarting
-            # from the measurement would drop a loaded limb by its tracking error.
-            sent = [limb.handler.last_command.get(n) for n in limb.names]
-            limb.last_q = None
-            if all(v is not None for v in sent):
-                q_sent = np.array(sent, dtype=float)
-                if np.abs(q_sent - measured_q).max() <= self.settings.delta:
-                    limb.last_q = q_sent
-                    start = limb.solver.chain.tip(q_sent)
-            self._planners[slot] = self._new_planner(limb)
+            start = self.prepare(slot)
             if slot in goals:
                 lines[slot] = Line(start, goals[slot])
         description = f"ik {mode} {'+'.join(slots)}"
@@ -385,6 +373,33 @@ class IkSyncer(Commander):
             await self._drive(mode, lines, twists, motion, duration)
 
         return self._launch(description, body)
+
+    def prepare(self, slot: str) -> pin.SE3:
+        """Start a limb's next motion: from its last joint command while the joints are near
+        it, else from the measured joints; returns the tip pose it starts from.
+
+        Every motion does this first; a caller that ticks :meth:`step` itself (the teleop's
+        tip jog) calls it at the start of each of its motions.
+
+        Raises:
+            JointNotReadyError: If a joint of the limb has no measured position yet.
+        """
+        limb = self._limb(slot)
+        measured_q = self._measured_q(limb)  # every joint heard from, or a clear error
+        start = limb.solver.chain.tip(measured_q)
+        # Continue from the last joint command while the joints are near it: restarting
+        # from the measurement would drop a loaded limb by its tracking error.
+        sent = [limb.handler.last_command.get(n) for n in limb.names]
+        limb.last_q = None
+        if all(v is not None for v in sent):
+            q_sent = np.array(sent, dtype=float)
+            if np.abs(q_sent - measured_q).max() <= self.settings.delta:
+                limb.last_q = q_sent
+                start = limb.solver.chain.tip(q_sent)
+        # speed_safe steps on from the last waypoint: this motion's first is its start.
+        limb.last_pose = start
+        self._planners[limb.slot] = self._new_planner(limb)
+        return start
 
     def step(
         self,

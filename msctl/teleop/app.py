@@ -1,0 +1,410 @@
+"""The ``msctl teleop`` screen: keys to the operator, and what moves, at a glance.
+
+The screen is thin: every key goes to the :class:`~msctl.teleop.operator.Operator` (which
+owns the core, the deadman and the wire, on its own thread), except the few the app binds
+itself: ``space`` e-stops every module this operator commands, ``escape``/``ctrl+c`` stop and
+quit, ``ctrl+r`` recovers after an e-stop. Losing the terminal's focus (textual's
+``AppBlur``) stops the motion.
+
+It shows the mode and speed, the commanded modules, the deadman (moving or stopped, and why),
+the selected joint's position as a bar between its limits (the limb's joints in IK mode, the
+twist in drive mode), the health board's latest alarm and the key help. It reads the
+operator, the joint handlers and the health board at a bounded rate; nothing on a Zenoh
+thread touches a widget (e-stop answers come back as messages from a worker thread).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+from rich.text import Text
+from textual import events
+from textual.app import App, ComposeResult
+from textual.binding import Binding
+from textual.css.query import NoMatches
+from textual.message import Message
+from textual.widgets import Static
+
+from components.data_monitor.board import level_name
+from components.messages import ERROR, OK, STALE, WARN
+from msctl.teleop.core import TeleopView
+from msctl.teleop.keys import COMMON_HELP, HELP, IK, JOINT
+from msctl.teleop.operator import Operator
+
+#: Seconds between two redraws (10 Hz), however fast keys and samples come.
+REFRESH_PERIOD = 0.1
+#: Redraws between two looks at the health board.
+ALARM_EVERY = 5
+#: Characters of a joint's bar between its limits.
+BAR_WIDTH = 32
+
+_LEVEL_STYLES = {OK: "green", WARN: "bold yellow", ERROR: "bold white on red", STALE: "magenta"}
+
+
+def bar(position: float | None, lower: float, upper: float, width: int = BAR_WIDTH) -> str:
+    """A joint's position between its limits, as ``[----●-------]``.
+
+    A joint without limits (continuous) or without a reading gets a plain word instead.
+    """
+    if not (math.isfinite(lower) and math.isfinite(upper)) or upper <= lower:
+        return "(no limits: continuous)".center(width + 2)
+    if position is None or not math.isfinite(position):
+        return "[" + "?" * width + "]"
+    fraction = min(max((position - lower) / (upper - lower), 0.0), 1.0)
+    at = round(fraction * (width - 1))
+    return "[" + "─" * at + "●" + "─" * (width - 1 - at) + "]"
+
+
+def speed_text(view: TeleopView) -> str:
+    """The mode's speeds with their units."""
+    s = view.speeds
+    if view.mode == JOINT:
+        return f"{s['joint_speed']:.3g} rad/s (m/s prismatic)"
+    if view.mode == IK:
+        return f"{s['tip_speed']:.3g} m/s, {s['tip_turn']:.3g} rad/s"
+    return f"{s['drive_speed']:.3g} m/s, turn {s['drive_turn']:.3g} rad/s"
+
+
+def key_name(event: events.Key) -> str:
+    """The key as the layouts name it: the character typed when printable, else textual's
+    name (``up``, ``tab``, ``shift+tab``)."""
+    character = event.character
+    if character and len(character) == 1 and character.isprintable() and not character.isspace():
+        return character
+    return event.key
+
+
+class TeleopApp(App[None]):
+    """``msctl teleop``.
+
+    Args:
+        operator: The running operator (its core and outputs).
+        link: The link to the assembly (:class:`~msctl.teleop.link.Link`): joint readings,
+            the latest alarm, halt and recover.
+        template: The assembly's name, for the header.
+        claims: Text for the claims line (who holds what), or None.
+        refresh_period: Seconds between redraws.
+        duration: Quit after this many seconds (None: when asked).
+    """
+
+    CSS_PATH = "teleop.tcss"
+    TITLE = "msctl teleop"
+    BINDINGS = [
+        Binding("space", "estop", "E-stop", priority=True),
+        Binding("escape", "stop_and_quit", "Stop and quit", priority=True),
+        Binding("ctrl+c", "stop_and_quit", "Stop and quit", priority=True, show=False),
+        Binding("ctrl+r", "recover", "Recover", priority=True),
+    ]
+
+    class Acknowledged(Message):
+        """Halt or recover answers came back (from a worker thread)."""
+
+        def __init__(self, verb: str, answers: Sequence[Any]) -> None:
+            super().__init__()
+            self.verb = verb
+            self.answers = list(answers)
+
+    def __init__(
+        self,
+        operator: Operator,
+        link: Any,
+        template: str = "",
+        claims: str | None = None,
+        refresh_period: float = REFRESH_PERIOD,
+        duration: float | None = None,
+    ) -> None:
+        super().__init__()
+        self.operator = operator
+        self.link = link
+        self.template = template
+        self.claims = claims
+        self.refresh_period = refresh_period
+        self._duration = duration
+        self.refreshes = 0
+        #: The latest alarm shown.
+        self.alarm: Any = None
+        #: The latest status line (e-stop answers, refusals, failures).
+        self.status = ""
+        #: The modules e-stopped and not recovered since.
+        self.estopped: list[str] = []
+        #: Every halt or recover answer received, oldest first.
+        self.answers: list[tuple[str, Any]] = []
+        self._failures_seen = 0
+
+    # ------------------------------------------------------------------ layout
+    def compose(self) -> ComposeResult:
+        """Header, e-stop banner, claims, deadman, target, alarm, status, key help."""
+        yield Static(id="header")
+        yield Static(id="estop")
+        yield Static(id="claims")
+        yield Static(id="deadman")
+        yield Static(id="target")
+        yield Static(id="alarm")
+        yield Static(id="status")
+        yield Static(id="help")
+
+    def on_mount(self) -> None:
+        """Draw, then redraw at the bounded rate."""
+        self.redraw()
+        self.set_interval(self.refresh_period, self.redraw)
+        if self._duration:
+            self.set_timer(self._duration, self.action_stop_and_quit)
+
+    # ------------------------------------------------------------------ keys
+    def on_key(self, event: events.Key) -> None:
+        """Every key not bound by the app goes to the operator."""
+        event.stop()
+        event.prevent_default()
+        result = self.operator.press(key_name(event))
+        if result in ("mode", "select", "refused", "speed"):
+            self.redraw()
+
+    def on_app_blur(self, event: events.AppBlur) -> None:
+        """The terminal lost focus: stop (keys typed elsewhere must not be missed here)."""
+        self.operator.stop("focus lost")
+
+    def action_stop_and_quit(self) -> None:
+        """Stop (the one stop is on the wire before the app exits), then quit."""
+        self.operator.close("quit")
+        self.exit()
+
+    def action_estop(self) -> None:
+        """Stop, and halt every commanded module through its joint manager's ``halt``."""
+        self.operator.stop("e-stop")
+        modules = list(self.link.modules)
+        self.estopped = modules
+        self.status = f"E-STOP: halting {', '.join(modules)} ..."
+        self.redraw()
+        self.run_worker(lambda: self._call("halt", modules), thread=True, group="estop")
+
+    def action_recover(self) -> None:
+        """Recover the e-stopped (or every commanded) module."""
+        modules = self.estopped or list(self.link.modules)
+        self.status = f"recovering {', '.join(modules)} ..."
+        self.run_worker(lambda: self._call("recover", modules), thread=True, group="recover")
+
+    def _call(self, verb: str, modules: list[str]) -> None:
+        try:
+            answers = getattr(self.link, verb)(modules)
+        except Exception as exc:  # reported on screen; the worker must not die silently
+            answers = [_Failed(m, str(exc)) for m in modules]
+        self.post_message(self.Acknowledged(verb, answers))
+
+    def on_teleop_app_acknowledged(self, message: Acknowledged) -> None:
+        """Show each module's answer and its time."""
+        self.answers.extend((message.verb, a) for a in message.answers)
+        failed = [a for a in message.answers if not a.ok]
+        parts = [
+            f"{a.module} {'ok' if a.ok else 'NO ANSWER'} {a.seconds * 1e3:.0f} ms"
+            for a in message.answers
+        ]
+        self.status = f"{message.verb}: " + ", ".join(parts)
+        if failed:
+            self.status += " — " + "; ".join(f"{a.module}: {a.message}" for a in failed)
+        if message.verb == "recover" and not failed:
+            self.estopped = []
+        self.redraw()
+
+    # ------------------------------------------------------------------ drawing
+    def redraw(self) -> None:
+        """Draw every part from the operator's and the link's state now."""
+        try:
+            self._draw()
+        except NoMatches:
+            pass  # mounting, or the app is closing: the next redraw (if any) draws it
+
+    def _draw(self) -> None:
+        self.refreshes += 1
+        view = self.operator.view()
+        self.query_one("#header", Static).update(self._header(view))
+        banner = self.query_one("#estop", Static)
+        banner.set_class(bool(self.estopped), "shown")
+        banner.update(
+            f"E-STOPPED: {', '.join(self.estopped)} (ctrl+r recovers)" if self.estopped else ""
+        )
+        claims = self.claims or "claims: none held (this msctl has no claims yet)"
+        self.query_one("#claims", Static).update(
+            Text(f"modules: {', '.join(self.link.modules)}    {claims}")
+        )
+        self.query_one("#deadman", Static).update(self._deadman(view))
+        self.query_one("#target", Static).update(self._target(view))
+        if self.refreshes % ALARM_EVERY == 1:
+            self.alarm = self.link.latest_alarm()
+        self.query_one("#alarm", Static).update(self._alarm())
+        if self.operator.failures != self._failures_seen:
+            self._failures_seen = self.operator.failures
+            self.status = self.operator.last_error
+        status = self.status or view.note
+        self.query_one("#status", Static).update(Text(status, style="italic"))
+        self.query_one("#help", Static).update(Text(f"{HELP[view.mode]}\n{COMMON_HELP}"))
+
+    def _header(self, view: TeleopView) -> Text:
+        text = Text()
+        text.append(" msctl teleop ", style="bold")
+        text.append(f"{self.template}  ")
+        text.append(f"mode {view.mode.upper()}", style="bold cyan")
+        text.append(f"  speed {speed_text(view)}")
+        text.append("  " + time.strftime("%H:%M:%S"))
+        return text
+
+    def _deadman(self, view: TeleopView) -> Text:
+        if view.moving:
+            timeout = "repeating" if view.repeating else "first press"
+            return Text(f"MOVING  key {view.key!r} ({timeout})", style="bold green")
+        why = f" ({view.stopped_because})" if view.stopped_because else ""
+        return Text(f"stopped{why}", style="bold")
+
+    def _target(self, view: TeleopView) -> Text:
+        if view.mode == JOINT:
+            return self._joints(view.module, view.joint, view.modules)
+        if view.mode == IK:
+            return self._limb(view.limb)
+        return self._drive(view)
+
+    def _joints(self, module: str | None, selected: str | None, modules: Sequence[str]) -> Text:
+        text = Text()
+        for slot in modules:
+            text.append(f" {slot} ", style="reverse bold" if slot == module else "")
+        text.append("\n")
+        if module is not None:
+            text.append_text(self._joint_rows(module, selected))
+        return text
+
+    def _joint_rows(self, module: str, selected: str | None) -> Text:
+        """One row per joint: its position as a bar between its limits."""
+        text = Text()
+        for joint in self.link.joints().get(module, ()):
+            position, lower, upper = self.link.joint_state(module, joint)
+            mark = ">" if joint == selected else " "
+            style = "bold" if joint == selected else "dim"
+            shown = "-" if position is None else f"{position:+.3f}"
+            text.append(
+                f"{mark} {joint:<24} {lower:+7.2f} {bar(position, lower, upper)} "
+                f"{upper:+7.2f}  {shown}\n",
+                style=style,
+            )
+        return text
+
+    def _limb(self, limb: str | None) -> Text:
+        text = Text()
+        for slot in self.link.limbs:
+            text.append(f" {slot} ", style="reverse bold" if slot == limb else "")
+        text.append("\n")
+        if limb is None:
+            return text
+        text.append(f"tip of {limb} in its base frame: {self._tip(limb)}\n")
+        text.append_text(self._joint_rows(limb, None))
+        return text
+
+    def _tip(self, limb: str) -> str:
+        try:
+            pose = self.link.tips.syncer.tip(limb)
+        except Exception as exc:  # no reading yet: say so in place of the pose
+            return f"unknown ({exc})"
+        x, y, z = pose.translation
+        return f"x {x:+.3f}  y {y:+.3f}  z {z:+.3f} m"
+
+    def _drive(self, view: TeleopView) -> Text:
+        text = Text(f"Twist on {self.link.drive_target}\n")
+        if view.moving:
+            text.append("commanding (see the key held above)\n", style="green")
+        text.append(
+            f"linear speed {view.speeds['drive_speed']:.3g} m/s, "
+            f"turn {view.speeds['drive_turn']:.3g} rad/s\n"
+        )
+        return text
+
+    def _alarm(self) -> Text:
+        alarm = self.alarm
+        if alarm is None:
+            return Text("latest alarm: none", style="dim")
+        text = Text("latest alarm: ")
+        text.append(level_name(alarm.after), style=_LEVEL_STYLES.get(alarm.after, ""))
+        text.append(" " + alarm.line())
+        return text
+
+
+class _Failed:
+    """A halt or recover that raised before any module answered."""
+
+    def __init__(self, module: str, message: str) -> None:
+        self.module = module
+        self.ok = False
+        self.message = message
+        self.seconds = 0.0
+
+
+def run_app(
+    assembly: Any,
+    modules: Sequence[str] = (),
+    mode: str = JOINT,
+    settings: Any = None,
+    cmd_vel: str | None = None,
+    stamped: bool = False,
+    duration: float | None = None,
+) -> None:
+    """Run the screen on the data plane until the operator quits (or ``duration`` passes).
+
+    Whatever ends it (quit, an exception, a signal), any motion ends with its one stop on the
+    wire before the session closes.
+
+    Raises:
+        InputError: If the mode cannot be used with these modules.
+    """
+    from msctl.errors import InputError
+    from msctl.plane import connected
+    from msctl.teleop.core import TeleopCore
+    from msctl.teleop.link import Link
+
+    with connected("teleop") as node:
+        link = Link.open(node, assembly, modules, cmd_vel=cmd_vel, stamped=stamped)
+        try:
+            why = link.unavailable.get(mode)
+            if why:
+                raise InputError(f"--mode {mode}: {why}")
+            try:
+                core = TeleopCore(settings, link.joints(), link.limbs, link.drive_target, mode)
+            except ValueError as exc:
+                raise InputError(f"--mode {mode}: {exc}") from exc
+            operator = Operator(core, link.outputs()).start()
+            app = TeleopApp(operator, link, template=assembly.template, duration=duration)
+            try:
+                with _quit_on_signals(app):
+                    app.run()
+            finally:
+                # textual ends the app on an exception in a handler (printing it itself)
+                # with a non-zero return code; anything raised here leaves it None.
+                operator.close("quit" if app.return_code == 0 else "crash")
+        finally:
+            link.close()
+    if app.return_code:
+        raise SystemExit(app.return_code)
+
+
+@contextmanager
+def _quit_on_signals(app: TeleopApp) -> Iterator[None]:
+    """SIGTERM and SIGHUP (the terminal went away) stop and quit like Esc."""
+    import signal
+    import threading
+
+    def leave(signum: int, _frame: Any) -> None:
+        # A handler runs on the app's own thread between two of its steps: ask from
+        # another thread, as textual wants.
+        def ask() -> None:
+            try:
+                app.call_from_thread(app.action_stop_and_quit)
+            except Exception:
+                pass  # the app is gone already: run_app's finally stops
+
+        threading.Thread(target=ask, daemon=True).start()
+
+    previous = {number: signal.signal(number, leave) for number in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)

@@ -1,0 +1,349 @@
+"""The teleop's link to the running assembly: what each mode commands and how, health, halt.
+
+Opened on a node of the caller's (``msctl.plane.connected``), it asks every commanded
+module's joint manager for its joints and limits (``/<slot>/joints``), follows their
+``joint_read`` (the Python API's :class:`~components.api.joints.JointHandler`), builds the IK
+syncer of the limbs from the resolved assembly's URDF, the ``cmd_vel`` publisher of a mobile
+assembly, and a live health board for the latest alarm. Everything it declares it undeclares
+in :meth:`Link.close`; the node and its session stay the caller's.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from components.assembly import ResolvedAssembly
+from components.messages import TRIGGER
+from msctl.errors import InputError, NetworkError, NotFoundError, did_you_mean
+from msctl.teleop.keys import DRIVE, IK, JOINT
+from msctl.teleop.wire import JointJog, Output, TipJog, TwistDrive
+
+log = logging.getLogger(__name__)
+
+#: Seconds to wait for a module's joint manager to list its joints, or answer a halt.
+ANSWER_TIMEOUT = 5.0
+HALT_TIMEOUT = 2.0
+
+
+@dataclass(frozen=True)
+class Acknowledged:
+    """One module's answer to a halt or recover.
+
+    Attributes:
+        module: The module.
+        ok: It answered with success.
+        message: What it said (or why there was no answer).
+        seconds: From the call to the answer.
+    """
+
+    module: str
+    ok: bool
+    message: str
+    seconds: float
+
+
+def robots_of(assembly: ResolvedAssembly) -> dict[str, str]:
+    """Each module's robot, named by the robot's root module: modules joined by connections
+    (``limb1.tip`` carries ``wheel1.mount``) form one robot."""
+    parent: dict[str, str] = {m.slot: m.slot for m in assembly.modules}
+
+    def find(slot: str) -> str:
+        while parent[slot] != slot:
+            parent[slot] = parent[parent[slot]]
+            slot = parent[slot]
+        return slot
+
+    for connection in assembly.connections:
+        a = find(connection.parent.split(".", 1)[0])
+        b = find(connection.child.split(".", 1)[0])
+        if a != b:
+            parent[b] = a
+    # Each group is named by its robot's root as the assembler placed it.
+    names = {find(robot.root): robot.root for robot in assembly.lock.robots if robot.root in parent}
+    return {slot: names.get(find(slot), find(slot)) for slot in parent}
+
+
+def root_link(assembly: ResolvedAssembly, robot: str) -> str:
+    """The root link of the robot named by its root module (a stamped Twist's frame)."""
+    for placement in assembly.lock.robots:
+        if placement.root == robot:
+            return placement.root_link
+    return assembly.module(robot).root_link
+
+
+def cmd_vel_topic(assembly: ResolvedAssembly, modules: Sequence[str]) -> str | None:
+    """The ``cmd_vel`` of the robot the modules belong to: ``/cmd_vel`` when the assembly is
+    one robot, ``/<robot's root module>/cmd_vel`` when it has several; None when the
+    assembly does not move or the modules span several robots."""
+    # Something to drive: a mobile assembly with velocity-controlled joints (wheels).
+    rolling = any(j.control == "velocity" for m in assembly.modules for j in m.joints)
+    if not assembly.mobile or not rolling:
+        return None
+    robots = robots_of(assembly)
+    if len(set(robots.values())) == 1:
+        return "/cmd_vel"
+    mine = {robots[m] for m in modules}
+    if len(mine) != 1:
+        return None
+    return f"/{mine.pop()}/cmd_vel"
+
+
+def check_modules(assembly: ResolvedAssembly, modules: Sequence[str]) -> list[str]:
+    """The modules asked for, in assembly order (all of them when none is named).
+
+    Raises:
+        NotFoundError: For a module the assembly does not have, naming the ones it has.
+    """
+    slots = [m.slot for m in assembly.modules]
+    for name in modules:
+        if name not in slots:
+            near = did_you_mean(name, slots)
+            raise NotFoundError(
+                f"{assembly.template} has no module {name!r}"
+                + (f" ({near})" if near else "")
+                + f"; its modules: {', '.join(slots)}"
+            )
+    wanted = set(modules) or set(slots)
+    return [s for s in slots if s in wanted]
+
+
+def unavailable_modes(
+    assembly: ResolvedAssembly, slots: Sequence[str], cmd_vel: str | None = None
+) -> dict[str, str]:
+    """Modes the assembly's data rules out for these modules, and why (no network needed)."""
+    out: dict[str, str] = {}
+    if not any(assembly.module(s).chains for s in slots):
+        out[IK] = "no commanded module is a limb with a kinematic chain"
+    elif not assembly.urdf_path.exists():
+        out[IK] = (
+            f"IK needs the assembly's URDF, missing at {assembly.urdf_path}: run "
+            f"`msctl assemble {assembly.template}` again"
+        )
+    if cmd_vel is None and cmd_vel_topic(assembly, slots) is None:
+        out[DRIVE] = (
+            f"{assembly.template} does not drive (not mobile, or no wheels)"
+            if cmd_vel_topic(assembly, [m.slot for m in assembly.modules][:1]) is None
+            else "the modules belong to several robots: pick one robot's modules, or --cmd-vel"
+        )
+    return out
+
+
+@dataclass
+class Link:
+    """The commanded modules and each mode's output.
+
+    Attributes:
+        node: The node everything is declared on.
+        assembly: The resolved assembly.
+        handlers: Slot -> joint handler of every commanded module.
+        tips: The IK output (None: no limb with a chain, or no URDF here).
+        drive: The drive output (None: the assembly does not move).
+        health: The live health board (None: not watched).
+        unavailable: Mode -> why it cannot be used here.
+    """
+
+    node: Any
+    assembly: ResolvedAssembly
+    handlers: dict[str, Any]
+    tips: TipJog | None = None
+    drive: TwistDrive | None = None
+    health: Any = None
+    unavailable: dict[str, str] = field(default_factory=dict)
+    _halt_clients: dict[str, Any] = field(default_factory=dict)
+    _recover_clients: dict[str, Any] = field(default_factory=dict)
+    _joints: JointJog | None = None
+    _pool: ThreadPoolExecutor | None = None
+
+    # ------------------------------------------------------------------ opening
+    @classmethod
+    def open(
+        cls,
+        node: Any,
+        assembly: ResolvedAssembly,
+        modules: Sequence[str] = (),
+        cmd_vel: str | None = None,
+        stamped: bool = False,
+        health: bool = True,
+        timeout: float = ANSWER_TIMEOUT,
+    ) -> Link:
+        """Connect to the commanded modules (default: every module).
+
+        Raises:
+            NotFoundError: For a module the assembly does not have.
+            NetworkError: If a module's joint manager does not answer, naming it.
+        """
+        from components.api.errors import ApiError
+        from components.api.joints import JointHandler, list_joints
+
+        slots = check_modules(assembly, modules)
+        deadline = time.monotonic() + timeout
+
+        def listing(slot: str) -> list[Any]:
+            # A fresh session learns the routes to the services in its first moments: a
+            # query that ends at once found no server yet, so ask again until the deadline.
+            while True:
+                remaining = deadline - time.monotonic()
+                try:
+                    return list_joints(node, slot, max(remaining, 0.1))
+                except ApiError:
+                    if deadline - time.monotonic() < 0.2:
+                        raise
+                time.sleep(0.1)
+
+        pool = ThreadPoolExecutor(max_workers=max(len(slots), 1), thread_name_prefix="teleop")
+        listed = {slot: pool.submit(listing, slot) for slot in slots}
+        infos: dict[str, Any] = {}
+        silent: list[str] = []
+        for slot, future in listed.items():
+            try:
+                infos[slot] = future.result()
+            except ApiError as exc:
+                log.debug("%s: %s", slot, exc)
+                silent.append(slot)
+        if silent:
+            pool.shutdown(wait=False)
+            raise NetworkError(
+                f"no answer from the joint manager of {', '.join(silent)} "
+                f"(/{silent[0]}/joints) within {timeout:g} s",
+                hint="is the assembly up? check `msctl ps` and `msctl health`",
+            )
+        handlers: dict[str, Any] = {}
+        link = cls(node, assembly, handlers, _pool=pool)
+        try:
+            for slot in slots:
+                controls = {j.name: j.control for j in assembly.module(slot).joints}
+                joints = [replace(i, control=controls.get(i.name, i.control)) for i in infos[slot]]
+                handlers[slot] = JointHandler(node, slot, joints)
+                link._halt_clients[slot] = node.client(f"/{slot}/halt", TRIGGER)
+                link._recover_clients[slot] = node.client(f"/{slot}/recover", TRIGGER)
+            link._joints = JointJog(handlers)
+            link.unavailable.update(unavailable_modes(assembly, slots, cmd_vel))
+            if IK not in link.unavailable:
+                link._open_tips(slots)
+            topic = cmd_vel or cmd_vel_topic(assembly, slots)
+            if topic is not None:
+                frame = root_link(assembly, robots_of(assembly)[slots[0]]) if slots else ""
+                link.drive = TwistDrive(node, topic, stamped=stamped, frame_id=frame)
+            if health:
+                from msctl.health.live import LiveHealth
+
+                link.health = LiveHealth(node, assembly, supervisors=False).start()
+        except BaseException:
+            link.close()
+            raise
+        return link
+
+    def _open_tips(self, slots: Sequence[str]) -> None:
+        from components.api.ik_syncer import IkSyncer
+
+        chains = [
+            (self.handlers[s], self.assembly.module(s).chains[0])
+            for s in slots
+            if self.assembly.module(s).chains
+        ]
+        urdf = self.assembly.urdf_path.read_text(encoding="utf-8")
+        self.tips = TipJog(IkSyncer(chains, urdf))
+
+    # ------------------------------------------------------------------ what each mode has
+    @property
+    def modules(self) -> list[str]:
+        """The commanded modules, in assembly order."""
+        return list(self.handlers)
+
+    def joints(self) -> dict[str, tuple[str, ...]]:
+        """Joint mode's joints per module (locked joints left out)."""
+        return {
+            slot: tuple(name for name, info in h.joints.items() if not info.locked)
+            for slot, h in self.handlers.items()
+        }
+
+    @property
+    def limbs(self) -> tuple[str, ...]:
+        """IK mode's limbs."""
+        return () if self.tips is None else tuple(self.tips.syncer.limbs)
+
+    @property
+    def drive_target(self) -> str | None:
+        """Drive mode's ``cmd_vel`` topic (None: no drive mode)."""
+        return None if self.drive is None else self.drive.topic
+
+    def outputs(self) -> dict[str, Output]:
+        """Each available mode's output."""
+        out: dict[str, Output] = {}
+        if self._joints is not None:
+            out[JOINT] = self._joints
+        if self.tips is not None:
+            out[IK] = self.tips
+        if self.drive is not None:
+            out[DRIVE] = self.drive
+        return out
+
+    def joint_state(self, slot: str, joint: str) -> tuple[float | None, float, float]:
+        """A joint's measured position and its limits (for the screen's bar)."""
+        handler = self.handlers[slot]
+        info = handler.joints[joint]
+        return handler.positions().get(joint), info.lower, info.upper
+
+    def latest_alarm(self) -> Any:
+        """The health board's latest alarm (None: none yet, or health not watched)."""
+        if self.health is None:
+            return None
+        self.health.evaluate()
+        alarms = self.health.alarms()
+        return alarms[-1] if alarms else None
+
+    # ------------------------------------------------------------------ halt and recover
+    def halt(self, modules: Sequence[str] | None = None) -> list[Acknowledged]:
+        """Call every module's ``halt`` at once; each answer with its time."""
+        return self._trigger(self._halt_clients, modules)
+
+    def recover(self, modules: Sequence[str] | None = None) -> list[Acknowledged]:
+        """Call every module's ``recover`` at once."""
+        return self._trigger(self._recover_clients, modules)
+
+    def _trigger(
+        self, clients: dict[str, Any], modules: Sequence[str] | None
+    ) -> list[Acknowledged]:
+        from components.comm.services import ServiceError
+
+        chosen = [m for m in (modules if modules is not None else clients) if m in clients]
+        if not chosen:
+            raise InputError("no module to call: none of them is commanded here")
+
+        def call(slot: str) -> Acknowledged:
+            client = clients[slot]
+            started = time.monotonic()
+            try:
+                response = client.call(client.request_type()(), timeout=HALT_TIMEOUT)
+            except ServiceError as exc:
+                return Acknowledged(slot, False, str(exc), time.monotonic() - started)
+            return Acknowledged(
+                slot, bool(response.success), str(response.message), time.monotonic() - started
+            )
+
+        if self._pool is None:
+            return [call(slot) for slot in chosen]
+        return list(self._pool.map(call, chosen))
+
+    # ------------------------------------------------------------------ closing
+    def close(self) -> None:
+        """Undeclare everything this link declared (idempotent); the node stays open."""
+        if self.health is not None:
+            self.health.close()
+            self.health = None
+        if self.drive is not None:
+            self.drive.close()
+        for client in (*self._halt_clients.values(), *self._recover_clients.values()):
+            client.close()
+        self._halt_clients.clear()
+        self._recover_clients.clear()
+        for handler in self.handlers.values():
+            handler.close()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False)
+            self._pool = None
