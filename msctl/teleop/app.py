@@ -97,6 +97,7 @@ class TeleopApp(App[None]):
         Binding("space", "estop", "E-stop", priority=True),
         Binding("escape", "stop_and_quit", "Stop and quit", priority=True),
         Binding("ctrl+c", "stop_and_quit", "Stop and quit", priority=True, show=False),
+        Binding("ctrl+q", "stop_and_quit", "Stop and quit", priority=True, show=False),
         Binding("ctrl+r", "recover", "Recover", priority=True),
     ]
 
@@ -301,10 +302,9 @@ class TeleopApp(App[None]):
         return text
 
     def _tip(self, limb: str) -> str:
-        try:
-            pose = self.link.tips.syncer.tip(limb)
-        except Exception as exc:  # no reading yet: say so in place of the pose
-            return f"unknown ({exc})"
+        pose = self.link.tips.tip(limb)
+        if pose is None:
+            return "unknown (no joint_read yet)"
         x, y, z = pose.translation
         return f"x {x:+.3f}  y {y:+.3f}  z {z:+.3f} m"
 

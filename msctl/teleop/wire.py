@@ -154,6 +154,25 @@ class TipJog:
 
     def __init__(self, syncer: Any) -> None:
         self.syncer = syncer
+        # The screen's own kinematics data per limb: pinocchio writes its results into a
+        # model's data, and the operator's thread is solving IK in the syncer's meanwhile.
+        self._views = {
+            slot: (limb.solver.chain.model, limb.solver.chain.model.createData())
+            for slot, limb in syncer.limbs.items()
+        }
+
+    def tip(self, slot: str) -> Any:
+        """The measured tip pose of a limb in its base frame, for the screen (its thread
+        only); None until every joint of the chain has a reading."""
+        import pinocchio as pin
+
+        limb = self.syncer.limbs[slot]
+        positions = limb.handler.positions()
+        if any(n not in positions for n in limb.names):
+            return None
+        model, data = self._views[slot]
+        pin.forwardKinematics(model, data, np.array([positions[n] for n in limb.names]))
+        return pin.updateFramePlacement(model, data, limb.solver.chain.tip_frame).copy()
 
     def move(self, move: Move) -> dict[str, float]:
         """One IK step of the limb toward where the twist takes its tip.
