@@ -303,18 +303,22 @@ def test_the_selected_joint_is_drawn_as_a_bar_between_its_limbs_limits(teleop) -
     asyncio.run(scenario())
 
 
-def test_focus_loss_stops_at_once_with_one_stop(teleop) -> None:
+@pytest.mark.parametrize(
+    ("mode", "key", "topic"),
+    [(JOINT, "w", "/limb1/joint_set"), (IK, "i", "/limb1/joint_set"), (DRIVE, "i", "/cmd_vel")],
+)
+def test_focus_loss_stops_at_once_with_one_stop(teleop, mode, key, topic) -> None:
     from textual import events
 
     # A long deadman: only the focus loss can end this motion within the test.
-    t = teleop(first_timeout=600.0, repeat_timeout=600.0)
+    t = teleop(mode=mode, first_timeout=600.0, repeat_timeout=600.0)
 
     async def scenario() -> None:
         app = t.app()
         async with app.run_test(size=(120, 40)) as pilot:
-            await first_on_the_wire(pilot, t, "/limb1/joint_set", "w")
+            await first_on_the_wire(pilot, t, topic, key)
             app.post_message(events.AppBlur())
-            seen = await one_stop_then_silence(pilot, t, "/limb1/joint_set")
+            seen = await one_stop_then_silence(pilot, t, topic)
             assert len(seen) >= 2
             assert t.sent[-1].command.reason == "focus lost"
 
