@@ -1,0 +1,303 @@
+"""Claims (issue 12, part 2): liveliness tokens saying who drives which module.
+
+Real Zenoh sessions on a loopback router (random port, no multicast), each operator on its
+own session as it would be in its own process; then two real operator processes. Every
+session is closed at teardown; events are awaited, never slept for.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import quick_peer_settings, quick_router, wait_until
+
+from components.claims import (
+    ClaimInfo,
+    ClaimRefused,
+    Claims,
+    UnknownModuleError,
+    claim_key,
+    default_holder,
+    holder_of,
+    parse_claim,
+)
+from components.comm import Node
+from components.comm.session import SessionSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+MODULES = ("limb1", "limb2", "wheel1", "wheel2")
+
+
+@pytest.fixture
+def router_endpoint() -> Iterator[str]:
+    """Overrides conftest's: the same real router, without the 0.5 s opening wait."""
+    yield from quick_router()
+
+
+@pytest.fixture
+def session_settings(router_endpoint: str) -> SessionSettings:
+    """Overrides conftest's: peers that open at once (claims are awaited anyway)."""
+    return quick_peer_settings(router_endpoint)
+
+
+class Operator:
+    """One operator: its own session, node and claims watcher."""
+
+    def __init__(self, session: Any, name: str, holder: str) -> None:
+        # Quick-opening sessions connect a moment after opening: an operator starts once
+        # it reaches the router, as a real one does (msctl waits for its router link).
+        wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+        self.node = Node(session, name, "/ground1")
+        self.claims = Claims(session, 0, MODULES)
+        self.holder = holder
+        self.changes: list[tuple[str, ClaimInfo | None]] = []
+        self.claims.on_change(lambda module, info: self.changes.append((module, info)))
+
+    def claim(self, module: str, take: bool = False) -> Any:
+        return self.claims.claim(module, self.holder, self.node, take=take)
+
+    def close(self) -> None:
+        self.claims.close()
+        self.node.close()
+
+
+@pytest.fixture
+def operators(open_sessions) -> Iterator[Any]:
+    made: list[Operator] = []
+
+    def make(name: str, holder: str) -> Operator:
+        operator = Operator(open_sessions(), name, holder)
+        made.append(operator)
+        return operator
+
+    try:
+        yield make
+    finally:
+        for operator in reversed(made):
+            operator.close()
+
+
+# --------------------------------------------------------------------------- pure parts
+
+
+def test_a_claim_key_round_trips_and_foreign_keys_are_ignored() -> None:
+    key = claim_key(3, "limb1", 1_700_000_000_123_456_789, "ana maria@lab/2", "z1", "/g/teleop")
+    info = parse_claim(key)
+    assert info is not None
+    assert (info.module, info.holder, info.node, info.zid) == (
+        "limb1",
+        "ana maria@lab/2",
+        "/g/teleop",
+        "z1",
+    )
+    assert info.since_ns == 1_700_000_000_123_456_789
+    assert len(key.split("/")) == 8  # one chunk per field
+    assert parse_claim("@ros2_lv/0/z/1/2/NN/%/%/teleop") is None
+    assert parse_claim(key.replace("limb1", "limb-1")) is None
+
+
+def test_the_newest_claim_holds_the_module() -> None:
+    older = parse_claim(claim_key(0, "limb1", 10, "a@x", "z1", "/a"))
+    newer = parse_claim(claim_key(0, "limb1", 20, "b@y", "z2", "/b"))
+    assert holder_of([older, newer]) == newer == holder_of([newer, older])
+    assert holder_of([]) is None
+
+
+def test_default_holder_is_user_at_this_host(monkeypatch) -> None:
+    monkeypatch.setenv("MSCTL_HOST", "test-laptop")
+    assert default_holder().endswith("@test-laptop")
+
+
+# --------------------------------------------------------------------------- on the wire
+
+
+def test_a_claim_is_seen_by_everyone_and_vanishes_when_released(operators) -> None:
+    alice = operators("teleop_alice", "alice@laptop1")
+    watcher = operators("watcher", "nobody@base")
+    claim = alice.claim("limb1")
+    assert alice.claims.holder("limb1") == claim.info  # at once on the claimer's side
+    wait_until(lambda: watcher.claims.holder("limb1") == claim.info, what="the claim's token")
+    info = watcher.claims.holder("limb1")
+    assert (info.holder, info.node) == ("alice@laptop1", "/ground1/teleop_alice")
+    assert watcher.changes[-1] == ("limb1", claim.info)
+    claim.release()
+    wait_until(lambda: watcher.claims.holder("limb1") is None, what="the release")
+    assert watcher.changes[-1] == ("limb1", None)
+    assert not claim.lost.is_set()
+
+
+def test_a_claim_on_an_unknown_module_names_the_modules_that_exist(operators) -> None:
+    alice = operators("teleop_alice", "alice@laptop1")
+    with pytest.raises(UnknownModuleError) as caught:
+        alice.claim("limb9")
+    assert "limb9" in str(caught.value)
+    assert "limb1, limb2, wheel1, wheel2" in str(caught.value)
+
+
+def test_a_second_claim_is_refused_naming_the_holder_then_takes_over_and_the_first_is_told(
+    operators,
+) -> None:
+    alice = operators("teleop_alice", "alice@laptop1")
+    bob = operators("teleop_bob", "bob@laptop2")
+    first = alice.claim("limb1")
+    told = threading.Event()
+    lost_to: list[ClaimInfo] = []
+    first.on_lost(lambda new: (lost_to.append(new), told.set()))
+    wait_until(lambda: bob.claims.holder("limb1"), what="alice's claim reaching bob")
+
+    with pytest.raises(ClaimRefused) as caught:
+        bob.claim("limb1")
+    assert caught.value.holder == first.info
+    message = str(caught.value)
+    assert "claimed by alice@laptop1 (node /ground1/teleop_alice) since " in message
+    assert first.info.since_text() in message
+
+    second = bob.claim("limb1", take=True)
+    assert told.wait(10.0), "alice was not told she lost limb1"
+    assert first.lost.is_set() and not first.held
+    assert lost_to == [second.info] and first.lost_to == second.info
+    assert second.info.since_ns > first.info.since_ns
+    # Alice's token is gone (released by her side when she lost), so bob alone holds it.
+    wait_until(
+        lambda: [c.holder for c in bob.claims.claims() if c.module == "limb1"] == ["bob@laptop2"],
+        what="alice's token withdrawn",
+    )
+    assert not second.lost.is_set()
+
+
+def test_current_asks_the_network_not_only_what_the_watcher_has_seen(
+    operators, open_sessions
+) -> None:
+    alice = operators("teleop_alice", "alice@laptop1")
+    bob = operators("teleop_bob", "bob@laptop2")
+    claim = alice.claim("limb2")
+    wait_until(lambda: bob.claims.holder("limb2"), what="alice's claim reaching bob")
+    # A watcher made just now has not had its history yet; its query finds the claim.
+    late = Claims(bob.node.session, 0, MODULES)
+    try:
+        assert late.current("limb2") == claim.info
+        with pytest.raises(ClaimRefused):
+            late.claim("limb2", "bob@laptop2", bob.node)
+    finally:
+        late.close()
+
+
+def test_claiming_again_from_the_same_node_is_the_same_claim(operators) -> None:
+    alice = operators("teleop_alice", "alice@laptop1")
+    first = alice.claim("wheel1")
+    assert alice.claim("wheel1") is first
+    assert not first.lost.is_set()
+
+
+def test_a_claim_vanishes_with_its_session(open_sessions, operators) -> None:
+    """The operator's process dying (its session closing) withdraws its claims."""
+    watcher = operators("watcher", "nobody@base")
+    session = open_sessions()
+    node = Node(session, "teleop_carol", "/ground1")
+    claims = Claims(session, 0, MODULES)
+    claim = claims.claim("limb2", "carol@laptop3", node)
+    wait_until(lambda: watcher.claims.holder("limb2") == claim.info, what="carol's claim")
+    session.close()  # no release: as a crash (the token goes with the session)
+    wait_until(lambda: watcher.claims.holder("limb2") is None, what="the claim's withdrawal")
+
+
+# --------------------------------------------------------------------------- two processes
+
+OPERATOR = r"""
+import json, sys
+from components.claims import ClaimRefused, Claims
+from components.comm import Node
+from components.comm.session import SessionSettings, open_session
+
+name, holder, take = sys.argv[1], sys.argv[2], sys.argv[3] == "take"
+session = open_session(SessionSettings.from_env())
+node = Node(session, name, "/ground1")
+claims = Claims(session, 0, ["limb1", "limb2"])
+def say(**event):
+    print(json.dumps(event), flush=True)
+try:
+    try:
+        claim = claims.claim("limb1", holder, node, take=take)
+    except ClaimRefused as exc:
+        say(event="refused", holder=exc.holder.holder, message=str(exc))
+        sys.exit(3)
+    claim.on_lost(lambda new: say(event="lost", to=new.holder))
+    say(event="claimed", since=claim.info.since)
+    sys.stdin.readline()  # run until told to stop
+finally:
+    claims.close()
+    node.close()
+    session.close()
+"""
+
+
+class OperatorProcess:
+    """A real operator process claiming limb1; its events are JSON lines on stdout."""
+
+    def __init__(self, env: dict[str, str], name: str, holder: str, take: bool = False) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", OPERATOR, name, holder, "take" if take else "ask"],
+            env=env,
+            cwd=ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    def event(self) -> dict[str, Any]:
+        line = self.process.stdout.readline()
+        assert line, self.process.stderr.read()
+        return json.loads(line)
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            try:
+                self.process.stdin.write("\n")
+                self.process.stdin.flush()
+                self.process.wait(30.0)
+            except (BrokenPipeError, subprocess.TimeoutExpired):
+                self.process.kill()
+                self.process.wait()
+        for stream in (self.process.stdin, self.process.stdout, self.process.stderr):
+            stream.close()
+
+
+def test_two_operator_processes_second_refused_then_takes_over_and_first_is_told(
+    router_endpoint: str,
+) -> None:
+    env = {
+        **os.environ,
+        "MSCTL_ZENOH_CONNECT": router_endpoint,
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+        "PYTHONPATH": str(ROOT),
+    }
+    started: list[OperatorProcess] = []
+    try:
+        first = OperatorProcess(env, "teleop_a", "alice@laptop1")
+        started.append(first)
+        assert first.event()["event"] == "claimed"
+
+        second = OperatorProcess(env, "teleop_b", "bob@laptop2")
+        started.append(second)
+        refused = second.event()
+        assert refused["event"] == "refused" and refused["holder"] == "alice@laptop1"
+        assert "node /ground1/teleop_a" in refused["message"]
+        assert second.process.wait(30.0) == 3
+
+        taker = OperatorProcess(env, "teleop_b", "bob@laptop2", take=True)
+        started.append(taker)
+        assert taker.event()["event"] == "claimed"
+        assert first.event() == {"event": "lost", "to": "bob@laptop2"}
+    finally:
+        for process in started:
+            process.stop()
