@@ -346,3 +346,28 @@ def test_select_by_name() -> None:
     assert c.joint == "limb1_joint2"
     with pytest.raises(KeyError, match="modules: limb1, wheel1"):
         c.select("limb9")
+
+
+# --------------------------------------------------------------------- claims taken over
+def test_a_module_taken_over_stops_its_motion_once_and_refuses_its_keys() -> None:
+    c = core()
+    c.press("w", 0.0)
+    c.tick(0.0)
+    c.block("limb1", "limb1 was taken over by bob@gc2", 0.01)
+    assert c.tick(0.01) == [Stop(JOINT, "limb1", "limb1_joint1", "claim lost")]
+    assert c.press("w", 0.02) == "refused" and "bob@gc2" in c.note
+    assert run(c, 0.02, 2.0) == []
+    # Another module is still commanded; the drive (the whole robot) is not.
+    c.press("tab", 2.0)
+    assert c.press("w", 2.0) == "move" and c.tick(2.0)
+    c.set_mode(DRIVE, 2.1)
+    assert c.press("i", 2.2) == "refused"
+    assert c.view().blocked == {"limb1": "limb1 was taken over by bob@gc2"}
+    c.unblock("limb1")
+    assert c.press("i", 2.3) == "move"
+
+
+def test_blocking_a_module_that_is_not_moving_sends_nothing() -> None:
+    c = core(DRIVE)
+    c.block("wheel1", "taken", 0.0)
+    assert run(c, 0.0, 1.0) == []

@@ -150,3 +150,67 @@ def test_the_real_teleop_in_tmux_jogs_drives_estops_and_quits(dragon: Up) -> Non
     finally:
         subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True, check=False)
         observer.close()
+
+
+def test_a_second_teleop_is_refused_then_takes_over_and_the_first_screen_says_so(
+    dragon: Up,
+) -> None:
+    first = f"msctl-teleop-a-{os.getpid()}"
+    second = f"msctl-teleop-b-{os.getpid()}"
+    env = " ".join(
+        f"{k}={v}"
+        for k, v in dragon.env.items()
+        if k.startswith("MSCTL_") or k in ("PYTHONPATH", "CYDR_CACHE_DIR")
+    )
+    command = f"env {env} {sys.executable} -m msctl teleop --module limb1"
+
+    def screen(session: str) -> str:
+        return _tmux("capture-pane", "-p", "-t", session)
+
+    _tmux("new-session", "-d", "-s", first, "-x", "150", "-y", "45", command)
+    try:
+        wait_until(
+            lambda: "claims: limb1 (held by" in screen(first),
+            timeout=240.0,
+            what="the first teleop holding limb1",
+        )
+        # Without --take: refused before any screen, naming the holder and since when.
+        refused = dragon.msctl("teleop", "--module", "limb1", timeout=240.0)
+        assert refused.returncode == 1, refused.stderr
+        assert "module limb1 is claimed by " in refused.stderr
+        assert "(node /msctl_teleop_" in refused.stderr and " since " in refused.stderr
+        assert "--take" in refused.stderr
+        # With --take: the first screen says so at once.
+        _tmux("new-session", "-d", "-s", second, "-x", "150", "-y", "45", command + " --take")
+        wait_until(
+            lambda: "claims: limb1 (held by" in screen(second),
+            timeout=240.0,
+            what="the second teleop holding limb1",
+        )
+        wait_until(
+            lambda: "limb1 TAKEN by" in screen(first),
+            timeout=60.0,
+            what="the first screen saying limb1 was taken",
+        )
+        _tmux("send-keys", "-t", first, "w")
+        wait_until(
+            lambda: "limb1 was TAKEN OVER" in screen(first), timeout=60.0, what="keys refused"
+        )
+        for session in (second, first):
+            _tmux("send-keys", "-t", session, "Escape")
+        wait_until(
+            lambda: all(
+                subprocess.run(
+                    ["tmux", "has-session", "-t", s], capture_output=True, check=False
+                ).returncode
+                != 0
+                for s in (first, second)
+            ),
+            timeout=60.0,
+            what="both teleops to quit",
+        )
+    finally:
+        for session in (first, second):
+            subprocess.run(
+                ["tmux", "kill-session", "-t", session], capture_output=True, check=False
+            )

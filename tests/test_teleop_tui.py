@@ -496,3 +496,99 @@ def test_key_names_are_characters_when_printable() -> None:
     assert key_name(events.Key("tab", "\t")) == "tab"
     assert key_name(events.Key("shift+tab", None)) == "shift+tab"
     assert key_name(events.Key("up", None)) == "up"
+
+
+# --------------------------------------------------------------------------------- claims
+@pytest.fixture
+def bob(session_settings: SessionSettings) -> Iterator[Any]:
+    """Another operator on its own session: a node and its claims."""
+    from components.claims import Claims
+
+    session = open_session(session_settings)
+    node = Node(session, "bob_teleop", "/gc2")
+    claims = Claims(session, 0, ["limb1", "limb2", "wheel1", "wheel2"])
+    try:
+        yield node, claims
+    finally:
+        claims.close()
+        node.close()
+        session.close()
+
+
+def own_link(dragon: ResolvedAssembly, session_settings: SessionSettings, **kw: Any) -> Any:
+    """A link of its own (claims of its own), on its own session; closed by the caller."""
+    session = open_session(session_settings)
+    node = Node(session, "teleop_claims")
+    try:
+        link = Link.open(node, dragon, ["limb1"], health=False, timeout=PATIENCE, **kw)
+    except BaseException:
+        node.close()
+        session.close()
+        raise
+    return link, node, session
+
+
+def test_a_module_held_by_another_operator_is_refused_naming_them_then_taken(
+    rig, dragon, session_settings, bob
+) -> None:
+    from msctl.errors import MsctlError
+
+    node, claims = bob
+    theirs = claims.claim("limb1", "bob@gc2", node)
+    with pytest.raises(MsctlError) as caught:
+        own_link(dragon, session_settings)
+    text = str(caught.value)
+    assert "module limb1 is claimed by bob@gc2 (node /gc2/bob_teleop) since " in text
+    assert theirs.info.since_text() in text and "--take" in text
+    link, mine, session = own_link(dragon, session_settings, take=True)
+    try:
+        wait_until(theirs.lost.is_set, timeout=PATIENCE, what="bob told he lost limb1")
+        assert link.claimed() == ["limb1"]
+        wait_until(
+            lambda: (h := claims.holder("limb1")) is not None and h.node == mine.fqn,
+            timeout=PATIENCE,
+            what="everyone seeing the new holder",
+        )
+    finally:
+        link.close()
+        mine.close()
+        session.close()
+
+
+def test_the_screen_says_at_once_when_another_operator_takes_the_claim(
+    rig, dragon, session_settings, bob
+) -> None:
+    node, claims = bob
+    link, mine, session = own_link(dragon, session_settings)
+    asyncio.run(link.handlers["limb1"].wait_ready(PATIENCE))
+    core = TeleopCore(
+        TeleopSettings(first_timeout=600.0, repeat_timeout=600.0), link.joints(), link.limbs
+    )
+    sent: list[Sent] = []
+    operator = Operator(core, link.outputs(), on_sent=sent.append).start()
+
+    async def scenario() -> None:
+        app = TeleopApp(operator, link, template="dragon")
+        async with app.run_test(size=(160, 40)) as pilot:
+            await pilot.press("w")
+            await until(pilot, lambda: operator.moves_sent, "a move")
+            assert "limb1" in str(app_text(pilot, "#claims"))
+            claims.claim("limb1", "bob@gc2", node, take=True)
+            await until(
+                pilot, lambda: "TAKEN by bob@gc2" in str(app_text(pilot, "#claims")), "said"
+            )
+            assert "TAKEN OVER by bob@gc2" in app.status
+            await until(pilot, lambda: operator.stops_sent == 1 and operator.idle, "the stop")
+            assert sent[-1].command.reason == "claim lost"
+            await pilot.press("w")
+            assert operator.view().note.startswith("limb1 was TAKEN OVER")
+            assert operator.moves_sent == len(sent) - 1  # nothing more went out
+            assert link.claimed() == []
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        operator.close()
+        link.close()
+        mine.close()
+        session.close()

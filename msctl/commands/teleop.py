@@ -1,8 +1,10 @@
 """``msctl teleop``: drive the running assembly from the keyboard, with a deadman.
 
-Joint mode jogs one joint through its joint manager; IK mode moves a limb's tip with the IK
-syncer's bounded steps; drive mode publishes Twists on the assembly's ``cmd_vel``. Motion
-continues only while key events keep coming; whatever ends it sends exactly one stop.
+The modules are claimed first: refused while another operator holds one, naming them and
+since when; ``--take`` takes the claims over, and the other operator's screen says so. Joint
+mode jogs one joint through its joint manager; IK mode moves a limb's tip with the IK syncer's
+bounded steps; drive mode publishes Twists on the assembly's ``cmd_vel``. Motion continues
+only while key events keep coming; whatever ends it sends exactly one stop.
 """
 
 from __future__ import annotations
@@ -57,11 +59,6 @@ def command(
         )
     except ValueError as exc:
         raise InputError(str(exc).replace("TeleopSettings.", "--").replace("_", "-")) from exc
-    if take:
-        # Claims are not part of this msctl yet: nothing to take over, say so plainly.
-        from msctl.console import err
-
-        err.print("note: --take has nothing to take: this msctl has no claims yet")
     assembly = _assembly()
     from msctl.teleop.link import check_modules, unavailable_modes
 
@@ -80,6 +77,7 @@ def command(
         cmd_vel=cmd_vel,
         stamped=stamped,
         duration=duration or None,
+        take=take,
     )
 
 

@@ -86,7 +86,6 @@ class TeleopApp(App[None]):
         link: The link to the assembly (:class:`~msctl.teleop.link.Link`): joint readings,
             the latest alarm, halt and recover.
         template: The assembly's name, for the header.
-        claims: Text for the claims line (who holds what), or None.
         refresh_period: Seconds between redraws.
         duration: Quit after this many seconds (None: when asked).
     """
@@ -101,6 +100,14 @@ class TeleopApp(App[None]):
         Binding("ctrl+r", "recover", "Recover", priority=True),
     ]
 
+    class ClaimLost(Message):
+        """Another operator took a module's claim over (from a Zenoh thread)."""
+
+        def __init__(self, module: str, holder: Any) -> None:
+            super().__init__()
+            self.module = module
+            self.holder = holder
+
     class Acknowledged(Message):
         """Halt or recover answers came back (from a worker thread)."""
 
@@ -114,7 +121,6 @@ class TeleopApp(App[None]):
         operator: Operator,
         link: Any,
         template: str = "",
-        claims: str | None = None,
         refresh_period: float = REFRESH_PERIOD,
         duration: float | None = None,
     ) -> None:
@@ -122,7 +128,6 @@ class TeleopApp(App[None]):
         self.operator = operator
         self.link = link
         self.template = template
-        self.claims = claims
         self.refresh_period = refresh_period
         self._duration = duration
         self.refreshes = 0
@@ -149,7 +154,10 @@ class TeleopApp(App[None]):
         yield Static(id="help")
 
     def on_mount(self) -> None:
-        """Draw, then redraw at the bounded rate."""
+        """Listen for claims taken over, draw, then redraw at the bounded rate."""
+        for module, claim in getattr(self.link, "held", {}).items():
+            # On a Zenoh thread (at once if already lost): handed over as a message.
+            claim.on_lost(lambda holder, m=module: self.post_message(self.ClaimLost(m, holder)))
         self.redraw()
         self.set_interval(self.refresh_period, self.redraw)
         if self._duration:
@@ -164,6 +172,18 @@ class TeleopApp(App[None]):
         if result in ("mode", "select", "refused", "speed"):
             self.redraw()
 
+    def on_teleop_app_claim_lost(self, message: ClaimLost) -> None:
+        """Say it at once, stop what moves that module, refuse its keys from now on."""
+        holder = message.holder
+        reason = (
+            f"{message.module} was TAKEN OVER by {holder.holder} (node {holder.node}) at "
+            f"{holder.since_text()}: no longer commanded from here (restart with --take to "
+            "take it back)"
+        )
+        self.operator.block(message.module, reason)
+        self.status = reason
+        self.redraw()
+
     def on_app_blur(self, event: events.AppBlur) -> None:
         """The terminal lost focus: stop (keys typed elsewhere must not be missed here)."""
         self.operator.stop("focus lost")
@@ -174,9 +194,10 @@ class TeleopApp(App[None]):
         self.exit()
 
     def action_estop(self) -> None:
-        """Stop, and halt every commanded module through its joint manager's ``halt``."""
+        """Stop, and halt every module this operator holds through its joint manager's
+        ``halt``."""
         self.operator.stop("e-stop")
-        modules = list(self.link.modules)
+        modules = list(self.link.claimed())
         self.estopped = modules
         self.status = f"E-STOP: halting {', '.join(modules)} ..."
         self.redraw()
@@ -184,7 +205,7 @@ class TeleopApp(App[None]):
 
     def action_recover(self) -> None:
         """Recover the e-stopped (or every commanded) module."""
-        modules = self.estopped or list(self.link.modules)
+        modules = self.estopped or list(self.link.claimed())
         self.status = f"recovering {', '.join(modules)} ..."
         self.run_worker(lambda: self._call("recover", modules), thread=True, group="recover")
 
@@ -227,10 +248,7 @@ class TeleopApp(App[None]):
         banner.update(
             f"E-STOPPED: {', '.join(self.estopped)} (ctrl+r recovers)" if self.estopped else ""
         )
-        claims = self.claims or "claims: none held (this msctl has no claims yet)"
-        self.query_one("#claims", Static).update(
-            Text(f"modules: {', '.join(self.link.modules)}    {claims}")
-        )
+        self.query_one("#claims", Static).update(self._claims(view))
         self.query_one("#deadman", Static).update(self._deadman(view))
         self.query_one("#target", Static).update(self._target(view))
         if self.refreshes % ALARM_EVERY == 1:
@@ -250,6 +268,21 @@ class TeleopApp(App[None]):
         text.append(f"mode {view.mode.upper()}", style="bold cyan")
         text.append(f"  speed {speed_text(view)}")
         text.append("  " + time.strftime("%H:%M:%S"))
+        return text
+
+    def _claims(self, view: TeleopView) -> Text:
+        text = Text(f"modules: {', '.join(self.link.modules)}    claims: ")
+        held = getattr(self.link, "held", {})
+        if not held:
+            return text.append("none (not claiming)", style="dim")
+        for module, claim in held.items():
+            if module in view.blocked or claim.lost.is_set():
+                taker = claim.lost_to.holder if claim.lost_to is not None else "another operator"
+                text.append(f"{module} TAKEN by {taker}", style="bold white on red")
+            else:
+                text.append(f"{module}", style="bold green")
+            text.append(" ")
+        text.append(f"(held by {next(iter(held.values())).info.holder})", style="dim")
         return text
 
     def _deadman(self, view: TeleopView) -> Text:
@@ -346,6 +379,7 @@ def run_app(
     cmd_vel: str | None = None,
     stamped: bool = False,
     duration: float | None = None,
+    take: bool = False,
 ) -> None:
     """Run the screen on the data plane until the operator quits (or ``duration`` passes).
 
@@ -354,6 +388,7 @@ def run_app(
 
     Raises:
         InputError: If the mode cannot be used with these modules.
+        MsctlError: If another operator holds a module's claim (and not ``take``).
     """
     from msctl.errors import InputError
     from msctl.plane import connected
@@ -361,7 +396,7 @@ def run_app(
     from msctl.teleop.link import Link
 
     with connected("teleop") as node:
-        link = Link.open(node, assembly, modules, cmd_vel=cmd_vel, stamped=stamped)
+        link = Link.open(node, assembly, modules, cmd_vel=cmd_vel, stamped=stamped, take=take)
         try:
             why = link.unavailable.get(mode)
             if why:

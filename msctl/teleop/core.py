@@ -207,6 +207,7 @@ class TeleopView:
         repeating: That key has repeated (the short timeout is in force).
         stopped_because: Why the last motion ended ("" before any).
         note: The latest thing worth telling the operator (a speed, a refusal).
+        blocked: Modules no longer commanded, and why.
         moves: Motion commands given so far.
         stops: Stop commands given so far.
     """
@@ -222,6 +223,7 @@ class TeleopView:
     repeating: bool
     stopped_because: str
     note: str
+    blocked: dict[str, str]
     moves: int
     stops: int
 
@@ -282,6 +284,8 @@ class TeleopCore:
         self.note = ""
         self.moves = 0
         self.stops = 0
+        #: Modules this teleop may no longer command, and why (a claim taken over).
+        self.blocked: dict[str, str] = {}
         why = self.unavailable(mode)
         if why:
             raise ValueError(why)
@@ -335,6 +339,7 @@ class TeleopCore:
             repeating=self.deadman.repeating,
             stopped_because=self.stopped_because,
             note=self.note,
+            blocked=dict(self.blocked),
             moves=self.moves,
             stops=self.stops,
         )
@@ -352,6 +357,10 @@ class TeleopCore:
         if key in MODE_KEYS:
             return self.set_mode(MODE_KEYS[key], now)
         intent = self._intent_of(key)
+        why = self._blocked(intent)
+        if why:
+            self.note = why
+            return "refused"
         if intent is not None:
             if self._intent is not None and not intent.same_target(self._intent):
                 self.stop("another target", now)
@@ -389,6 +398,28 @@ class TeleopCore:
         self.deadman.release()
         if self._moving is not None:
             self._owe_stop(reason)
+
+    def block(self, module: str, reason: str, now: float) -> None:
+        """Command ``module`` no more (its claim was taken over): a motion that moves it
+        stops (one stop), and its keys are refused with ``reason`` until :meth:`unblock`."""
+        self.blocked[module] = reason
+        moving = self._moving or self._intent
+        if moving is not None and self._blocked(moving):
+            self.stop("claim lost", now)
+        self.note = reason
+
+    def unblock(self, module: str) -> None:
+        """Command ``module`` again (its claim is back)."""
+        self.blocked.pop(module, None)
+
+    def _blocked(self, motion: _Motion | None) -> str:
+        """Why ``motion`` may not go out ("" when it may): a module it moves is blocked; a
+        drive moves the whole robot, so any blocked module blocks it."""
+        if motion is None or not self.blocked:
+            return ""
+        if motion.mode == DRIVE:
+            return next(iter(self.blocked.values()))
+        return self.blocked.get(motion.target, "")
 
     def _owe_stop(self, reason: str) -> None:
         moving, self._moving = self._moving, None

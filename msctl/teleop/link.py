@@ -1,11 +1,14 @@
-"""The teleop's link to the running assembly: what each mode commands and how, health, halt.
+"""The teleop's link to the running assembly: what each mode commands and how, claims,
+health, halt.
 
 Opened on a node of the caller's (``msctl.plane.connected``), it asks every commanded
-module's joint manager for its joints and limits (``/<slot>/joints``), follows their
-``joint_read`` (the Python API's :class:`~components.api.joints.JointHandler`), builds the IK
-syncer of the limbs from the resolved assembly's URDF, the ``cmd_vel`` publisher of a mobile
-assembly, and a live health board for the latest alarm. Everything it declares it undeclares
-in :meth:`Link.close`; the node and its session stay the caller's.
+module's joint manager for its joints and limits (``/<slot>/joints``), claims the modules for
+that node (:mod:`components.claims`: refused while another operator holds one, unless taken
+over), follows their ``joint_read`` (the Python API's
+:class:`~components.api.joints.JointHandler`), builds the IK syncer of the limbs from the
+resolved assembly's URDF, the ``cmd_vel`` publisher of a mobile assembly, and a live health
+board for the latest alarm. Everything it declares it undeclares in :meth:`Link.close`; the
+node and its session stay the caller's.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from typing import Any
 
 from components.assembly import ResolvedAssembly
 from components.messages import TRIGGER
-from msctl.errors import InputError, NetworkError, NotFoundError, did_you_mean
+from msctl.errors import InputError, MsctlError, NetworkError, NotFoundError, did_you_mean
 from msctl.teleop.keys import DRIVE, IK, JOINT
 from msctl.teleop.wire import JointJog, Output, TipJog, TwistDrive
 
@@ -145,6 +148,8 @@ class Link:
         drive: The drive output (None: the assembly does not move).
         health: The live health board (None: not watched).
         unavailable: Mode -> why it cannot be used here.
+        claims: The claims watcher (None: this link claims nothing).
+        held: Slot -> this link's claim of the module (taken over ones stay, ``lost`` set).
     """
 
     node: Any
@@ -154,6 +159,8 @@ class Link:
     drive: TwistDrive | None = None
     health: Any = None
     unavailable: dict[str, str] = field(default_factory=dict)
+    claims: Any = None
+    held: dict[str, Any] = field(default_factory=dict)
     _halt_clients: dict[str, Any] = field(default_factory=dict)
     _recover_clients: dict[str, Any] = field(default_factory=dict)
     _joints: JointJog | None = None
@@ -170,12 +177,27 @@ class Link:
         stamped: bool = False,
         health: bool = True,
         timeout: float = ANSWER_TIMEOUT,
+        claim: bool = True,
+        take: bool = False,
     ) -> Link:
-        """Connect to the commanded modules (default: every module).
+        """Connect to the commanded modules (default: every module), and claim them.
+
+        Args:
+            node: The node every command goes out on (the claims name it).
+            assembly: The resolved assembly.
+            modules: The modules to command.
+            cmd_vel: Drive mode's topic (default: the robot's).
+            stamped: Drive mode publishes TwistStamped.
+            health: Watch the modules' health for the latest alarm.
+            timeout: Seconds to wait for each joint manager.
+            claim: Claim the modules before commanding them.
+            take: Take the claims over from whoever holds them.
 
         Raises:
             NotFoundError: For a module the assembly does not have.
             NetworkError: If a module's joint manager does not answer, naming it.
+            MsctlError: If another operator holds a module's claim (and not ``take``),
+                naming them and since when.
         """
         from components.api.errors import ApiError
         from components.api.joints import JointHandler, list_joints
@@ -229,6 +251,8 @@ class Link:
             if topic is not None:
                 frame = root_link(assembly, robots_of(assembly)[slots[0]]) if slots else ""
                 link.drive = TwistDrive(node, topic, stamped=stamped, frame_id=frame)
+            if claim:
+                link._claim(take)
             if health:
                 from msctl.health.live import LiveHealth
 
@@ -237,6 +261,25 @@ class Link:
             link.close()
             raise
         return link
+
+    def _claim(self, take: bool) -> None:
+        """Claim every commanded module for this node, all or none."""
+        from components.claims import ClaimRefused, Claims, default_holder
+
+        self.claims = Claims(
+            self.node.session, self.node.domain, [m.slot for m in self.assembly.modules]
+        )
+        holder = default_holder()
+        try:
+            for slot in self.handlers:
+                self.held[slot] = self.claims.claim(slot, holder, self.node, take=take)
+        except ClaimRefused as exc:
+            held = exc.holder
+            raise MsctlError(
+                f"module {held.module} is claimed by {held.holder} (node {held.node}) since "
+                f"{held.since_text()}",
+                hint="take it over with `msctl teleop --take`, or ask them to release it",
+            ) from exc
 
     def _open_tips(self, slots: Sequence[str]) -> None:
         from components.api.ik_syncer import IkSyncer
@@ -271,6 +314,13 @@ class Link:
     def drive_target(self) -> str | None:
         """Drive mode's ``cmd_vel`` topic (None: no drive mode)."""
         return None if self.drive is None else self.drive.topic
+
+    def claimed(self) -> list[str]:
+        """The modules this link holds the claims of (every commanded module when it
+        claims nothing)."""
+        if self.claims is None:
+            return self.modules
+        return [slot for slot, claim in self.held.items() if not claim.lost.is_set()]
 
     def outputs(self) -> dict[str, Output]:
         """Each available mode's output."""
@@ -336,6 +386,11 @@ class Link:
         if self.health is not None:
             self.health.close()
             self.health = None
+        if self.claims is not None:
+            # After the last stop went out (the caller closed its operator first): the
+            # claims go only once nothing more will be sent.
+            self.claims.close()
+            self.claims = None
         if self.drive is not None:
             self.drive.close()
         for client in (*self._halt_clients.values(), *self._recover_clients.values()):

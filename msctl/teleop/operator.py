@@ -130,6 +130,13 @@ class Operator:
             self.core.select(module, joint, self.clock())
         self._wake.set()
 
+    def block(self, module: str, reason: str) -> None:
+        """Command ``module`` no more (its claim was taken over); see
+        :meth:`TeleopCore.block`."""
+        with self._lock:
+            self.core.block(module, reason, self.clock())
+        self._wake.set()
+
     def stop(self, reason: str) -> None:
         """End the motion now (focus lost, e-stop...): one stop if anything moved."""
         with self._lock:
