@@ -310,6 +310,8 @@ class LockDocument:
         template: Template name (``dragon``).
         description: The template's description.
         mobile: Whether the assembly moves (floating base in simulation).
+        claims: ``"open"``: an unclaimed module takes commands from anyone; ``"required"``:
+            only from the holder of its claim (:mod:`components.claims`).
         units: Slot -> unit serial, in template order.
         modules: One plan per slot, in template order.
         components: Every component, robot side then ground stations.
@@ -338,6 +340,7 @@ class LockDocument:
     connections: tuple[Connection, ...] = ()
     artifacts: Artifacts = field(default_factory=Artifacts)
     sources: Sources | None = None
+    claims: Literal["open", "required"] = "open"
 
 
 def encode_lock(lock: LockDocument) -> str:
@@ -395,6 +398,12 @@ class ResolvedAssembly:
     def mobile(self) -> bool:
         """Whether the assembly moves."""
         return self.lock.mobile
+
+    @property
+    def claims(self) -> str:
+        """``"open"`` or ``"required"``: whether a module takes commands only from the holder
+        of its claim even while nobody holds it."""
+        return self.lock.claims
 
     @property
     def root_links(self) -> tuple[str, ...]:

@@ -24,6 +24,12 @@ API summary::
     claim.release()             # idempotent; also done by claims.close()
     claims.close()              # releases this object's claims, stops watching
 
+Enforcement (robot side): an interface's ``Subscribe`` carrying a :class:`ClaimRule` (set by
+the builder: ``spec.claimed(("joint_set",), command_rule(assembly, slot))``) is kept by the
+executor's :class:`ClaimGuard` on the module's holder; other senders are refused, counted
+under ``not_holder`` (or ``unclaimed`` when the template says ``claims = "required"``), and
+warned about once naming the holder.
+
 Who holds a module, when several tokens name it: the newest claim (largest ``since``). A
 take-over is stamped just after the claim it takes (even across skewed clocks), so it always
 wins; a claim without ``take`` is refused while the module is held. Two claims made at the
@@ -170,6 +176,109 @@ def default_holder() -> str:
 def holder_of(claims: Iterable[ClaimInfo]) -> ClaimInfo | None:
     """Who holds a module among its claims: the newest (``None`` if there is none)."""
     return max(claims, key=ClaimInfo.order, default=None)
+
+
+#: Drop reasons of a command refused by a claim (counted per topic in ``drops``).
+NOT_HOLDER = "not_holder"
+UNCLAIMED = "unclaimed"
+
+
+@dataclass(frozen=True)
+class ClaimRule:
+    """A command subscription's rule: samples only from the holder of ``module``'s claim.
+
+    Set on an interface's ``Subscribe`` (its ``claim``) by the component's builder; the
+    executor keeps the subscription's senders on the holder (:class:`ClaimGuard`).
+
+    Attributes:
+        module: The module whose claim decides.
+        relays: Nodes always taken: components that take commands only from holders
+            themselves and forward them (the module's kinematics manager; the steering
+            operator), so what they forward is the holder's command.
+        required: The assembly says ``claims = "required"``: while nobody holds the module,
+            no one but the relays may command it. Otherwise an unclaimed module takes
+            commands from anyone (scripts that never claim keep working).
+    """
+
+    module: str
+    relays: tuple[str, ...] = ()
+    required: bool = False
+
+    def senders(self, holder: ClaimInfo | None) -> tuple[frozenset[str] | None, str, str]:
+        """Who may command the module while ``holder`` holds it (``None``: free): the
+        senders for :meth:`Subscription.allow <components.comm.topics.Subscription.allow>`,
+        what a refusal says, and the drop reason it is counted under."""
+        if holder is not None:
+            return (
+                frozenset({f"{holder.node}@{holder.zid}", *self.relays}),
+                f"{self.module} is claimed by {holder.holder} (node {holder.node}) since "
+                f"{holder.since_text()}; only the holder may command it (msctl claims)",
+                NOT_HOLDER,
+            )
+        if self.required:
+            return (
+                frozenset(self.relays),
+                f"{self.module} takes commands only from the holder of its claim "
+                '(the assembly says claims = "required") and nobody holds it: claim it first '
+                "(msctl teleop, or a script under msctl run)",
+                UNCLAIMED,
+            )
+        return None, "", NOT_HOLDER
+
+
+class ClaimGuard:
+    """Keeps guarded subscriptions' senders on their modules' claim holders.
+
+    Args:
+        claims: The watcher whose holders decide (its ``on_change`` drives this guard).
+    """
+
+    def __init__(self, claims: Claims) -> None:
+        self.claims = claims
+        self._lock = threading.Lock()
+        self._guarded: dict[str, list[tuple[Any, ClaimRule]]] = {}
+        claims.on_change(self._on_change)
+
+    def add(self, subscription: Any, rule: ClaimRule) -> None:
+        """Guard ``subscription`` (made ``guarded``) by ``rule``, from now on.
+
+        Until the watcher has heard of a claim, the module is taken as free: for a moment
+        after a (re)start, an open assembly's module takes anyone's commands, a required
+        one's no one's.
+        """
+        with self._lock:
+            self._guarded.setdefault(rule.module, []).append((subscription, rule))
+        subscription.allow(*rule.senders(self.claims.holder(rule.module)))
+
+    def discard(self, subscription: Any) -> None:
+        """Stop guarding ``subscription`` (its component was removed)."""
+        with self._lock:
+            for entries in self._guarded.values():
+                entries[:] = [e for e in entries if e[0] is not subscription]
+
+    def _on_change(self, module: str, holder: ClaimInfo | None) -> None:
+        with self._lock:
+            entries = list(self._guarded.get(module, ()))
+        for subscription, rule in entries:
+            subscription.allow(*rule.senders(holder))
+
+
+def command_rule(assembly: Any, slot: str) -> ClaimRule:
+    """The claim rule of module ``slot``'s command inputs, from the resolved assembly.
+
+    Relays are the planned components of kinds marked ``claim_relay`` in the kind registry:
+    those of the module itself, and those of ground stations (they command any module).
+    """
+    from components import kinds
+    from components.build import node_name
+
+    relays = []
+    for plan in assembly.components:
+        entry = kinds.registry().get(plan.kind)
+        if entry is None or not entry.claim_relay or plan.module not in (None, slot):
+            continue
+        relays.append(f"{plan.namespace.rstrip('/')}/{node_name(plan.name)}")
+    return ClaimRule(slot, tuple(relays), required=assembly.claims == "required")
 
 
 class Claim:

@@ -86,6 +86,11 @@ class ComponentKind:
         not_rebuilt_alone: Why one of its components cannot be rebuilt inside its running
             process while the process's other components run on (``msctl restart
             --only``), or ``""`` when it can.
+        claim_relay: It forwards commands to joint managers (``joint_set``) only after
+            checking, on its own inputs, that they come from the holder of the module's
+            claim; joint managers then take its commands as the holder's (see
+            :func:`components.claims.command_rule`). A module-placed relay forwards to its
+            own module, a station-placed one to any.
     """
 
     name: str
@@ -102,6 +107,7 @@ class ComponentKind:
     extensions: tuple[str, ...] = ()
     namespace: str = ""
     not_rebuilt_alone: str = ""
+    claim_relay: bool = False
 
     @property
     def runnable(self) -> bool:

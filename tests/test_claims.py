@@ -7,21 +7,27 @@ session is closed at teardown; events are awaited, never slept for.
 
 from __future__ import annotations
 
+import itertools
 import json
+import logging
 import os
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import quick_peer_settings, quick_router, wait_until
+from conftest import quick_peer_settings, quick_router, resolved_assembly, wait_until
 
 from components.claims import (
+    NOT_HOLDER,
+    UNCLAIMED,
     ClaimInfo,
     ClaimRefused,
+    ClaimRule,
     Claims,
     UnknownModuleError,
     claim_key,
@@ -29,8 +35,12 @@ from components.claims import (
     holder_of,
     parse_claim,
 )
-from components.comm import Node
+from components.comm import Node, drops
 from components.comm.session import SessionSettings
+from components.executor.core import Core
+from components.executor.executor import Executor
+from components.executor.interface import InterfaceSpec, Subscribe
+from components.messages import JOINT_STATE, JointSample, joint_samples, joint_state
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = ("limb1", "limb2", "wheel1", "wheel2")
@@ -301,3 +311,248 @@ def test_two_operator_processes_second_refused_then_takes_over_and_first_is_told
     finally:
         for process in started:
             process.stop()
+
+
+# --------------------------------------------------------------------------- enforcement
+
+
+class Commanded(Core):
+    """A joint-manager stand-in: keeps every ``joint_set`` it is given."""
+
+    def __init__(self) -> None:
+        super().__init__("commanded")
+        self.got: list[float] = []
+
+    def on_joint_set(self, message: Any, now: float) -> None:
+        self.got.extend(s.position for s in joint_samples(message))
+
+
+_modules = itertools.count()
+
+
+def unique_module() -> str:
+    """A module name no other test uses (drop counters are per process, per topic)."""
+    return f"clm{next(_modules)}_{os.getpid()}"
+
+
+class Commanding:
+    """An executor running a guarded ``joint_set`` under ``rule``, in a thread."""
+
+    def __init__(self, session: Any, rule: ClaimRule) -> None:
+        self.core = Commanded()
+        spec = InterfaceSpec(subscribe=(Subscribe("joint_set", JOINT_STATE, "on_joint_set"),))
+        self.executor = Executor(session=session)
+        self.component = self.executor.add(
+            self.core, spec.claimed(("joint_set",), rule), f"/{rule.module}", "joint_manager"
+        )
+        self.topic = f"/{rule.module}/joint_set"
+        self.thread = threading.Thread(target=self.executor.run, daemon=True)
+        self.thread.start()
+
+    def refused(self, reason: str) -> int:
+        return drops.count(self.topic, reason)
+
+    def sees(self, module: str, holder: str | None) -> None:
+        """Wait until this executor's claims watcher has ``holder`` (or nobody) on ``module``."""
+
+        def seen() -> bool:
+            info = self.executor.claim_guard().claims.holder(module)
+            return (info and info.holder) == holder
+
+        wait_until(seen, 10.0, f"the manager seeing {holder or 'nobody'} hold {module}")
+
+    def stop(self) -> None:
+        self.executor.stop()
+        self.thread.join(10.0)
+        assert not self.thread.is_alive()
+
+
+@pytest.fixture
+def commanding(open_sessions) -> Iterator[Any]:
+    made: list[Commanding] = []
+
+    def make(rule: ClaimRule) -> Commanding:
+        made.append(Commanding(open_sessions(), rule))
+        return made[-1]
+
+    try:
+        yield make
+    finally:
+        for item in made:
+            item.stop()
+
+
+def send_until(send: Any, done: Any, timeout: float = 10.0) -> Any:
+    """Send repeatedly until ``done()``: a first sample may precede its route or token."""
+
+    def attempt() -> Any:
+        if not done():
+            send()
+            time.sleep(0.02)
+        return done()
+
+    return wait_until(attempt, timeout)
+
+
+def test_a_claimed_module_takes_joint_set_only_from_the_holder(
+    operators, commanding, caplog
+) -> None:
+    caplog.set_level(logging.INFO, logger="msctl.comm")
+    module = unique_module()
+    manager = commanding(ClaimRule(module))
+    alice = operators("teleop_alice", "alice@laptop1")
+    bob = operators("teleop_bob", "bob@laptop2")
+    alice.claims.modules = bob.claims.modules = None  # any module name
+    to_module = f"/{module}/joint_set"
+    from_alice = alice.node.publisher(to_module, JOINT_STATE)
+    from_bob = bob.node.publisher(to_module, JOINT_STATE)
+    got = manager.core.got
+
+    def command(value: float) -> Any:
+        return joint_state([JointSample("j", value, None, None)])
+
+    # Unclaimed (an open assembly): anyone's commands are taken.
+    send_until(lambda: from_bob.publish(command(1.0)), lambda: 1.0 in got)
+    send_until(lambda: from_alice.publish(command(2.0)), lambda: 2.0 in got)
+
+    # Alice claims: bob is refused, counted, warned about once naming the holder.
+    claim = alice.claim(module)
+    manager.sees(module, "alice@laptop1")
+    send_until(lambda: from_bob.publish(command(3.0)), lambda: manager.refused(NOT_HOLDER) >= 3)
+    send_until(lambda: from_alice.publish(command(4.0)), lambda: 4.0 in got)
+    assert 3.0 not in got
+    (warned,) = [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelno == logging.WARNING and r.getMessage().startswith(f"{to_module}: refused")
+    ]
+    assert "node /ground1/teleop_bob" in warned
+    assert f"{module} is claimed by alice@laptop1 (node /ground1/teleop_alice) since" in warned
+
+    # Bob takes it over: now alice is refused and bob is taken.
+    bob.claim(module, take=True)
+    assert claim.lost.wait(10.0)
+    manager.sees(module, "bob@laptop2")
+    before = manager.refused(NOT_HOLDER)
+    send_until(
+        lambda: from_alice.publish(command(5.0)),
+        lambda: manager.refused(NOT_HOLDER) >= before + 3,
+    )
+    send_until(lambda: from_bob.publish(command(6.0)), lambda: 6.0 in got)
+    assert 5.0 not in got and 3.0 not in got
+
+
+def test_claims_required_refuses_everyone_but_relays_until_claimed(operators, commanding) -> None:
+    module = unique_module()
+    alice = operators("teleop_alice", "alice@laptop1")
+    relay = operators("kinematics_manager", "robot@limb")
+    alice.claims.modules = None
+    manager = commanding(ClaimRule(module, relays=("/ground1/kinematics_manager",), required=True))
+    to_module = f"/{module}/joint_set"
+    from_alice = alice.node.publisher(to_module, JOINT_STATE)
+    from_relay = relay.node.publisher(to_module, JOINT_STATE)
+    got = manager.core.got
+
+    def command(value: float) -> Any:
+        return joint_state([JointSample("j", value, None, None)])
+
+    send_until(lambda: from_alice.publish(command(1.0)), lambda: manager.refused(UNCLAIMED) >= 3)
+    send_until(lambda: from_relay.publish(command(2.0)), lambda: 2.0 in got)
+    claim = alice.claim(module)
+    send_until(lambda: from_alice.publish(command(3.0)), lambda: 3.0 in got)
+    send_until(lambda: from_relay.publish(command(4.0)), lambda: 4.0 in got)
+    # Released: closed again (required), the relay still taken.
+    claim.release()
+    manager.sees(module, None)
+    before = manager.refused(UNCLAIMED)
+    send_until(
+        lambda: from_alice.publish(command(5.0)), lambda: manager.refused(UNCLAIMED) >= before + 3
+    )
+    assert 1.0 not in got and 5.0 not in got
+
+
+def test_a_holders_claim_names_its_session_too(operators, commanding, open_sessions) -> None:
+    """Another process's node of the same name is not the holder."""
+    module = unique_module()
+    manager = commanding(ClaimRule(module))
+    alice = operators("teleop", "alice@laptop1")
+    impostor = operators("teleop", "mallory@laptop9")  # same node name, another session
+    alice.claims.modules = None
+    alice.claim(module)
+    manager.sees(module, "alice@laptop1")
+    to_module = f"/{module}/joint_set"
+    from_alice = alice.node.publisher(to_module, JOINT_STATE)
+    from_impostor = impostor.node.publisher(to_module, JOINT_STATE)
+    got = manager.core.got
+    send_until(
+        lambda: from_impostor.publish(joint_state([JointSample("j", 9.0, None, None)])),
+        lambda: manager.refused(NOT_HOLDER) >= 3,
+    )
+    send_until(
+        lambda: from_alice.publish(joint_state([JointSample("j", 1.0, None, None)])),
+        lambda: 1.0 in got,
+    )
+    assert 9.0 not in got
+
+
+def test_the_dragons_command_inputs_are_guarded_by_their_modules_claims(tmp_path: Path) -> None:
+    from components.build import build_component
+
+    dragon = resolved_assembly(tmp_path, "dragon")
+    assert dragon.claims == "open"
+    for plan in dragon.components:
+        if plan.kind not in ("joint_manager", "kinematics_manager"):
+            continue
+        built = build_component(plan, dragon, {"sim": True})
+        try:
+            guarded = {s.topic: s.claim for s in built.spec.subscribe if s.claim is not None}
+        finally:
+            built.close()
+        topic = "joint_set" if plan.kind == "joint_manager" else "ik_target"
+        relays = ("/limb1/kinematics_manager",) if plan.module == "limb1" else ()
+        if plan.module == "limb2":
+            relays = ("/limb2/kinematics_manager",)
+        assert guarded == {topic: ClaimRule(plan.module, relays, required=False)}, plan.name
+
+
+# --------------------------------------------------------------------------- the template
+
+
+@pytest.fixture
+def assemblies(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A private copy of the shipped templates and module types."""
+    import shutil
+
+    copy = tmp_path / "assemblies"
+    shutil.copytree(ROOT / "assemblies", copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setenv("MSCTL_ASSEMBLIES_DIR", str(copy))
+    return copy
+
+
+def test_claims_required_is_checked_at_assemble_and_carried_in_the_lock(
+    assemblies: Path,
+) -> None:
+    from components.assembly import decode_lock, encode_lock
+    from msctl.assembler import resolve
+    from msctl.errors import InputError
+
+    template = assemblies / "dragon.toml"
+    text = template.read_text()
+    template.write_text('claims = "required"\n' + text)
+    resolution = resolve("dragon")
+    assert resolution.lock.claims == "required"
+    assert decode_lock(encode_lock(resolution.lock)).claims == "required"
+    template.write_text('claims = "sometimes"\n' + text)
+    with pytest.raises(InputError) as caught:
+        resolve("dragon")
+    message = str(caught.value)
+    assert f"{template}: field claims is 'sometimes'" in message
+    assert 'claims = "required"' in message
+
+
+def test_a_lock_written_before_claims_reads_as_open(tmp_path: Path) -> None:
+    from components.assembly import decode_lock, encode_lock
+
+    document = json.loads(encode_lock(resolved_assembly(tmp_path, "dragon").lock))
+    del document["claims"]
+    assert decode_lock(json.dumps(document)).claims == "open"

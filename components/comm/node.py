@@ -107,6 +107,7 @@ class Node:
         qos: QoS | None = None,
         raw: bool = False,
         senders: Iterable[str] | None = None,
+        guarded: bool = False,
     ) -> Subscription:
         """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``).
 
@@ -114,9 +115,12 @@ class Node:
             senders: Nodes whose samples are taken (others' are refused and counted, see
                 :class:`Subscription`): fully qualified (``/limb1/joint_manager``) or
                 relative to this node's namespace (``joint_manager``). ``None``: anyone.
+            guarded: The senders may change while it runs (:meth:`Subscription.allow`).
         """
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
-        return self._own(Subscription(self, topic, msg_type, callback, qos, raw, qualified))
+        return self._own(
+            Subscription(self, topic, msg_type, callback, qos, raw, qualified, guarded)
+        )
 
     def qualify_node(self, name: str) -> str:
         """A node name as ``ros2 node list`` prints it: relative names are taken in this

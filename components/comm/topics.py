@@ -41,6 +41,9 @@ UNKNOWN_GRACE = 2.0
 #: Most publishers a sender-checking subscription tracks by GID (unknown ones, other nodes'
 #: ones, warned ones): a spray of made-up GIDs costs a bounded amount of memory.
 MAX_TRACKED = 64
+#: Most publishers a guarded subscription knows by GID on its topic (see
+#: :meth:`Subscription.allow`); beyond this a new publisher is never allowed (the safe side).
+MAX_PUBLISHERS = 1024
 #: The drop reason of a sample refused because its publisher is not an allowed sender.
 INTRUDER = "intruder"
 
@@ -164,6 +167,11 @@ class Subscription:
       liveliness history), and its samples are taken from the moment it is known. A GID
       still unknown after :data:`UNKNOWN_GRACE` seconds is warned about once, by GID.
 
+    A sender is a node name (``/limb1/joint_manager``, from any session) or
+    ``<node>@<session zid>`` (that node of that one session: a claim's holder). With
+    ``guarded``, the senders may change while it runs (:meth:`allow`): every publisher
+    token on the topic is followed from the start, so a new sender's GIDs are known at once.
+
     Attributes:
         received: Samples delivered to the callback.
         last_attachment: The attachment of the latest good sample, if it had one.
@@ -179,6 +187,7 @@ class Subscription:
         qos: QoS | None = None,
         raw: bool = False,
         senders: Collection[str] | None = None,
+        guarded: bool = False,
     ) -> None:
         import zenoh.ext
 
@@ -202,6 +211,14 @@ class Subscription:
         self.received = 0
         self._last_attachment: bytes | None = None
         self.senders: frozenset[str] | None = None if senders is None else frozenset(senders)
+        self._guarded = guarded or senders is not None
+        # What a refusal says after "only ..." and the drop reason it is counted under
+        # (see allow()); by default, the allowed nodes and INTRUDER.
+        self._why: str | None = None
+        self._reason = INTRUDER
+        # Every publisher on the topic, GID -> (node, session zid), while guarded: what
+        # allow() recomputes the allowed set from. Bounded like the rest (MAX_PUBLISHERS).
+        self._publisher_nodes: dict[bytes, tuple[str, str]] = {}
         # GIDs of the allowed senders' publishers on this topic (-> node): the per-sample check.
         self._allowed: dict[bytes, str] = {}
         # The slow path's bookkeeping (refusals, tokens), all bounded by MAX_TRACKED.
@@ -251,7 +268,7 @@ class Subscription:
             entity = Entity.parse(key)
         except TokenError:
             return  # counted by the graph view; nothing of ours
-        if self.senders is not None:
+        if self._guarded:
             self._on_sender_token(key, entity, alive)
         if not alive:
             return
@@ -268,28 +285,82 @@ class Subscription:
             f"this subscription takes {self.type_name} {self.type_hash})",
         )
 
+    def _admits(self, node: str, zid: str) -> bool:
+        senders = self.senders
+        return senders is None or node in senders or f"{node}@{zid}" in senders
+
     def _on_sender_token(self, key: str, entity: Entity, alive: bool) -> None:
         """Keep the allowed GIDs (and the names of the others) as tokens come and go."""
-        assert self.senders is not None
         gid = gid_of(key)
         node = entity.node_fqn
-        allowed = node in self.senders
         with self._identity_lock:
             if not alive:
+                self._publisher_nodes.pop(gid, None)
                 self._allowed.pop(gid, None)
                 self._others.pop(gid, None)
                 return
+            if gid in self._publisher_nodes or len(self._publisher_nodes) < MAX_PUBLISHERS:
+                self._publisher_nodes[gid] = (node, entity.zid)
+            allowed = self._admits(node, entity.zid)
             if allowed:
                 self._allowed[gid] = node
             elif gid in self._others or len(self._others) < MAX_TRACKED:
                 self._others[gid] = node
             early = self._unknown.pop(gid, None)
+        if self.senders is None:
+            return  # anyone may publish: nothing was refused, nothing to say
         if early is None:
             return
         if allowed:
             self._early(node, int(early[1]))
         else:
             self._warn_once(node, f"node {node}")
+
+    def allow(
+        self, senders: Collection[str] | None, why: str | None = None, reason: str = INTRUDER
+    ) -> None:
+        """Change who may publish here, at run time (a ``guarded`` subscription only).
+
+        Takes effect for the next sample: the allowed GIDs are recomputed from the
+        publisher tokens already seen. Each refused node is warned about once more under the
+        new rule (a claim changing hands is news).
+
+        Args:
+            senders: Node names or ``<node>@<zid>`` (see the class); ``None``: anyone; empty:
+                no one.
+            why: What a refusal's WARN says after the node (default: the allowed nodes).
+            reason: The drop reason refusals are counted under.
+
+        Raises:
+            RuntimeError: If the subscription was not made ``guarded`` (its publishers'
+                tokens were not followed, so the new senders' GIDs would be unknown).
+        """
+        if not self._guarded:
+            raise RuntimeError(f"{self.topic}: allow() needs a guarded subscription")
+        new = None if senders is None else frozenset(senders)
+        with self._identity_lock:
+            self._why, self._reason = why, reason
+            if new is None:
+                # Open first, then forget: a sample in between is taken either way.
+                self.senders = None
+                self._allowed = {}
+                self._others.clear()
+            else:
+                admitted = {
+                    gid: node
+                    for gid, (node, zid) in self._publisher_nodes.items()
+                    if node in new or f"{node}@{zid}" in new
+                }
+                # The allowed set before the senders: the per-sample check reads both
+                # without the lock, and each assignment is atomic.
+                self._allowed = admitted
+                self.senders = new
+                self._others = {
+                    gid: node
+                    for gid, (node, _) in self._publisher_nodes.items()
+                    if gid not in admitted
+                }
+            self._warned.clear()
 
     def _early(self, node: str, refused: int) -> None:
         log.info(
@@ -338,7 +409,7 @@ class Subscription:
 
     def _refuse(self, gid: bytes | None) -> None:
         """Count a sample from a publisher that is not an allowed sender; warn once per node."""
-        drops.drop(self.topic, INTRUDER, quiet=True)
+        drops.drop(self.topic, self._reason, quiet=True)
         if gid is None:
             self._warn_once(
                 None, "a publisher with no rmw_zenoh attachment (a raw Zenoh put, not a ROS node)"
@@ -374,12 +445,13 @@ class Subscription:
             if key in self._warned or len(self._warned) >= MAX_TRACKED:
                 return
             self._warned.add(key)
+        why = self._why or f"only {', '.join(sorted(self.senders or ()))} may publish here"
         log.warning(
-            "%s: refused samples from %s: only %s may publish here (%d refused so far)",
+            "%s: refused samples from %s: %s (%d refused so far)",
             self.topic,
             who,
-            ", ".join(sorted(self.senders or ())),
-            drops.count(self.topic, INTRUDER),
+            why,
+            drops.count(self.topic, self._reason),
         )
 
     @property

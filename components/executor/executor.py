@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from components.claims import ClaimGuard, Claims
 from components.comm.node import Node
 from components.comm.services import PendingRequest
 from components.comm.session import SessionSettings, open_session
@@ -48,6 +49,7 @@ class Component:
     errors: int = 0
     handled: int = 0
     removed: bool = False
+    guarded: list[Any] = field(default_factory=list)
 
     def publish(self, topic: str, message: Any) -> None:
         """The core's outbox: publish on a declared output."""
@@ -125,6 +127,7 @@ class Executor:
         self._closed = False
         self._wall_offset = time.time() - time.monotonic()
         self._heartbeat = heartbeat
+        self._claim_guard: ClaimGuard | None = None
 
     # ------------------------------------------------------------------ building
     def add(
@@ -190,9 +193,24 @@ class Executor:
                 inbox.scheduled = True
             self._work.put(inbox)
 
-        component.node.subscription(
-            sub.topic, sub.msg_type, on_message, sub.qos, senders=sub.senders
+        subscription = component.node.subscription(
+            sub.topic,
+            sub.msg_type,
+            on_message,
+            sub.qos,
+            senders=sub.senders,
+            guarded=sub.claim is not None,
         )
+        if sub.claim is not None:
+            self.claim_guard().add(subscription, sub.claim)
+            component.guarded.append(subscription)
+
+    def claim_guard(self) -> ClaimGuard:
+        """The one claims watcher of this process (made on first use), which keeps every
+        claim-guarded subscription on its module's holder (:mod:`components.claims`)."""
+        if self._claim_guard is None:
+            self._claim_guard = ClaimGuard(Claims(self.session, self._settings.domain))
+        return self._claim_guard
 
     def _bind_service(self, component: Component, serve: Serve) -> None:
         handler = self._handler(component.core, serve.handler)
@@ -247,6 +265,9 @@ class Executor:
             return
         self._call(component, component.core.stop, self.clock())
         component.removed = True
+        if self._claim_guard is not None:
+            for subscription in component.guarded:
+                self._claim_guard.discard(subscription)
         component.node.close()
         self._timers = [t for t in self._timers if t[2] is not component]
         heapq.heapify(self._timers)
@@ -391,6 +412,8 @@ class Executor:
         if self._closed:
             return
         self._closed = True
+        if self._claim_guard is not None:
+            self._claim_guard.claims.close()
         for component in reversed(self.components):
             component.node.close()
         if self._owns_session:

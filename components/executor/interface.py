@@ -13,8 +13,12 @@ Handler signatures:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from components.comm.qos import QoS
+
+if TYPE_CHECKING:
+    from components.claims import ClaimRule
 
 
 @dataclass(frozen=True)
@@ -23,6 +27,9 @@ class Subscribe:
 
     ``senders``, when given, are the only nodes whose samples are taken (fully qualified, or
     relative to the component's namespace); the transport refuses and counts the others.
+    ``claim``, when given (by the builder, which knows the module), makes it a command
+    input: while the module is claimed, only the claim's holder (and the rule's relays) are
+    taken (:mod:`components.claims`).
     """
 
     topic: str
@@ -30,6 +37,7 @@ class Subscribe:
     handler: str
     qos: QoS = field(default_factory=QoS)
     senders: tuple[str, ...] | None = None
+    claim: ClaimRule | None = None
 
 
 @dataclass(frozen=True)
@@ -66,6 +74,25 @@ class InterfaceSpec:
     publish: tuple[Publish, ...] = ()
     serve: tuple[Serve, ...] = ()
     every: tuple[Every, ...] = ()
+
+    def claimed(self, topics: tuple[str, ...], rule: ClaimRule) -> InterfaceSpec:
+        """This interface with the subscriptions to ``topics`` guarded by ``rule``.
+
+        Raises:
+            KeyError: If a topic is not one this interface subscribes to.
+        """
+        import dataclasses
+
+        missing = set(topics) - {s.topic for s in self.subscribe}
+        if missing:
+            raise KeyError(f"no subscription to {sorted(missing)} in this interface")
+        return dataclasses.replace(
+            self,
+            subscribe=tuple(
+                dataclasses.replace(s, claim=rule) if s.topic in topics else s
+                for s in self.subscribe
+            ),
+        )
 
     def output(self, topic: str) -> Publish:
         """The declared output for ``topic``.

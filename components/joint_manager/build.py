@@ -7,6 +7,7 @@ from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent, node_name
+from components.claims import command_rule
 from components.joint_manager.core import JointManagerConfig, JointManagerCore
 from components.joint_manager.interface import JOINT_MANAGER
 from components.joint_manager.kind import KIND
@@ -39,7 +40,9 @@ def build(
         )
     except ValueError as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
-    built = BuiltComponent(core, JOINT_MANAGER, module.namespace, "joint_manager")
+    # joint_set is a command input: while the module is claimed, only its holder moves it.
+    spec = JOINT_MANAGER.claimed(("joint_set",), command_rule(assembly, module.slot))
+    built = BuiltComponent(core, spec, module.namespace, "joint_manager")
     # The rezero injection saves new offsets back to the unit's own calibration file.
     if module.calibration_file:
         built.extension_defaults = {"rezero": {"calibration_file": module.calibration_file}}

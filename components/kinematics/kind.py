@@ -12,4 +12,6 @@ KIND = ComponentKind(
     # Diagnostics go out at start, before any joint_read; tip_pose needs joint angles first.
     healthy_output="diagnostics",
     structural=("chain", "base_link", "tip_link", "joints"),
+    # It takes ik_target only from the limb's claim holder and turns it into joint_set.
+    claim_relay=True,
 )

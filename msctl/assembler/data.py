@@ -137,6 +137,10 @@ def _check_finite(path: Path, value: Any, where: str) -> None:
 # ---------------------------------------------------------------------------- field checking
 
 
+#: A template's ``claims`` values (see :class:`Template`).
+CLAIM_POLICIES = ("open", "required")
+
+
 class _Fields:
     """Typed access to one TOML table, with errors naming the file and the field."""
 
@@ -701,6 +705,9 @@ class Template:
     connections: tuple[ConnectionDef, ...]
     stations: tuple[StationDef, ...]
     module_types: dict[str, ModuleType] = field(default_factory=dict)
+    #: ``"open"``: an unclaimed module takes commands from anyone; ``"required"``: only from
+    #: the holder of its claim (see :mod:`components.claims`).
+    claims: str = "open"
 
     def slot(self, name: str) -> SlotDef:
         """The slot called ``name`` (KeyError if none)."""
@@ -858,6 +865,14 @@ def _parse_template(path: Path) -> Template:
                 )
         stations.append(StationDef(name, host, tuple(entries)))
 
+    claims = f.get("claims", str, "open", '"open" or "required"')
+    if claims not in CLAIM_POLICIES:
+        raise InputError(
+            f"{f.where('claims')} is {claims!r}",
+            hint='write claims = "required" (only a claim\'s holder commands a module) or '
+            'claims = "open" (an unclaimed module takes anyone\'s commands; the default)',
+        )
+
     return Template(
         name=path.stem,
         path=path,
@@ -866,6 +881,7 @@ def _parse_template(path: Path) -> Template:
         slots=tuple(slots),
         connections=tuple(connections),
         stations=tuple(stations),
+        claims=claims,
     )
 
 

@@ -467,6 +467,7 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
         template=template.name,
         description=template.description,
         mobile=template.mobile,
+        claims=template.claims,
         units={slot: units[slot].serial for slot in units},
         modules=tuple(modules),
         components=tuple(components),
