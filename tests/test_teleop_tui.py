@@ -156,7 +156,8 @@ def plane(
         opened.append(session)
         node = Node(session, "teleop_test")
         opened.append(node)
-        link = Link.open(node, dragon, SLOTS, health=False, timeout=PATIENCE)
+        # Claims are tested below with links of their own: this one claims nothing.
+        link = Link.open(node, dragon, SLOTS, health=False, timeout=PATIENCE, claim=False)
         opened.append(link)
         # Readings come in, and the routes from this session to the observer are up.
         for handler in link.handlers.values():
@@ -505,6 +506,9 @@ def bob(session_settings: SessionSettings) -> Iterator[Any]:
     from components.claims import Claims
 
     session = open_session(session_settings)
+    # A quick-opening session reaches the router a moment later; an operator's claims ask
+    # the network, so it starts once linked (msctl's commands wait for their router too).
+    wait_until(lambda: list(session.info.routers_zid()), timeout=PATIENCE, what="router link")
     node = Node(session, "bob_teleop", "/gc2")
     claims = Claims(session, 0, ["limb1", "limb2", "wheel1", "wheel2"])
     try:
@@ -518,6 +522,7 @@ def bob(session_settings: SessionSettings) -> Iterator[Any]:
 def own_link(dragon: ResolvedAssembly, session_settings: SessionSettings, **kw: Any) -> Any:
     """A link of its own (claims of its own), on its own session; closed by the caller."""
     session = open_session(session_settings)
+    wait_until(lambda: list(session.info.routers_zid()), timeout=PATIENCE, what="router link")
     node = Node(session, "teleop_claims")
     try:
         link = Link.open(node, dragon, ["limb1"], health=False, timeout=PATIENCE, **kw)
