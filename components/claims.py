@@ -14,6 +14,7 @@ API summary::
 
     claims = Claims(session, domain=0, modules=["limb1", "wheel1"])  # watches every claim
     claims.holders()            # {"limb1": ClaimInfo(module, holder, node, since, ...)}
+    claims.survey()             # every live claim on the network now (msctl claims)
     claims.on_change(cb)        # cb(module, holder_or_None), on a Zenoh thread
     try:
         claim = claims.claim("limb1", default_holder(), node)      # node: a comm.Node
@@ -470,6 +471,20 @@ class Claims:
             # What our own subscriber already saw counts too (our own tokens at least).
             found += [c for c in self._tokens.values() if c.module == module]
         return holder_of(found)
+
+    def survey(self, timeout: float = QUERY_TIMEOUT) -> list[ClaimInfo]:
+        """Ask the network now for every live claim of the domain, oldest first (what a
+        listing shows: it does not wait for this watcher's history)."""
+        replies = self.session.liveliness().get(f"{PREFIX}/{self.domain}/**", timeout=timeout)
+        found: dict[str, ClaimInfo] = {}
+        for reply in replies:
+            if reply.ok is not None:
+                info = parse_claim(str(reply.ok.key_expr))
+                if info is not None:
+                    found[info.key] = info
+        with self._lock:
+            found.update(self._tokens)
+        return sorted(found.values(), key=ClaimInfo.order)
 
     def claim(self, module: str, holder: str, node: Any, take: bool = False) -> Claim:
         """Claim ``module`` for ``holder``'s ``node``.

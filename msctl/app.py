@@ -43,6 +43,9 @@ _COMMANDS: dict[str, str] = {
     "record": "msctl.commands.record",
     "health": "msctl.commands.health",
     "teleop": "msctl.commands.teleop",
+    "claims": "msctl.commands.claims",
+    "estop": "msctl.commands.estop",
+    "recover": "msctl.commands.recover",
     "update": "msctl.commands.update",
     "build": "msctl.commands.build",
 }

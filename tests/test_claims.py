@@ -556,3 +556,49 @@ def test_a_lock_written_before_claims_reads_as_open(tmp_path: Path) -> None:
     document = json.loads(encode_lock(resolved_assembly(tmp_path, "dragon").lock))
     del document["claims"]
     assert decode_lock(json.dumps(document)).claims == "open"
+
+
+# --------------------------------------------------------------------------- msctl claims
+
+
+def run_msctl(router_endpoint: str, *args: str) -> subprocess.CompletedProcess:
+    env = {
+        **os.environ,
+        "MSCTL_ZENOH_CONNECT": router_endpoint,
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+        "PYTHONPATH": str(ROOT),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "msctl", *args],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60.0,
+    )
+
+
+def test_msctl_claims_lists_module_holder_node_and_since(router_endpoint, operators) -> None:
+    empty = run_msctl(router_endpoint, "claims", "--json")
+    assert empty.returncode == 0, empty.stderr
+    assert json.loads(empty.stdout) == {"claims": []}
+
+    alice = operators("teleop_alice", "alice@laptop1")
+    bob = operators("teleop_bob", "bob@laptop2")
+    first = alice.claim("limb1")
+    second = bob.claim("wheel2")
+    listed = run_msctl(router_endpoint, "claims", "--json")
+    assert listed.returncode == 0, listed.stderr
+    rows = json.loads(listed.stdout)["claims"]
+    assert [(r["module"], r["holder"], r["node"], r["holds"]) for r in rows] == [
+        ("limb1", "alice@laptop1", "/ground1/teleop_alice", True),
+        ("wheel2", "bob@laptop2", "/ground1/teleop_bob", True),
+    ]
+    assert rows[0]["since"] == pytest.approx(first.info.since)
+    assert rows[1]["since"] == pytest.approx(second.info.since)
+
+    table = run_msctl(router_endpoint, "claims")
+    assert table.returncode == 0, table.stderr
+    lines = [line for line in table.stdout.splitlines() if "limb1" in line]
+    assert len(lines) == 1 and "alice@laptop1" in lines[0] and "/ground1/teleop_alice" in lines[0]
