@@ -7,6 +7,7 @@ session is closed at teardown; events are awaited, never slept for.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import json
 import logging
@@ -602,3 +603,52 @@ def test_msctl_claims_lists_module_holder_node_and_since(router_endpoint, operat
     assert table.returncode == 0, table.stderr
     lines = [line for line in table.stdout.splitlines() if "limb1" in line]
     assert len(lines) == 1 and "alice@laptop1" in lines[0] and "/ground1/teleop_alice" in lines[0]
+
+
+# --------------------------------------------------------------------------- scripts
+
+
+def test_a_script_claims_what_it_commands_and_is_told_what_others_hold(
+    operators, open_sessions
+) -> None:
+    """The Python API (``msctl run``): a module is claimed at its first command or syncer,
+    one held by an operator is refused naming them, one taken over refuses the next command."""
+    from components.api import ClaimLostError, ModuleClaimedError, Robot
+    from components.api.joints import JointHandler, JointInfo
+
+    alice = operators("teleop_alice", "alice@laptop1")
+    session = open_sessions()
+    wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+    node = Node(session, "api_script", "/")
+    handlers = [
+        JointHandler(node, slot, [JointInfo(f"{slot}_joint1", "revolute", -1, 1, 1, 1)])
+        for slot in ("limb1", "limb2")
+    ]
+    claims = Claims(session, 0, ["limb1", "limb2"])
+    robot = Robot(session, node, handlers, {"limb1": "limb", "limb2": "limb"}, claims=claims)
+    try:
+        held = alice.claim("limb1")
+        wait_until(lambda: claims.holder("limb1"), what="alice's claim reaching the script")
+        with pytest.raises(ModuleClaimedError) as caught:
+            robot.syncer("limb1")
+        assert caught.value.holder == held.info
+        assert "claimed by alice@laptop1 (node /ground1/teleop_alice) since" in str(caught.value)
+        with pytest.raises(ModuleClaimedError):
+            robot.handler("limb1").send({"joint1": 0.1})
+
+        robot.handler("limb2").send({"joint1": 0.2})
+        assert robot.claimed() == ["limb2"]
+        wait_until(
+            lambda: (
+                (alice.claims.holder("limb2") or None)
+                and alice.claims.holder("limb2").node == "/api_script"
+            ),
+            what="the script's claim reaching alice",
+        )
+        alice.claim("limb2", take=True)
+        wait_until(lambda: not robot.claimed(), what="the script learning it lost limb2")
+        with pytest.raises(ClaimLostError, match="taken over by alice@laptop1"):
+            robot.handler("limb2").send({"joint1": 0.3})
+    finally:
+        asyncio.run(robot.close())
+        session.close()

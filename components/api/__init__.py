@@ -28,7 +28,9 @@ Public names: :func:`connect`, :func:`connect_sync`, :class:`Robot`, :class:`Joi
 from components.api.connect import Robot, connect
 from components.api.errors import (
     ApiError,
+    ClaimLostError,
     JointNotReadyError,
+    ModuleClaimedError,
     RobotClosedError,
     RobotNotFoundError,
     UnknownJointError,
@@ -59,6 +61,7 @@ def __getattr__(name: str) -> object:
 
 __all__ = [
     "ApiError",
+    "ClaimLostError",
     "IkSyncSettings",
     "IkSyncer",
     "JointHandler",
@@ -66,6 +69,7 @@ __all__ = [
     "JointNotReadyError",
     "JointState",
     "JointSyncer",
+    "ModuleClaimedError",
     "Motion",
     "Robot",
     "RobotClosedError",

@@ -12,6 +12,12 @@ process reads, ``MSCTL_ZENOH_CONNECT`` and friends):
 The resolved assembly's lock file, when this computer has one for the running template, adds
 what the graph does not carry: each module's kind (limb or wheel), each joint's control mode,
 and the URDF the IK syncer and the wheel helper compute with.
+
+Claims: a module is claimed (:mod:`components.claims`, as ``user@host`` on this process's
+node) the first time the script commands it, so while the script drives it no other operator
+does, and one that does hold it is named in a :class:`ModuleClaimedError` before anything
+moves. A module taken over from the script refuses its next command with
+:class:`ClaimLostError`. Claims go with the robot's connection.
 """
 
 from __future__ import annotations
@@ -21,12 +27,18 @@ import json
 import logging
 import os
 import re
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any
 
-from components.api.errors import ApiError, RobotNotFoundError
+from components.api.errors import (
+    ApiError,
+    ClaimLostError,
+    ModuleClaimedError,
+    RobotNotFoundError,
+)
 from components.api.joints import LIST_JOINTS, JointHandler
 from components.api.planner import SyncSettings
 from components.api.syncer import Commander, JointSyncer
@@ -48,6 +60,7 @@ class Robot:
         assembly: The resolved assembly from the lock file, when it matches (else None).
         modules: Slot -> :class:`JointHandler`, in assembly order.
         kinds: Slot -> ``limb`` or ``wheel``.
+        holder: Who this script's claims name (``user@host``).
     """
 
     def __init__(
@@ -58,15 +71,25 @@ class Robot:
         kinds: dict[str, str],
         template: str | None = None,
         assembly: Any = None,
+        claims: Any = None,
     ) -> None:
+        from components.claims import default_holder
+
         self.session = session
         self.node = node
         self.modules: dict[str, JointHandler] = {h.slot: h for h in modules}
         self.kinds = kinds
         self.template = template
         self.assembly = assembly
+        self.holder = default_holder()
+        self._claims = claims
+        self._claimed: dict[str, Any] = {}
+        self._claim_lock = threading.Lock()
         self._commanders: list[Commander] = []
         self._closed = False
+        if claims is not None:
+            for handler in self.modules.values():
+                handler.before_send = lambda slot=handler.slot: self._hold_claim(slot)
 
     def __repr__(self) -> str:
         parts = ", ".join(f"{s} ({self.kinds.get(s, '?')})" for s in self.modules)
@@ -101,7 +124,60 @@ class Robot:
             out.update(handler.positions())
         return out
 
+    # ------------------------------------------------------------------ claims
+    def claim(self, *slots: str, take: bool = False) -> None:
+        """Claim modules now (default: every module) rather than at their first command.
+
+        Args:
+            slots: The modules.
+            take: Take them over from whoever holds them (they are told at once).
+
+        Raises:
+            ModuleClaimedError: If another operator holds one and ``take`` is false.
+            ClaimLostError: If one was taken over from this script already.
+        """
+        for slot in slots or tuple(self.modules):
+            self.handler(slot)
+            self._hold_claim(slot, take)
+
+    def claimed(self) -> list[str]:
+        """The modules this script holds now."""
+        with self._claim_lock:
+            return [slot for slot, claim in self._claimed.items() if claim.held]
+
+    def _hold_claim(self, slot: str, take: bool = False) -> None:
+        """Claim ``slot`` once; afterwards check it is still ours."""
+        from components.claims import ClaimRefused
+
+        if self._claims is None:
+            return
+        with self._claim_lock:
+            claim = self._claimed.get(slot)
+            if claim is None:
+                try:
+                    claim = self._claims.claim(slot, self.holder, self.node, take=take)
+                except ClaimRefused as exc:
+                    raise ModuleClaimedError(
+                        f"{exc}; this script does not command {slot} while they hold it",
+                        exc.holder,
+                    ) from None
+                self._claimed[slot] = claim
+        if claim.lost.is_set():
+            new = claim.lost_to
+            raise ClaimLostError(
+                f"module {slot} was taken over by {new.holder} (node {new.node}) at "
+                f"{new.since_text()}: this script commands it no more"
+            )
+
     def _adopt(self, commander: Commander) -> Any:
+        try:
+            # Claimed as the syncer is made: a module someone else drives is named now,
+            # before any motion starts, not at the first command of the first motion.
+            for slot in commander.handlers:
+                self._hold_claim(slot)
+        except ApiError:
+            commander.close()
+            raise
         self._commanders.append(commander)
         return commander
 
@@ -172,8 +248,11 @@ class Robot:
         """Cancel every motion and hold every joint where it is measured (velocity 0 for
         wheels). Not a halt: the robot stays ready for the next command."""
         await asyncio.gather(*(c.stop() for c in self._commanders), return_exceptions=True)
-        for handler in self.modules.values():
-            handler.hold()
+        # Only modules this script commands: another operator's (claimed) are not ours to
+        # hold, and one never commanded holds by itself (its joint manager's watchdog).
+        held = set(self.claimed()) if self._claims is not None else set(self.modules)
+        for slot in held:
+            self.modules[slot].hold()
 
     async def close(self) -> None:
         """Stop, then close every syncer, handler, the node and the Zenoh session
@@ -190,6 +269,8 @@ class Robot:
                 commander.close()
             for handler in self.modules.values():
                 handler.close()
+            if self._claims is not None:
+                self._claims.close()  # after the holds went out: they were ours to send
             self.node.close()
             await asyncio.to_thread(self.session.close)
 
@@ -232,6 +313,7 @@ async def connect(
         RobotNotFoundError: If no module is found, or another assembly runs than the one named.
         JointNotReadyError: If a module's joints stay silent.
     """
+    from components.claims import Claims
     from components.comm import Node, SessionSettings, open_session
 
     settings = settings or SessionSettings.from_env()
@@ -266,7 +348,8 @@ async def connect(
         for handler in handlers:
             await handler.wait_ready(max(deadline - time.monotonic(), 0.5))
         kinds = {h.slot: _kind(resolved, h) for h in handlers}
-        return Robot(session, node, handlers, kinds, template, resolved)
+        claims = Claims(session, settings.domain, modules=[h.slot for h in handlers])
+        return Robot(session, node, handlers, kinds, template, resolved, claims)
     except BaseException:
         for handler in handlers:
             handler.close()

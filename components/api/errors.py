@@ -24,3 +24,19 @@ class RobotNotFoundError(ApiError, LookupError):
 
 class RobotClosedError(ApiError, RuntimeError):
     """The robot connection was closed (``msctl run`` stopping): no new motion starts."""
+
+
+class ModuleClaimedError(ApiError, PermissionError):
+    """A module this script would command is claimed by another operator (who, since when).
+
+    Attributes:
+        holder: The claim holding the module (a :class:`components.claims.ClaimInfo`).
+    """
+
+    def __init__(self, message: str, holder: object) -> None:
+        super().__init__(message)
+        self.holder = holder
+
+
+class ClaimLostError(ApiError, RuntimeError):
+    """Another operator took over a module this script was commanding: it moves no more."""

@@ -16,7 +16,7 @@ import asyncio
 import math
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -95,6 +95,9 @@ class JointHandler:
         #: joint is near it: restarting from the measurement would drop a loaded joint by
         #: its tracking error).
         self.last_command: dict[str, float] = {}
+        #: Called before every command is sent (the Robot claims the module there, and
+        #: raises if another operator holds it); ``None``: commands go out as they are.
+        self.before_send: Callable[[], None] | None = None
         self._publisher = node.publisher(f"{self.namespace}/joint_set", JOINT_STATE)
         self._subscription = node.subscription(
             f"{self.namespace}/joint_read", JOINT_STATE, self._on_joint_read
@@ -213,7 +216,12 @@ class JointHandler:
 
         Raises:
             UnknownJointError: If a joint is not this module's.
+            ModuleClaimedError: If another operator holds the module (through
+                :attr:`before_send`).
+            ClaimLostError: If another operator took the module over from this one.
         """
+        if self.before_send is not None and not self._closed:
+            self.before_send()
         if isinstance(commands, Mapping):
             rows = [JointSample(name, float(value)) for name, value in commands.items()]
         else:
