@@ -287,6 +287,8 @@ class ServiceClient:
             timeout=timeout,
         )
         for reply in replies:
+            if _timed_out(reply):
+                continue  # said below, as no answer
             if reply.err is not None:
                 text = reply.err.payload.to_bytes().decode(errors="replace")
                 raise ServiceError(f"service {self.service} answered with an error: {text}")
@@ -311,6 +313,28 @@ class ServiceClient:
             "check it is running (`msctl service list`)"
         )
 
+    def call_async(self, request: Any, timeout: float = 2.0) -> PendingCall:
+        """Send ``request`` and return at once; the answer arrives on a Zenoh thread.
+
+        Many calls sent this way are in flight together (an e-stop reaching every module at
+        once), each stamped with the moment its own answer came.
+        """
+        import zenoh
+
+        call = PendingCall(self, timeout)
+        attachment = Attachment(next(self._seq), time.time_ns(), self.gid).encode()
+        call.started = time.monotonic()
+        self._session.get(
+            self.key,
+            zenoh.handlers.Callback(call._on_reply, call._on_end),
+            payload=self._serialize(request),
+            attachment=attachment,
+            target=zenoh.QueryTarget.ALL_COMPLETE,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout,
+        )
+        return call
+
     def close(self) -> None:
         """Undeclare the client's token (idempotent)."""
         if self._closed:
@@ -320,3 +344,89 @@ class ServiceClient:
             self._token.undeclare()
         except Exception:
             pass
+
+
+class PendingCall:
+    """A service call in flight, made by :meth:`ServiceClient.call_async`.
+
+    Attributes:
+        started: ``time.monotonic()`` when the request was sent.
+        answered: ``time.monotonic()`` when the answer (or the error reply) came; ``None``
+            until then, and for a call no server answered.
+        done: Set once the call is over: answered, refused, or out of time.
+    """
+
+    def __init__(self, client: ServiceClient, timeout: float) -> None:
+        self._client = client
+        self._timeout = timeout
+        self.started = 0.0
+        self.answered: float | None = None
+        self.done = threading.Event()
+        self._response: Any = None
+        self._error: ServiceError | None = None
+
+    def _on_reply(self, reply: Any) -> None:
+        if self.answered is not None or _timed_out(reply):
+            return  # the first answer counts (one server per service); a timeout is none
+        now = time.monotonic()
+        client = self._client
+        if reply.err is not None:
+            text = reply.err.payload.to_bytes().decode(errors="replace")
+            self._error = ServiceError(f"service {client.service} answered with an error: {text}")
+        else:
+            try:
+                self._response = client._deserialize(reply.ok.payload.to_bytes())
+            except Exception as exc:
+                drops.drop(client.service, "malformed", f"{type(exc).__name__}: {exc}")
+                self._error = ServiceError(
+                    f"service {client.service} sent a response that is not a "
+                    f"{client.parts.response}"
+                )
+        self.answered = now
+        self.done.set()
+
+    def _on_end(self) -> None:
+        if self.answered is None:
+            waited = time.monotonic() - self.started
+            client = self._client
+            if waited < 0.9 * self._timeout:
+                self._error = ServiceTimeout(
+                    f"no server of {client.service} ({client.srv_type}) on the network: the "
+                    f"query ended after {waited:.1f} s with no answer; check it is running "
+                    "(`msctl service list`)"
+                )
+            else:
+                self._error = ServiceTimeout(
+                    f"no server answered {client.service} ({client.srv_type}) within "
+                    f"{self._timeout:g} s; check it is running (`msctl service list`)"
+                )
+        self.done.set()
+
+    @property
+    def seconds(self) -> float | None:
+        """From sending to the answer (``None`` if none came)."""
+        return None if self.answered is None else self.answered - self.started
+
+    def result(self, timeout: float | None = None) -> Any:
+        """The response, waiting for it up to ``timeout`` seconds more (default: the call's
+        own timeout and a margin).
+
+        Raises:
+            ServiceTimeout: If no server answered.
+            ServiceError: If the server answered with an error or an undecodable response.
+        """
+        if not self.done.wait(self._timeout + 1.0 if timeout is None else timeout):
+            raise ServiceTimeout(
+                f"no server answered {self._client.service} within {self._timeout:g} s"
+            )
+        if self._error is not None:
+            raise self._error
+        return self._response
+
+
+def _timed_out(reply: Any) -> bool:
+    """Whether ``reply`` is Zenoh's own ``Timeout`` error at the query's end (sent by this
+    session or by the router, so its replier says nothing), which means no answer rather
+    than an answer. A server's error reply is never that one word (rmw_zenoh's and ours
+    say what failed)."""
+    return reply.err is not None and reply.err.payload.to_bytes() == b"Timeout"

@@ -1,0 +1,127 @@
+"""The e-stop: every module's joint manager ``halt`` called at once (and ``recover``).
+
+A halt goes to each module's ``<namespace>/halt`` (``std_srvs/srv/Trigger``): its joint manager
+holds every joint and refuses commands until ``recover``. Every request is sent before any
+answer is awaited, so the slowest module sets the time, not the sum; each answer is stamped
+as it arrives. No claim is asked for or checked: a halt is never blocked by a claim.
+
+Used by ``msctl estop`` / ``msctl recover``, and by any operator that stops what it drives
+(the guardian; teleop's ``space``)::
+
+    estop = Estop(node, {"limb1": "/limb1", "wheel1": "/wheel1"})  # clients declared once
+    for answer in estop.halt():       # -> [Acknowledgement(module, ok, message, seconds)]
+        ...
+    estop.close()
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from components.messages import TRIGGER
+
+#: Seconds to wait for each module's answer.
+HALT_TIMEOUT = 2.0
+
+
+@dataclass(frozen=True)
+class Acknowledgement:
+    """One module's answer to a halt or recover.
+
+    Attributes:
+        module: The module's slot.
+        ok: It answered, with success.
+        message: What it said, or why no answer came.
+        seconds: From the request to its answer; ``None`` when none came.
+    """
+
+    module: str
+    ok: bool
+    message: str
+    seconds: float | None
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-ready view."""
+        return {
+            "module": self.module,
+            "ok": self.ok,
+            "message": self.message,
+            "seconds": self.seconds,
+        }
+
+
+class Estop:
+    """Halt and recover clients for a set of modules, declared once and reused.
+
+    Args:
+        node: The node the clients belong to (the caller keeps it open).
+        modules: Slot -> the module's namespace (``/limb1``), or just slots (namespace
+            ``/<slot>``, the assembly's rule).
+    """
+
+    def __init__(self, node: Any, modules: Mapping[str, str] | Iterable[str]) -> None:
+        spaces = dict(modules) if isinstance(modules, Mapping) else {m: f"/{m}" for m in modules}
+        self.modules: tuple[str, ...] = tuple(spaces)
+        self._clients: dict[str, dict[str, Any]] = {"halt": {}, "recover": {}}
+        for slot, namespace in spaces.items():
+            for verb, clients in self._clients.items():
+                clients[slot] = node.client(f"{namespace.rstrip('/')}/{verb}", TRIGGER)
+
+    def halt(
+        self, modules: Iterable[str] | None = None, timeout: float = HALT_TIMEOUT
+    ) -> list[Acknowledgement]:
+        """Halt ``modules`` (default: all of this e-stop's) at once; one answer each, in
+        module order.
+
+        Raises:
+            KeyError: If a module is not one of this e-stop's (the message names them).
+        """
+        return self._trigger("halt", modules, timeout)
+
+    def recover(
+        self, modules: Iterable[str] | None = None, timeout: float = HALT_TIMEOUT
+    ) -> list[Acknowledgement]:
+        """Recover ``modules`` (default: all) from a halt, at once."""
+        return self._trigger("recover", modules, timeout)
+
+    def _trigger(
+        self, verb: str, modules: Iterable[str] | None, timeout: float
+    ) -> list[Acknowledgement]:
+        from components.comm.services import ServiceError
+
+        chosen = list(self.modules if modules is None else modules)
+        unknown = [m for m in chosen if m not in self.modules]
+        if unknown:
+            raise KeyError(
+                f"no module {', '.join(unknown)} here; modules: {', '.join(self.modules)}"
+            )
+        clients = self._clients[verb]
+        request = clients[chosen[0]].request_type()() if chosen else None
+        # Every request leaves before any answer is awaited: all modules at once.
+        calls = [(slot, clients[slot].call_async(request, timeout)) for slot in chosen]
+        answers = []
+        for slot, call in calls:
+            try:
+                response = call.result()
+            except ServiceError as exc:
+                answers.append(Acknowledgement(slot, False, str(exc), call.seconds))
+                continue
+            answers.append(
+                Acknowledgement(slot, bool(response.success), str(response.message), call.seconds)
+            )
+        return answers
+
+    def close(self) -> None:
+        """Undeclare the clients (idempotent; the node stays open)."""
+        for clients in self._clients.values():
+            for client in clients.values():
+                client.close()
+            clients.clear()
+
+    def __enter__(self) -> Estop:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,311 @@
+"""``msctl estop`` / ``msctl recover`` (issue 12, part 3).
+
+Inner loop: real Zenoh sessions on a loopback router, stand-in joint managers serving the
+real ``halt``/``recover`` Trigger services (one of them silent), the real ``msctl`` command.
+End to end: a simulated Dragon (``msctl up --detach``): after ``msctl estop`` a ``joint_set``
+from the module's claim holder moves nothing (the joint manager counts it refused) until
+``msctl recover``. Events are awaited, never slept for; no time is asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import quick_peer_settings, quick_router, wait_until
+from running import Up
+
+from components.claims import Claims
+from components.comm import Node
+from components.comm.session import SessionSettings, open_session
+from components.estop import Estop
+from components.messages import (
+    DIAGNOSTIC_ARRAY,
+    JOINT_STATE,
+    TRIGGER,
+    JointSample,
+    joint_samples,
+    joint_state,
+    msg,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def router_endpoint() -> Iterator[str]:
+    """Overrides conftest's: the same real router, without the 0.5 s opening wait."""
+    yield from quick_router()
+
+
+@pytest.fixture
+def session_settings(router_endpoint: str) -> SessionSettings:
+    """Overrides conftest's: peers that open at once (answers are awaited anyway)."""
+    return quick_peer_settings(router_endpoint)
+
+
+class StandIn:
+    """A joint manager's halt and recover (a node named joint_manager in the module's
+    namespace), answering at once, or never when ``silent``."""
+
+    def __init__(self, session: Any, slot: str, silent: bool = False) -> None:
+        self.node = Node(session, "joint_manager", f"/{slot}")
+        self.calls: list[str] = []
+        self.pending: list[Any] = []
+
+        def serve(verb: str) -> Any:
+            def answer(pending: Any) -> None:
+                self.calls.append(verb)
+                if silent:
+                    self.pending.append(pending)  # never answered
+                    return
+                pending.reply(msg(f"{TRIGGER}_Response", success=True, message=f"{verb} done"))
+
+            return answer
+
+        for verb in ("halt", "recover"):
+            self.node.service(verb, TRIGGER, serve(verb), deferred=True)
+
+    def close(self) -> None:
+        self.node.close()
+
+
+def msctl(env: dict[str, str], *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "msctl", *args],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+@pytest.fixture
+def env(router_endpoint: str, tmp_path: Path) -> dict[str, str]:
+    return {
+        **os.environ,
+        "MSCTL_HOME": str(tmp_path / "home"),  # no resolved assembly: the graph decides
+        "MSCTL_HOST": "test-laptop",
+        "MSCTL_ZENOH_CONNECT": router_endpoint,
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+        "PYTHONPATH": str(ROOT),
+    }
+
+
+@pytest.fixture
+def modules(open_sessions) -> Iterator[Any]:
+    made: list[StandIn] = []
+
+    def make(slot: str, silent: bool = False) -> StandIn:
+        session = open_sessions()
+        wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+        made.append(StandIn(session, slot, silent))
+        return made[-1]
+
+    try:
+        yield make
+    finally:
+        for module in made:
+            module.close()
+
+
+def test_estop_calls_every_modules_halt_at_once_with_its_time(open_sessions, modules) -> None:
+    limbs = [modules(slot) for slot in ("limb1", "limb2", "wheel1")]
+    session = open_sessions()
+    wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+    node = Node(session, "operator", "/ground1")
+    try:
+        with Estop(node, ["limb1", "limb2", "wheel1"]) as estop:
+
+            def halted() -> Any:
+                answers = estop.halt(timeout=5.0)
+                return answers if all(a.ok for a in answers) else None
+
+            answers = wait_until(halted, 20.0, "every module's halt answered")
+            assert [a.module for a in answers] == ["limb1", "limb2", "wheel1"]
+            assert all(a.message == "halt done" and a.seconds >= 0 for a in answers)
+            assert all("halt" in m.calls for m in limbs)
+            (recovered,) = estop.recover(["limb2"], timeout=5.0)
+            assert recovered.ok and recovered.module == "limb2"
+            assert limbs[1].calls[-1] == "recover" and "recover" not in limbs[0].calls
+            with pytest.raises(KeyError, match="no module limb9 here; modules: limb1, limb2"):
+                estop.halt(["limb9"])
+    finally:
+        node.close()
+
+
+def test_msctl_estop_names_each_module_and_a_silent_one_fails_the_command(env, modules) -> None:
+    modules("limb1")
+    silent = modules("limb2", silent=True)
+    wait_until(lambda: "/limb2/halt" in msctl(env, "service", "list").stdout, 60.0, "the services")
+    result = msctl(env, "estop", "--json", "--timeout", "1")
+    assert result.returncode == 5, result.stdout + result.stderr
+    document = json.loads(result.stdout)
+    rows = {r["module"]: r for r in document["modules"]}
+    assert set(rows) == {"limb1", "limb2"} and document["acknowledged"] is False
+    assert rows["limb1"]["ok"] and rows["limb1"]["seconds"] is not None
+    assert not rows["limb2"]["ok"] and rows["limb2"]["seconds"] is None
+    assert "limb2 did not acknowledge" in result.stderr
+    assert "stop them at the robot" in result.stderr
+    assert silent.calls == ["halt"]  # it was asked, it just never answered
+
+    # Named modules only; the human form: one line per module with its time.
+    named = msctl(env, "estop", "limb1")
+    assert named.returncode == 0, named.stdout + named.stderr
+    (line,) = [line for line in named.stdout.splitlines() if line.startswith("limb1")]
+    assert "halted" in line and " ms" in line and "halt done" in line
+    assert "limb2" not in named.stdout
+    recovered = msctl(env, "recover", "limb1")
+    assert recovered.returncode == 0 and "recovered" in recovered.stdout
+
+
+def test_msctl_estop_refuses_an_unknown_module_naming_those_that_exist(env, modules) -> None:
+    modules("limb1")
+    modules("wheel1")
+    wait_until(lambda: "/wheel1/halt" in msctl(env, "service", "list").stdout, 60.0, "the services")
+    result = msctl(env, "estop", "limb9")
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "no module limb9 in the running assembly" in result.stderr
+    assert "modules: limb1, wheel1" in result.stderr or "modules: wheel1, limb1" in result.stderr
+
+
+def test_msctl_estop_with_nothing_running_says_so(env) -> None:
+    result = msctl(env, "estop")
+    assert result.returncode == 4, result.stdout + result.stderr
+    assert "no module to reach" in result.stderr
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def dragon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Up]:
+    up = Up(tmp_path_factory.mktemp("estop") / "home", "dragon")
+    try:
+        yield up
+    finally:
+        up.down()
+
+
+class Watch:
+    """limb1's measured joints and its joint manager's counters, from the data plane."""
+
+    def __init__(self, node: Node) -> None:
+        self.lock = threading.Lock()
+        self.read: dict[str, float] = {}
+        self.counters: dict[str, str] = {}
+        node.subscription("/limb1/joint_read", JOINT_STATE, self._on_read)
+        node.subscription("/limb1/diagnostics", DIAGNOSTIC_ARRAY, self._on_diagnostics)
+
+    def _on_read(self, message: Any) -> None:
+        with self.lock:
+            for sample in joint_samples(message):
+                if sample.position is not None:
+                    self.read[sample.name] = sample.position
+
+    def _on_diagnostics(self, message: Any) -> None:
+        for status in message.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if "refused_halted" in values and values.get("module") == "limb1":
+                with self.lock:
+                    self.counters = values
+
+    def position(self, joint: str) -> float | None:
+        with self.lock:
+            return self.read.get(joint)
+
+    def refused_halted(self) -> int:
+        with self.lock:
+            return int(self.counters.get("refused_halted", 0))
+
+    def halted(self) -> bool:
+        with self.lock:
+            return self.counters.get("halted") == "True"
+
+
+@pytest.mark.e2e
+def test_e2e_after_estop_joint_set_moves_nothing_until_recover(dragon: Up) -> None:
+    session = open_session(dragon.settings())
+    node = Node(session, "teleop_alice", "/ground1")
+    claims = Claims(session, 0, ["limb1", "limb2", "wheel1", "wheel2"])
+    try:
+        watch = Watch(node)
+        wait_until(lambda: watch.position("limb1_joint4") is not None, 60.0, "limb1 joint_read")
+        # Alice holds limb1: her claim does not stop anyone's halt.
+        claims.claim("limb1", "alice@laptop1", node)
+        joint_set = node.publisher("/limb1/joint_set", JOINT_STATE)
+
+        result = dragon.msctl("estop", "--json")
+        assert result.returncode == 0, result.stdout + result.stderr
+        document = json.loads(result.stdout)
+        assert {r["module"] for r in document["modules"]} == {"limb1", "limb2", "wheel1", "wheel2"}
+        assert all(r["ok"] and r["seconds"] is not None for r in document["modules"])
+        wait_until(watch.halted, 30.0, "limb1's diagnostics saying halted")
+
+        start = watch.position("limb1_joint4")
+        target = start + (0.3 if start < 0.5 else -0.3)
+        command = joint_state([JointSample("limb1_joint4", target, None, None)])
+        refused = watch.refused_halted()
+        farthest = 0.0
+
+        def refused_many() -> bool:
+            nonlocal farthest
+            joint_set.publish(command)
+            farthest = max(farthest, abs(watch.position("limb1_joint4") - start))
+            return watch.refused_halted() >= refused + 20
+
+        # Twenty of the holder's commands reached the joint manager and were refused.
+        wait_until(refused_many, 60.0, "joint_set refused while halted", interval=0.02)
+        assert farthest < 0.02, (start, farthest)
+
+        result = dragon.msctl("recover")
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert result.stdout.count("recovered") >= 4
+
+        def arrived() -> bool:
+            # Most of the way (a loaded joint tracks a little short of its target): it moves
+            # ten times farther than the bound it kept while halted.
+            joint_set.publish(command)
+            return abs(watch.position("limb1_joint4") - start) > 0.2
+
+        wait_until(arrived, 60.0, "joint_set moving limb1_joint4 after recover", interval=0.05)
+    finally:
+        claims.close()
+        node.close()
+        session.close()
+
+
+@pytest.mark.e2e
+def test_e2e_a_script_under_msctl_run_is_refused_a_module_an_operator_holds(
+    dragon: Up, tmp_path: Path
+) -> None:
+    script = tmp_path / "nudge.py"
+    script.write_text(
+        "async def main(robot):\n    await robot.syncer('limb2').lerp({'joint2': 0.1})\n",
+        encoding="utf-8",
+    )
+    session = open_session(dragon.settings())
+    node = Node(session, "teleop_bob", "/ground1")
+    claims = Claims(session, 0)
+    try:
+        wait_until(lambda: list(session.info.routers_zid()), 30.0, "the router link")
+        claims.claim("limb2", "bob@laptop2", node)
+        result = dragon.msctl("run", str(script), timeout=120.0)
+        assert result.returncode == 1, result.stdout + result.stderr
+        assert "ModuleClaimedError" in result.stderr
+        assert "claimed by bob@laptop2 (node /ground1/teleop_bob)" in result.stderr
+        listed = json.loads(dragon.msctl("claims", "--json").stdout)["claims"]
+        assert [(c["module"], c["holder"]) for c in listed] == [("limb2", "bob@laptop2")]
+    finally:
+        claims.close()
+        node.close()
+        session.close()
