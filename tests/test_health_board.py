@@ -31,6 +31,7 @@ from components.messages import (
     OK,
     STALE,
     WARN,
+    Level,
     diagnostic_array,
     diagnostic_status,
     msg,
@@ -448,3 +449,124 @@ def test_aggregate_names_stations_and_the_top_by_the_assembly(dragon) -> None:
     statuses = aggregate(board.evaluate(0.0))
     assert statuses[0][0] == "/dragon" and statuses[0][1] is STALE
     assert any(name == "/dragon/gc1" for name, *_ in statuses)
+
+
+# ---------------------------------------------------------------------------- stations
+@pytest.fixture(scope="module")
+def two_dragons() -> ResolvedAssembly:
+    return from_document(resolve("two_dragons").document)
+
+
+def archiver_report(station: str, level: int, message: str) -> Any:
+    """What a data archiver publishes on its station's diagnostics."""
+    values = {"current_file": "b_0.mcap", "dropped": "0"}
+    return diagnostic_array(
+        [diagnostic_status(f"{station}/data_archiver", level, message, "", values)]
+    )
+
+
+def test_a_station_shows_what_its_components_report_and_their_silence(two_dragons) -> None:
+    board = board_for(two_dragons)
+    front = next(s for s in board.watched if s.name == "gc_front")
+    assert front.station and front.health_topic == "/gc_front/diagnostics"
+    board.on_health("gc_front", archiver_report("gc_front", 0, "recording 3 topic(s)"), 0.0)
+    row = board.evaluate(0.1).row("gc_front")
+    item = next(i for i in row.items if i.name == "gc_front/status/data_archiver")
+    assert (item.level, item.message) == (OK, "recording 3 topic(s)")
+    assert item.values["current_file"] == "b_0.mcap"
+    assert row.group("status") == [item]
+    board.take_alarms()
+    board.on_health("gc_front", archiver_report("gc_front", 1, "12 dropped"), 1.0)
+    row = board.evaluate(1.1).row("gc_front")
+    assert row.level is WARN and row.message == "gc_front/status/data_archiver: 12 dropped"
+    # It stops reporting: its last word is old news, shown STALE (and alarmed), never kept.
+    row = board.evaluate(1.0 + STALE_AFTER + 0.01).row("gc_front")
+    item = next(i for i in row.items if i.name == "gc_front/status/data_archiver")
+    assert item.level is STALE and item.message.startswith("no report for 2.5 s; last WARN")
+    alarms = {(a.item, a.after) for a in board.take_alarms()}
+    assert ("gc_front/status/data_archiver", STALE) in alarms
+    names = {name for name, *_ in aggregate(board.evaluate(5.0))}
+    assert "/two_dragons/gc_front/status/data_archiver" in names
+
+
+def test_a_station_keeps_a_bounded_number_of_reporters(two_dragons) -> None:
+    board = board_for(two_dragons, max_items=5)
+    flood = diagnostic_array(
+        [diagnostic_status(f"gc_rear/thing{i}", 0, "x" * 5000, "", {}) for i in range(50)]
+    )
+    board.on_health("gc_rear", flood, 0.0)
+    board.on_health("gc_rear", archiver_report("gc_rear", 0, "late"), 0.1)
+    row = board.evaluate(0.2).row("gc_rear")
+    reports = row.group("status")
+    assert len(reports) == 5 and all(len(i.message) <= MAX_MESSAGE for i in reports)
+    assert board.unknown == 1  # the archiver came after the bound: counted, not shown
+
+
+# ---------------------------------------------------------------------------- evaluation cost
+def test_rows_are_judged_again_only_on_news_thresholds_or_after_a_second(
+    dragon, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    board = board_for(dragon)
+    board.watch_graph(0.0)
+    all_healthy(board, 0.0)
+    _seen(board, "limb1", 0.0)
+    judged: list[str] = []
+    row = board._row
+    monkeypatch.setattr(
+        board, "_row", lambda state, now: judged.append(state.spec.name) or row(state, now)
+    )
+    board.evaluate(0.1)
+    assert len(judged) == 5  # every row once
+    judged.clear()
+    board.evaluate(0.3)
+    assert judged == []  # nothing new: every row as it was
+    board.on_health("limb1", good("limb1"), 0.4)
+    assert board.evaluate(0.5).row("limb1").level is OK and judged == ["limb1"]
+    judged.clear()
+    board.evaluate(1.2)  # a second since the others were judged: their ages move on
+    assert sorted(judged) == ["gc1", "limb2", "wheel1", "wheel2"]
+
+    # Thresholds are met on time whatever the evaluation rate: stale just after 2.5 s.
+    def wheel1_health(now: float) -> Level:
+        row = board.evaluate(now).row("wheel1")
+        return next(i.level for i in row.items if i.name == "wheel1/health")
+
+    assert wheel1_health(STALE_AFTER - 0.01) is OK
+    assert wheel1_health(STALE_AFTER + 0.001) is STALE
+    # A supervisor's news (a new pid) is shown at once; the same answer again is not news.
+    document = {
+        "host": "laptop",
+        "components": [
+            {"name": "limb1/joint_manager", "process": "limb1", "state": "running", "pid": 7}
+        ],
+    }
+    board.on_supervisors([document], 2.6)
+    judged.clear()
+    row = board.evaluate(2.61).row("limb1")
+    assert next(c.pid for c in row.components if c.label == "joint_manager") == 7
+    assert "limb1" in judged
+    board.on_supervisors([document], 2.7)
+    judged.clear()
+    board.evaluate(2.71)
+    assert judged == []
+
+
+def test_the_aggregate_is_encoded_byte_for_byte_as_the_serializer_does(dragon) -> None:
+    from components.comm.types import registry
+    from components.data_monitor.encoding import AggregateEncoder
+    from components.messages import DIAGNOSTIC_ARRAY
+
+    serialize = registry().serializer(DIAGNOSTIC_ARRAY)
+    board = board_for(dragon)
+    all_healthy(board, 0.0)
+    board.on_health("limb2", health("limb2", ("motors/j1", 7, "ünïcode ✓ " * 3, {"k": ""})), 0.0)
+    entries = aggregate(board.evaluate(0.1))
+    entries += [("/x", 3, "", "", {}), ("/xy", 1, "abc", "h", {"a": "b", "cc": "dd"})]
+    encoder = AggregateEncoder()
+    for stamp in (0.0, 1767323045.123456):
+        expected = serialize(diagnostic_array([diagnostic_status(*e) for e in entries], stamp))
+        assert encoder.encode(entries, stamp) == expected
+    assert encoder.encoded == 0  # the second time, every status's bytes were kept
+    changed = [entries[0], ("/x", 2, "now bad", "", {}), *entries[1:]]
+    expected = serialize(diagnostic_array([diagnostic_status(*e) for e in changed], 5.0))
+    assert encoder.encode(changed, 5.0) == expected and encoder.encoded == 1

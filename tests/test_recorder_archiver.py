@@ -31,6 +31,7 @@ from components.data_archiver.core import (
 from components.executor.runner import run_built
 from components.messages import DIAGNOSTIC_ARRAY, Level, diagnostic_values, msg
 from msctl.assembler import resolve
+from msctl.health.live import LiveHealth
 from msctl.launcher.plan import plan_host
 from msctl.recorder.bag import inspect
 
@@ -97,7 +98,14 @@ def test_status_levels_and_rates() -> None:
     level, _, values = core.report(RecorderStatus(messages=500, bytes=50_000, topics=2), 11.0)
     assert values["rate_hz"] == "500.0" and values["bytes_per_s"] == "50000"
     assert core.report(RecorderStatus(dropped=3), 12.0)[0] is Level.WARN
-    assert core.report(RecorderStatus(paused=True), 13.0)[1] == "paused"
+    assert core.report(RecorderStatus(paused=True), 13.0)[1].startswith("paused: ")
+    _, message, _ = core.report(
+        RecorderStatus(current_file="b_3.mcap", topics=4, messages=900, bytes=2_500_000), 14.0
+    )
+    assert message == (
+        "recording 4 topic(s): 900 msgs, 2.5 MB, 900 msg/s, 0 dropped, 0 lost upstream, "
+        "file b_3.mcap"
+    )
     level, message, _ = core.report(RecorderStatus(error="the disk is full"), 14.0)
     assert level is Level.ERROR and "the disk is full" in message
 
@@ -174,6 +182,7 @@ def test_the_archiver_records_and_reports_on_diagnostics(
     session = open_session(session_settings)
     node = Node(session, "joint_manager", "/d1_limb1")
     reports: list[Any] = []
+    live: LiveHealth | None = None
     try:
         assert ready.wait(30.0)
         node.subscription("/gc_front/diagnostics", DIAGNOSTIC_ARRAY, reports.append)
@@ -191,7 +200,20 @@ def test_the_archiver_records_and_reports_on_diagnostics(
         entry = reports[-1].status[0]
         assert entry.level == Level.OK and entry.name == "gc_front/data_archiver"
         assert int(diagnostic_values(entry)["files"]) >= 2  # split at 8 KiB
+        # `msctl health` shows it on the station's row (its board, read live).
+        live = LiveHealth(node, two_dragons, supervisors=False).start()
+
+        def shown() -> Any:
+            row = live.evaluate().row("gc_front")
+            return next((i for i in row.group("status") if i.level is Level.OK), None)
+
+        item = wait_until(shown, timeout=30.0, what="the archiver's status in msctl health")
+        assert item.name == "gc_front/status/data_archiver"
+        assert item.message.startswith("recording 1 topic(s): ") and "file " in item.message
+        assert item.values["current_file"].startswith("gc_front_data_archiver_")
     finally:
+        if live is not None:
+            live.close()
         if executors:
             executors[0].stop()
         runner.join(timeout=30.0)

@@ -245,19 +245,21 @@ class ArchiverCore:
         }
         if status.error:
             return Level.ERROR, f"not recording: {status.error}", values
+        # The one line `msctl health` shows: where, how much, how fast, what was lost.
+        figures = (
+            f"{status.messages} msgs, {status.bytes / 1e6:.1f} MB, {self._rate:.0f} msg/s, "
+            f"{status.dropped} dropped, {status.lost} lost upstream, "
+            f"file {status.current_file or '-'}"
+        )
         if status.dropped:
             return (
                 Level.WARN,
-                f"recording, but {status.dropped} message(s) dropped (the disk is too slow)",
+                f"recording, but messages were dropped (the disk is too slow): {figures}",
                 values,
             )
         if status.paused:
-            return Level.OK, "paused", values
-        return (
-            Level.OK,
-            f"recording {status.topics} topic(s), {status.messages} message(s)",
-            values,
-        )
+            return Level.OK, f"paused: {figures}", values
+        return Level.OK, f"recording {status.topics} topic(s): {figures}", values
 
 
 def bag_name(node: str, stamp: str) -> str:

@@ -6,6 +6,9 @@ Inputs, each a plain call with ``now`` (monotonic seconds) so tests drive it wit
   monitor's summary item, named after the module, then items such as
   ``limb1/components/joint_manager``, ``limb1/topics/joint_states``, ``limb1/motors/...``,
   ``limb1/host/cpu``);
+  a ground station's ``/<station>/diagnostics``, where its components (a data archiver)
+  report their own status, one DiagnosticStatus each, kept per component as
+  ``<station>/status/<component>``;
 * :meth:`HealthBoard.on_node`: how many live instances of a node the graph holds (a node
   leaves the graph within the Zenoh lease when its process dies or freezes);
 * :meth:`HealthBoard.on_supervisors`: the ``ps`` documents of the supervisors that answered.
@@ -57,6 +60,10 @@ MAX_VALUE = 48
 MAX_VALUES = 16
 #: Alarms kept in memory.
 MAX_ALARMS = 1000
+#: Most seconds a row's shown values (ages, uptimes) lag behind when nothing about it changed:
+#: a row is evaluated again only when an input about it arrived, a time threshold of its own
+#: passed (stale after, grace, supervisor freshness), or this long after its last evaluation.
+ROW_REFRESH = 1.0
 #: Supervisor states of a process whose node may be off the graph without it having died.
 ALIVE_STATES = ("running", "unresponsive")
 #: Level of a component by its supervisor's state, when its node is on the graph.
@@ -79,6 +86,8 @@ def clip(value: Any, limit: int) -> str:
     move the cursor of the operator's terminal.
     """
     text = value if isinstance(value, str) else str(value)
+    if len(text) <= limit and text.isprintable():
+        return text  # the common case, without building a translated copy
     if len(text) > limit:
         text = text[: limit - 1] + "…"
     return text.translate(_CONTROL)
@@ -171,8 +180,9 @@ class WatchedSpec:
 
     @property
     def health_topic(self) -> str:
-        """Where its health monitor publishes (``/limb1/health``)."""
-        return f"/{self.name}/health"
+        """Where its health arrives: a module's health monitor publishes ``/limb1/health``;
+        a station's components report their own status on ``/gc1/diagnostics``."""
+        return f"/{self.name}/diagnostics" if self.station else f"/{self.name}/health"
 
 
 # ---------------------------------------------------------------------------------- what it shows
@@ -426,6 +436,18 @@ class _Supervised:
     last_error: str
     at: float
 
+    def news(self, other: _Supervised) -> bool:
+        """Whether ``other`` (a later answer) says something else about the process than
+        this one does, besides its time and its uptime (which grows by itself)."""
+        return (self.host, self.process, self.state, self.pid, self.restarts, self.last_error) != (
+            other.host,
+            other.process,
+            other.state,
+            other.pid,
+            other.restarts,
+            other.last_error,
+        )
+
 
 @dataclass
 class _RowState:
@@ -435,6 +457,18 @@ class _RowState:
     summary: Item | None = None
     hidden: int = 0
     hidden_level: Level = OK
+    # Figures of the items as last reported (computed once per arrival, not per evaluation).
+    joint_states_hz: float | None = None
+    joint_read_hz: float | None = None
+    temperature: float | None = None
+    voltage: float | None = None
+    # A station's component reports by status name: (item, arrival time).
+    reports: dict[str, tuple[Item, float]] = field(default_factory=dict)
+    # The last evaluation, reused until an input about the row or a threshold comes.
+    row: Row | None = None
+    dirty: bool = True
+    evaluated_at: float = -math.inf
+    deadline: float = math.inf
 
 
 class HealthBoard:
@@ -472,6 +506,12 @@ class HealthBoard:
         self.max_items = max_items
         self.grace = grace
         self._rows = {spec.name: _RowState(spec) for spec in watched}
+        # Which rows a node's coming and going concerns.
+        self._rows_of_node: dict[str, list[_RowState]] = {}
+        for state in self._rows.values():
+            for expected in state.spec.expected:
+                for node in expected.nodes:
+                    self._rows_of_node.setdefault(node, []).append(state)
         self._live: dict[str, int] = {}
         self._seen: dict[str, float] = {}
         self._gone_at: dict[str, float] = {}
@@ -501,12 +541,18 @@ class HealthBoard:
         """Start the clock of the startup grace (called once; inputs call it if needed)."""
         if self._started is None:
             self._started = now
+            self._all_dirty()
+
+    def _all_dirty(self) -> None:
+        for state in self._rows.values():
+            state.dirty = True
 
     def watch_graph(self, now: float) -> None:
         """The graph is followed from now on: components are judged from it (and their
         supervisors), no longer from their module's health alone."""
         self.start(now)
         self._graph = True
+        self._all_dirty()
         self.version += 1
 
     def on_health(self, module: str, message: Any, now: float) -> None:
@@ -519,12 +565,15 @@ class HealthBoard:
         """
         self.start(now)
         state = self._rows.get(module)
-        if state is None or state.spec.station:
+        if state is None:
             self.unknown += 1
             return
         statuses = getattr(message, "status", None)
         if not isinstance(statuses, Sequence):
             statuses = []
+        if state.spec.station:
+            self._on_reports(state, statuses, now)
+            return
         summary: Item | None = None
         candidates: list[tuple[int, Level, Any]] = []
         for index, status in enumerate(statuses):
@@ -554,6 +603,27 @@ class HealthBoard:
         state.hidden = len(hidden)
         state.hidden_level = worst(hidden)
         state.health_at = now
+        name = state.spec.name
+        state.joint_states_hz = _rate(items, f"{name}/topics/joint_states")
+        state.joint_read_hz = _rate(items, f"{name}/topics/joint_read")
+        state.temperature = _extreme(items, name, TEMPERATURE_KEYS, max)
+        state.voltage = _extreme(items, name, VOLTAGE_KEYS, min)
+        state.dirty = True
+        self.version += 1
+
+    def _on_reports(self, state: _RowState, statuses: Sequence[Any], now: float) -> None:
+        """A station's components reported (each its own status, each array a few)."""
+        prefix = state.spec.name + "/"
+        for status in statuses[: self.max_items]:
+            parsed = _parse(status)
+            leaf = parsed.name.removeprefix(prefix).replace("/", "_")
+            name = f"{prefix}status/{clip(leaf, MAX_NAME)}"
+            if name not in state.reports and len(state.reports) >= self.max_items:
+                self.unknown += 1  # bounded: a flood of names is counted, not kept
+                continue
+            item = Item(name, parsed.level, parsed.message, parsed.values)
+            state.reports[name] = (item, now)
+        state.dirty = True
         self.version += 1
 
     def on_node(self, node: str, count: int, now: float) -> None:
@@ -571,6 +641,8 @@ class HealthBoard:
             self._seen[node] = now
         elif before > 0:
             self._gone_at[node] = now
+        for state in self._rows_of_node.get(node, ()):
+            state.dirty = True
         self.version += 1
 
     def on_supervisors(
@@ -588,6 +660,7 @@ class HealthBoard:
         """
         self.start(now)
         del unanswered  # their entries simply stop being current
+        changed = False
         for document in documents:
             if not isinstance(document, Mapping):
                 continue
@@ -600,7 +673,8 @@ class HealthBoard:
                 if not isinstance(entry, Mapping) or not isinstance(entry.get("name"), str):
                     continue
                 pid = entry.get("pid")
-                self._supervised[entry["name"]] = _Supervised(
+                known = self._supervised.get(entry["name"])
+                supervised = self._supervised[entry["name"]] = _Supervised(
                     name=entry["name"],
                     host=clip(entry.get("host", host), MAX_NAME),
                     process=clip(entry.get("process", ""), MAX_NAME),
@@ -611,6 +685,12 @@ class HealthBoard:
                     last_error=clip(entry.get("last_error") or "", MAX_MESSAGE),
                     at=now,
                 )
+                # Rows are judged again when a process changed, not at every answer (its
+                # freshness is a deadline of the rows, its uptime is extrapolated).
+                if known is None or known.news(supervised):
+                    changed = True
+        if changed:
+            self._all_dirty()
         self.version += 1
 
     # ------------------------------------------------------------------ alarms
@@ -652,7 +732,18 @@ class HealthBoard:
         self.start(now)
         modules, stations = [], []
         for state in self._rows.values():
-            row = self._row(state, now)
+            row = state.row
+            if (
+                row is None
+                or state.dirty
+                or now >= state.deadline
+                or now - state.evaluated_at >= ROW_REFRESH
+                or now < state.evaluated_at  # a clock that went back: trust nothing kept
+            ):
+                row = state.row = self._row(state, now)
+                state.dirty = False
+                state.evaluated_at = now
+                state.deadline = self._deadline(state, now)
             (stations if row.station else modules).append(row)
         order = lambda r: (-r.level.severity, r.name)  # noqa: E731
         modules.sort(key=order)
@@ -693,6 +784,22 @@ class HealthBoard:
                     pending=True,
                 )
             )
+        for item, at in state.reports.values():
+            age = now - at
+            if age > self.stale_after:
+                # Its reporter went quiet: what it said last is old news.
+                items.append(
+                    Item(
+                        item.name,
+                        STALE,
+                        f"no report for {age:.1f} s; last {item.level.name}: {item.message}",
+                        item.values,
+                    )
+                )
+                counted.append(STALE)
+            else:
+                items.append(item)
+                counted.append(item.level)
         for item in state.items:
             if item.name in judged:
                 continue
@@ -756,15 +863,33 @@ class HealthBoard:
             worst_item=worst_item.name if worst_item is not None else "",
             components_ok=ok,
             components_expected=total,
-            joint_states_hz=_rate(items, f"{spec.name}/topics/joint_states"),
-            joint_read_hz=_rate(items, f"{spec.name}/topics/joint_read"),
-            temperature=_extreme(items, spec.name, TEMPERATURE_KEYS, max),
-            voltage=_extreme(items, spec.name, VOLTAGE_KEYS, min),
+            joint_states_hz=state.joint_states_hz,
+            joint_read_hz=state.joint_read_hz,
+            temperature=state.temperature,
+            voltage=state.voltage,
             uptime=self._uptime(spec, now),
             health_age=None if state.health_at is None else now - state.health_at,
             items=tuple(items),
             components=tuple(components),
         )
+
+    def _deadline(self, state: _RowState, now: float) -> float:
+        """The first time after ``now`` at which ``state``'s levels may change by themselves
+        (its health goes stale, a startup grace ends, a supervisor's answer gets old)."""
+        times = []
+        if state.health_at is not None:
+            times.append(state.health_at + self.stale_after)
+        times.extend(at + self.stale_after for _, at in state.reports.values())
+        if self._started is not None:
+            times.append(self._started + self.grace)
+        for expected in state.spec.expected:
+            entry, _ = self._supervisor_of(expected, now)
+            if entry is not None:
+                times.append(entry.at + SUPERVISOR_FRESH)
+        # A threshold crossed at this very instant is judged "not yet" (strict comparisons):
+        # it is checked again at the next evaluation.
+        later = [t for t in times if t >= now]
+        return min(later, default=math.inf)
 
     def _health_item(self, state: _RowState, now: float) -> Item:
         spec = state.spec

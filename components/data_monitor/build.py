@@ -49,6 +49,10 @@ class MonitorFeeds:
         def on_supervisors(documents: list[dict[str, Any]], unanswered: list[str]) -> None:
             executor.call_soon(component, "on_supervisors", documents, unanswered)
 
+        # Published as bytes the core encodes itself, where the publisher takes bytes.
+        publish_raw = getattr(component.publishers.get("/diagnostics_agg"), "publish_raw", None)
+        if publish_raw is not None and isinstance(component.core, DataMonitorCore):
+            component.core.publish_encoded(publish_raw)
         feed = NodeFeed(self.nodes, on_node)
         graph = feed.attach(executor.session, component.node.domain)
         self.built.resources.append(feed)

@@ -37,6 +37,7 @@ from components.data_monitor.board import (
     Item,
     Row,
 )
+from components.data_monitor.encoding import AggregateEncoder
 from components.executor.core import Core
 from components.messages import (
     OK,
@@ -196,10 +197,18 @@ class DataMonitorCore(Core):
         self._last_level: Level | None = None
         self._changed = False
         self.publications = 0
+        self._encoder = AggregateEncoder()
+        self._publish_encoded: Callable[[bytes], None] | None = None
         for spec in board.watched:
-            if not spec.station:
-                handler = functools.partial(self.on_health, spec.name)
-                setattr(self, health_handler(spec.name), handler)
+            handler = functools.partial(self.on_health, spec.name)
+            setattr(self, health_handler(spec.name), handler)
+
+    def publish_encoded(self, publish_raw: Callable[[bytes], None]) -> None:
+        """Publish ``/diagnostics_agg`` as CDR bytes through ``publish_raw`` (the bound
+        publisher's), encoded by :class:`AggregateEncoder`, instead of as a message through
+        the outbox: at 40 modules, building and serialising the tree's messages every second
+        was a third of the data monitor's CPU. Subscribers receive the same bytes."""
+        self._publish_encoded = publish_raw
 
     # ------------------------------------------------------------------ inputs
     def start(self, now: float) -> None:
@@ -208,7 +217,7 @@ class DataMonitorCore(Core):
         self._publish(now, self.board.evaluate(now))
 
     def on_health(self, slot: str, message: Any, now: float) -> None:
-        """A module's ``health`` arrived."""
+        """A module's ``health`` (or a station's ``diagnostics``) arrived."""
         self.board.on_health(slot, message, now)
 
     def on_node_instances(self, node: str, count: int, now: float) -> None:
@@ -257,13 +266,14 @@ class DataMonitorCore(Core):
         self._last_level = snapshot.level
         self.publications += 1
         stamp = self.stamp(now)
-        statuses = [
-            diagnostic_status(name, level, message, hardware, values)
-            for name, level, message, hardware, values in aggregate(snapshot)
-        ]
-        self.publish("/diagnostics_agg", diagnostic_array(statuses, stamp))
-        top = statuses[0]
+        entries = aggregate(snapshot)
+        if self._publish_encoded is not None:
+            self._publish_encoded(self._encoder.encode(entries, stamp))
+        else:
+            statuses = [diagnostic_status(*entry) for entry in entries]
+            self.publish("/diagnostics_agg", diagnostic_array(statuses, stamp))
+        _, level, message, _, _ = entries[0]
         self.publish(
             "/diagnostics_toplevel_state",
-            diagnostic_status("toplevel_state", top.level, top.message, "", {}),
+            diagnostic_status("toplevel_state", level, message, "", {}),
         )

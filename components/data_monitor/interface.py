@@ -3,8 +3,9 @@
 Its outputs and service are absolute or private (two data monitors of one station must not
 serve one name): ``/diagnostics_agg`` and ``/diagnostics_toplevel_state`` as ROS's aggregator
 names them, and ``~/alarms`` (``/gc1/data_monitor/alarms``). What it reads depends on the
-assembly, one ``/<slot>/health`` per module, so :func:`data_monitor_interface` adds those to
-the static part :data:`DATA_MONITOR`.
+assembly, one ``/<slot>/health`` per module and one ``/<station>/diagnostics`` per station
+(where its data archivers report), so :func:`data_monitor_interface` adds those to the static
+part :data:`DATA_MONITOR`.
 """
 
 from __future__ import annotations
@@ -33,11 +34,11 @@ DATA_MONITOR = InterfaceSpec(
 
 
 def data_monitor_interface(watched: list[WatchedSpec]) -> InterfaceSpec:
-    """:data:`DATA_MONITOR` plus one ``/<slot>/health`` subscription per watched module."""
+    """:data:`DATA_MONITOR` plus one subscription per watched module (``/<slot>/health``)
+    and station (``/<station>/diagnostics``, where its data archivers report)."""
     subscribe = tuple(
         Subscribe(spec.health_topic, DIAGNOSTIC_ARRAY, health_handler(spec.name))
         for spec in watched
-        if not spec.station
     )
     return InterfaceSpec(
         subscribe=subscribe,

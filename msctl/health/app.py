@@ -155,6 +155,19 @@ def sync_table(table: DataTable, rows: Sequence[tuple[str, tuple[Any, ...]]]) ->
     table._msctl_order = keys  # type: ignore[attr-defined]
 
 
+def set_static(widget: Static, content: Text | str, layout: bool = True) -> None:
+    """Show ``content`` in ``widget`` if it differs from what it shows.
+
+    ``Static.update`` repaints, and with ``layout`` lays the whole screen out again: at the
+    refresh rate, over a 40-module overview, that was most of the screen's CPU. Widgets whose
+    height is fixed in health.tcss pass ``layout=False``.
+    """
+    if getattr(widget, "_msctl_content", None) == content:
+        return
+    widget._msctl_content = content  # type: ignore[attr-defined]
+    widget.update(content, layout=layout)
+
+
 def header_text(app: HealthApp, snapshot: BoardSnapshot) -> Text:
     """The header line: assembly, hosts, supervisors, router link, data monitor, clock."""
     text = Text()
@@ -219,7 +232,7 @@ class OverviewScreen(Screen[None], BoardView):
     def show(self, snapshot: BoardSnapshot) -> None:
         """Draw the header, the rows and the three latest alarms."""
         app: HealthApp = self.app  # type: ignore[assignment]
-        self.query_one("#header", Static).update(header_text(app, snapshot))
+        set_static(self.query_one("#header", Static), header_text(app, snapshot), layout=False)
         rows = []
         for row in (*snapshot.modules, *snapshot.stations):
             rows.append(
@@ -247,7 +260,7 @@ class OverviewScreen(Screen[None], BoardView):
         for alarm in latest:
             strip.append("\n")
             strip.append_text(alarm_text(alarm))
-        self.query_one("#alarm-strip", Static).update(strip)
+        set_static(self.query_one("#alarm-strip", Static), strip, layout=False)
 
     def action_open(self) -> None:
         """Open the drill-down of the row under the cursor."""
@@ -366,17 +379,19 @@ class ModuleScreen(Screen[None], BoardView):
     def show(self, snapshot: BoardSnapshot) -> None:
         """Draw the module's parts."""
         app: HealthApp = self.app  # type: ignore[assignment]
-        self.query_one("#header", Static).update(header_text(app, snapshot))
+        set_static(self.query_one("#header", Static), header_text(app, snapshot), layout=False)
         row = snapshot.row(self.module)
         if row is None:
-            self.query_one("#module-title", Static).update(f"{self.module}: not in the assembly")
+            set_static(
+                self.query_one("#module-title", Static), f"{self.module}: not in the assembly"
+            )
             return
         self._row = row
         title = Text(f" {row.name} ", style="bold")
         title.append(level_text(row.level))
         title.append(f"  on {row.host}  components {row.components_ok}/{row.components_expected}")
         title.append(f"  {row.message}")
-        self.query_one("#module-title", Static).update(title)
+        set_static(self.query_one("#module-title", Static), title)
         sync_table(self.query_one("#components", DataTable), self._component_rows(row))
         sync_table(self.query_one("#topics", DataTable), self._topic_rows(row, app))
         sync_table(self.query_one("#motors", DataTable), self._motor_rows(row, app))
@@ -617,7 +632,7 @@ class AlarmsScreen(Screen[None], BoardView):
     def show(self, snapshot: BoardSnapshot) -> None:
         """Draw the alarms, newest first."""
         app: HealthApp = self.app  # type: ignore[assignment]
-        self.query_one("#header", Static).update(header_text(app, snapshot))
+        set_static(self.query_one("#header", Static), header_text(app, snapshot), layout=False)
         rows = []
         for index, alarm in enumerate(reversed(app.source.alarms())):
             stamp = time.strftime("%H:%M:%S", time.localtime(alarm.at))
@@ -666,7 +681,7 @@ class TopicsScreen(Screen[None], BoardView):
     def show(self, snapshot: BoardSnapshot) -> None:
         """Draw the topics."""
         app: HealthApp = self.app  # type: ignore[assignment]
-        self.query_one("#header", Static).update(header_text(app, snapshot))
+        set_static(self.query_one("#header", Static), header_text(app, snapshot), layout=False)
         topics = app.source.topics()
         if app.refreshes % 10 == 0:
             app.source.watch_topics([t.name for t in topics if t.publishers])

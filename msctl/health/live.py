@@ -1,9 +1,10 @@
 """The health board fed live from the data plane, for ``msctl health`` (screen, ``--once``,
 ``--watch``).
 
-It reads every module's ``/<slot>/health`` directly (so it works when no data monitor runs),
-follows the graph for the nodes of every module and station, and asks the supervisors for
-their ``ps`` once a second and at once when a node leaves. Zenoh and the poller call in on
+It reads every module's ``/<slot>/health`` and every station's ``/<station>/diagnostics``
+directly (so it works when no data monitor runs), follows the graph for the nodes of every
+module and station, and asks the supervisors for their ``ps`` once a second and at once when
+a node leaves. Zenoh and the poller call in on
 their own threads; everything reaches the board under one lock, and readers take snapshots
 (:meth:`LiveHealth.evaluate`) at their own, bounded, pace.
 
@@ -151,8 +152,7 @@ class LiveHealth:
         with self.lock:
             self.board.start(now)
         for spec in self.board.watched:
-            if spec.station:
-                continue
+            # A station's components (its data archivers) report on its diagnostics.
             callback = functools.partial(self._on_health, spec.name)
             self._subscriptions.append(
                 self.node.subscription(spec.health_topic, DIAGNOSTIC_ARRAY, callback)
