@@ -60,11 +60,11 @@ def rosbags_messages(path: Path) -> list[tuple[str, int, object]]:
     return out
 
 
-def write_bag(directory: Path, count: int, **options: object) -> Path:
+def write_bag(directory: Path, count: int, start: int = 0, **options: object) -> Path:
     with BagWriter(directory, **options) as writer:
         chatter = writer.add_topic(spec("/chatter", STRING))
         joints = writer.add_topic(spec("/limb1/joint_read", JOINT_STATE, LATCHED))
-        start = time.time_ns()
+        start = start or time.time_ns()
         for i in range(count):
             writer.write(chatter, start + i * 1000, string(i), start + i * 1000 - 7, i + 1)
             writer.write(joints, start + i * 1000 + 1, joint_state(i), 0, i + 1)
@@ -136,6 +136,32 @@ def test_round_trip_rosbags_and_mcap_readers_agree_with_metadata(tmp_path: Path)
         inner = yaml.safe_load(stored["rosbag2"]["serialized_metadata"])
         assert inner["rosbag2_bagfile_information"]["message_count"] == 400
         assert stored["rosbag2"]["ROS_DISTRO"] == "jazzy"
+
+
+@pytest.mark.parametrize("compression", [None, "zstd"])
+def test_the_lean_chunk_builder_writes_exactly_the_librarys_files(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, compression: str | None
+) -> None:
+    import io
+
+    from mcap.writer import Writer
+
+    import msctl.recorder.writer as writer_module
+
+    assert writer_module._use_lean_chunks(Writer(io.BytesIO()))  # this mcap takes it
+    (tmp_path / "lean").mkdir()
+    (tmp_path / "library").mkdir()
+    options: dict[str, object] = {"compression": compression, "max_bytes": 200_000}
+    lean = write_bag(tmp_path / "lean" / "bag", 3000, 1_767_323_045_000_000_000, **options)
+    used: list[bool] = []
+    monkeypatch.setattr(writer_module, "_use_lean_chunks", lambda writer: used.append(0) or False)
+    library = write_bag(tmp_path / "library" / "bag", 3000, 1_767_323_045_000_000_000, **options)
+    assert used  # the second bag was written by the library's own chunk builder
+    names = sorted(p.name for p in lean.glob("*.mcap"))
+    assert len(names) >= 2 and names == sorted(p.name for p in library.glob("*.mcap"))
+    # Same inputs, same times: the same bytes, chunks, indexes and summaries alike.
+    for name in names:
+        assert (lean / name).read_bytes() == (library / name).read_bytes(), name
 
 
 def test_unknown_type_is_recorded_with_its_name_hash_and_an_empty_definition(

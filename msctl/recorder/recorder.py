@@ -12,19 +12,24 @@ The liveliness graph supplies the rest: each topic's publishers' QoS (stored as
 ``offered_qos_profiles``) and the recorder's own presence (a node, and a subscription
 token per recorded topic, with the QoS rosbag2's rule gives it).
 
-The sample callback (on a Zenoh thread) only stamps the receive time and puts
-``(topic, time, payload, attachment)`` into a bounded queue; a writer thread drains it into a
+The sample callback (on a Zenoh thread) only stamps the receive time and appends
+``(topic, time, payload, attachment)`` to a bounded queue; a writer thread drains it into a
 :class:`~msctl.recorder.writer.BagWriter`. A full queue drops the sample and counts it. Gaps
 in the publishers' sequence numbers are counted as losses upstream.
+
+The queue is a plain deque the writer thread polls (a short nap when it is empty), not a
+queue that wakes the writer at every sample: at tens of thousands of samples a second, one
+thread wake-up and GIL hand-over per sample cost more than the writing (bench/record.py:
+the flood was recorded at half the rate a bare subscriber received it).
 """
 
 from __future__ import annotations
 
 import os
-import queue
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +52,10 @@ DEFAULT_QUEUE_MESSAGES = 100_000
 DEFAULT_QUEUE_BYTES = 512 * 1024 * 1024
 #: Seconds between the writer thread's housekeeping (flushes, QoS updates from the graph).
 _HOUSEKEEPING = 0.2
+#: Seconds the writer thread naps when the queue is empty: the most a sample waits before
+#: it is written (at 50,000 a second, 500 queued: far below the bound), and 100 wake-ups a
+#: second for an idle recorder.
+_IDLE = 0.01
 #: Seconds to wait for the network's answer about a new topic's publishers.
 _QOS_QUERY = 0.5
 _SEQ_STAMP = struct.Struct("<qq")
@@ -134,7 +143,8 @@ class Recorder:
             max_duration=max_duration,
             fsync=fsync,
         )
-        self._queue: queue.SimpleQueue[tuple[int, Any, Any, Any]] = queue.SimpleQueue()
+        # Appends and pops of a deque are atomic: callbacks append, the writer pops.
+        self._queue: deque[tuple[int, Any, Any, Any]] = deque()
         self._queue_messages = queue_messages
         self._queue_bytes = queue_bytes
         self._queued_bytes_in = 0  # written by the callbacks
@@ -202,7 +212,7 @@ class Recorder:
         held, self._held = self._held, {}
         # The writer thread decides which held samples are latched (it knows the topics' QoS
         # best), before any sample that arrives after the resume.
-        self._queue.put((_CONTROL, self._write_held, held, None))
+        self._queue.append((_CONTROL, self._write_held, held, None))
         self._paused = False
 
     @property
@@ -231,7 +241,7 @@ class Recorder:
                     pass
             self._subscribers.clear()
             if self._thread is not None:
-                self._queue.put((_CONTROL, None, None, None))
+                self._queue.append((_CONTROL, None, None, None))
                 self._thread.join()
             else:
                 self._finish()
@@ -255,7 +265,7 @@ class Recorder:
         if self._thread is None or not self._thread.is_alive():
             return False
         done = threading.Event()
-        self._queue.put((_CONTROL, lambda *_: (self._writer.flush(), done.set()), None, None))
+        self._queue.append((_CONTROL, lambda *_: (self._writer.flush(), done.set()), None, None))
         return done.wait(timeout)
 
     def wait(self, timeout: float | None = None) -> bool:
@@ -318,13 +328,13 @@ class Recorder:
             self._held[topic_id] = item
             return
         if (
-            self._queue.qsize() >= self._queue_messages
+            len(self._queue) >= self._queue_messages
             or self._queued_bytes_in - self._queued_bytes_out >= self._queue_bytes
         ):
             self._dropped += 1
             return
         self._queued_bytes_in += len(payload)
-        self._queue.put(item)
+        self._queue.append(item)
 
     def _new_key(self, key: str) -> int:
         with self._keys_lock:
@@ -338,7 +348,7 @@ class Recorder:
             topic_id = len(self._topic_keys)
             self._topic_keys.append(parsed)
             # The topic is added by the writer thread, before this first sample.
-            self._queue.put((_CONTROL, self._add_topic, topic_id, parsed))
+            self._queue.append((_CONTROL, self._add_topic, topic_id, parsed))
             self._keys[key] = topic_id
             return topic_id
 
@@ -346,19 +356,22 @@ class Recorder:
     def _write_loop(self) -> None:
         # The hot loop: locals only (a slow stream must still be flushed every second, so
         # the clock is read for every message; it costs ~50 ns).
-        get = self._queue.get
+        pop = self._queue.popleft
         write = self._writer.write
         observe = self._sequences.observe
         unpack = _SEQ_STAMP.unpack_from
         monotonic = time.monotonic
+        sleep = time.sleep
         next_housekeeping = monotonic() + _HOUSEKEEPING
         try:
             while True:
                 try:
-                    item = get(timeout=_HOUSEKEEPING)
-                except queue.Empty:
-                    self._housekeeping()
-                    next_housekeeping = time.monotonic() + _HOUSEKEEPING
+                    item = pop()
+                except IndexError:
+                    if monotonic() >= next_housekeeping:
+                        self._housekeeping()
+                        next_housekeeping = monotonic() + _HOUSEKEEPING
+                    sleep(_IDLE)
                     continue
                 topic_id, log_time, payload, attachment = item
                 if topic_id == _CONTROL:
@@ -380,7 +393,7 @@ class Recorder:
                 write(topic_id, log_time, payload, publish_time, sequence)
                 if monotonic() >= next_housekeeping:
                     self._housekeeping()
-                    next_housekeeping = time.monotonic() + _HOUSEKEEPING
+                    next_housekeeping = monotonic() + _HOUSEKEEPING
             self._finish()
         except BagWriteError as exc:
             self._fail(str(exc))
