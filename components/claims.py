@@ -51,7 +51,7 @@ import re
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -199,30 +199,55 @@ class ClaimRule:
         required: The assembly says ``claims = "required"``: while nobody holds the module,
             no one but the relays may command it. Otherwise an unclaimed module takes
             commands from anyone (scripts that never claim keep working).
+        also: More modules the same commands move (a Twist on ``cmd_vel`` steers every
+            wheel and limb): the sender must then hold each of them that is claimed, so
+            while two operators hold two of them, neither is taken.
     """
 
     module: str
     relays: tuple[str, ...] = ()
     required: bool = False
+    also: tuple[str, ...] = ()
 
-    def senders(self, holder: ClaimInfo | None) -> tuple[frozenset[str] | None, str, str]:
-        """Who may command the module while ``holder`` holds it (``None``: free): the
-        senders for :meth:`Subscription.allow <components.comm.topics.Subscription.allow>`,
-        what a refusal says, and the drop reason it is counted under."""
-        if holder is not None:
-            return (
-                frozenset({f"{holder.node}@{holder.zid}", *self.relays}),
-                f"{self.module} is claimed by {holder.holder} (node {holder.node}) since "
-                f"{holder.since_text()}; only the holder may command it (msctl claims)",
-                NOT_HOLDER,
-            )
-        if self.required:
+    @property
+    def modules(self) -> tuple[str, ...]:
+        """Every module the rule watches."""
+        return (self.module, *self.also)
+
+    def senders(
+        self, holders: Mapping[str, ClaimInfo | None]
+    ) -> tuple[frozenset[str] | None, str, str]:
+        """Who may command while ``holders`` (module -> its holder, absent or ``None`` when
+        free) hold the modules: the senders for :meth:`Subscription.allow
+        <components.comm.topics.Subscription.allow>`, what a refusal says, and the drop
+        reason it is counted under."""
+        held = {m: h for m in self.modules if (h := holders.get(m)) is not None}
+        free = [m for m in self.modules if m not in held]
+        operators = {(h.node, h.zid) for h in held.values()}
+        if len(operators) > 1:
+            named = "; ".join(f"{m} by {h.holder} (node {h.node})" for m, h in sorted(held.items()))
             return (
                 frozenset(self.relays),
-                f"{self.module} takes commands only from the holder of its claim "
-                '(the assembly says claims = "required") and nobody holds it: claim it first '
-                "(msctl teleop, or a script under msctl run)",
+                f"its modules are claimed by different operators ({named}): one operator "
+                "must hold them all",
+                NOT_HOLDER,
+            )
+        if self.required and free:
+            return (
+                frozenset(self.relays),
+                f"{', '.join(free)} take{'s' if len(free) == 1 else ''} commands only from "
+                'the holder of a claim (the assembly says claims = "required") and nobody '
+                "holds it: claim it first (msctl teleop, or a script under msctl run)",
                 UNCLAIMED,
+            )
+        if held:
+            module, holder = next(iter(held.items()))
+            return (
+                frozenset({f"{holder.node}@{holder.zid}", *self.relays}),
+                f"{', '.join(held) if len(held) > 1 else module} is claimed by {holder.holder} "
+                f"(node {holder.node}) since {holder.since_text()}; only the holder may "
+                "command it (msctl claims)",
+                NOT_HOLDER,
             )
         return None, "", NOT_HOLDER
 
@@ -248,8 +273,9 @@ class ClaimGuard:
         one's no one's.
         """
         with self._lock:
-            self._guarded.setdefault(rule.module, []).append((subscription, rule))
-        subscription.allow(*rule.senders(self.claims.holder(rule.module)))
+            for module in rule.modules:
+                self._guarded.setdefault(module, []).append((subscription, rule))
+        self._apply(subscription, rule)
 
     def discard(self, subscription: Any) -> None:
         """Stop guarding ``subscription`` (its component was removed)."""
@@ -257,29 +283,39 @@ class ClaimGuard:
             for entries in self._guarded.values():
                 entries[:] = [e for e in entries if e[0] is not subscription]
 
+    def _apply(self, subscription: Any, rule: ClaimRule) -> None:
+        holders = self.claims.holders()
+        subscription.allow(*rule.senders({m: holders.get(m) for m in rule.modules}))
+
     def _on_change(self, module: str, holder: ClaimInfo | None) -> None:
         with self._lock:
             entries = list(self._guarded.get(module, ()))
         for subscription, rule in entries:
-            subscription.allow(*rule.senders(holder))
+            self._apply(subscription, rule)
 
 
-def command_rule(assembly: Any, slot: str) -> ClaimRule:
-    """The claim rule of module ``slot``'s command inputs, from the resolved assembly.
+def command_rule(assembly: Any, slot: str, *more: str) -> ClaimRule:
+    """The claim rule of module ``slot``'s command inputs, from the resolved assembly (with
+    ``more`` modules: of an input that moves them all, such as the steering's ``cmd_vel``).
 
     Relays are the planned components of kinds marked ``claim_relay`` in the kind registry:
-    those of the module itself, and those of ground stations (they command any module).
+    those of the modules themselves, and those of ground stations (they command any module).
     """
     from components import kinds
     from components.build import node_name
 
+    modules = (slot, *more)
     relays = []
     for plan in assembly.components:
         entry = kinds.registry().get(plan.kind)
-        if entry is None or not entry.claim_relay or plan.module not in (None, slot):
+        if (
+            entry is None
+            or not entry.claim_relay
+            or not (plan.module is None or plan.module in modules)
+        ):
             continue
         relays.append(f"{plan.namespace.rstrip('/')}/{node_name(plan.name)}")
-    return ClaimRule(slot, tuple(relays), required=assembly.claims == "required")
+    return ClaimRule(slot, tuple(relays), required=assembly.claims == "required", also=more)
 
 
 class Claim:

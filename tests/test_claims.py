@@ -472,6 +472,28 @@ def test_claims_required_refuses_everyone_but_relays_until_claimed(operators, co
     assert 1.0 not in got and 5.0 not in got
 
 
+def test_a_rule_over_several_modules_takes_only_an_operator_holding_all_it_claims() -> None:
+    """A Twist steering every wheel (the steering operator's cmd_vel): one operator must
+    hold whatever of them is claimed; free ones restrict nobody unless claims are required."""
+    alice = parse_claim(claim_key(0, "wheel1", 10, "alice@laptop1", "za", "/g/teleop_alice"))
+    alice2 = parse_claim(claim_key(0, "wheel2", 11, "alice@laptop1", "za", "/g/teleop_alice"))
+    bob = parse_claim(claim_key(0, "wheel2", 12, "bob@laptop2", "zb", "/g/teleop_bob"))
+    rule = ClaimRule("wheel1", relays=("/g/guardian",), also=("wheel2",))
+    assert rule.modules == ("wheel1", "wheel2")
+    assert rule.senders({})[0] is None  # nothing claimed: anyone
+    assert rule.senders({"wheel1": alice})[0] == {"/g/teleop_alice@za", "/g/guardian"}
+    assert rule.senders({"wheel1": alice, "wheel2": alice2})[0] == {
+        "/g/teleop_alice@za",
+        "/g/guardian",
+    }
+    senders, why, reason = rule.senders({"wheel1": alice, "wheel2": bob})
+    assert senders == {"/g/guardian"} and reason == NOT_HOLDER
+    assert "claimed by different operators" in why and "wheel2 by bob@laptop2" in why
+    required = ClaimRule("wheel1", also=("wheel2",), required=True)
+    senders, why, reason = required.senders({"wheel1": alice})
+    assert senders == frozenset() and reason == UNCLAIMED and why.startswith("wheel2 takes")
+
+
 def test_a_holders_claim_names_its_session_too(operators, commanding, open_sessions) -> None:
     """Another process's node of the same name is not the holder."""
     module = unique_module()
