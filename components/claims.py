@@ -64,6 +64,15 @@ from components.comm.names import mangle, unmangle
 PREFIX = "@msctl/claim"
 #: Seconds :meth:`Claims.claim` waits for the network's current claims of a module.
 QUERY_TIMEOUT = 2.0
+#: Seconds a claim waits for its session to reach a router or peer before asking who holds
+#: the module: asked unlinked, the network's answer is "nobody", and the claim would be
+#: granted over a holder it never heard of.
+LINK_TIMEOUT = 10.0
+#: Seconds after a Claims object is made during which "nobody holds it" is asked again
+#: before it is believed: a session linked a moment ago may not have every peer's
+#: declarations yet (measured: the first liveliness query after open missed a live token
+#: in about one try in three, a query 10 ms later never did).
+SETTLE = 1.0
 
 _MODULE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _NS = 1_000_000_000
@@ -416,6 +425,7 @@ class Claims:
         self._mine: dict[str, Claim] = {}  # key -> a claim this object made
         self._callbacks: list[Callable[[str, ClaimInfo | None], None]] = []
         self._closed = False
+        self._made = time.monotonic()
         self._subscriber = session.liveliness().declare_subscriber(
             f"{PREFIX}/{domain}/**", self._on_token, history=True
         )
@@ -561,7 +571,11 @@ class Claims:
             for existing in self._mine.values():
                 if (existing.module, existing.info.node, existing.info.zid) == (module, fqn, zid):
                     return existing  # claimed already by this node: the same claim
+        self._wait_linked(module)
         current = self.current(module)
+        while current is None and time.monotonic() < self._made + SETTLE:
+            time.sleep(0.1)
+            current = self.current(module)
         if current is not None and not take:
             raise ClaimRefused(current)
         since_ns = time.time_ns()
@@ -582,6 +596,25 @@ class Claims:
             changed = self._recompute(module)
         self._announce(changed)
         return claim
+
+    def _wait_linked(self, module: str) -> None:
+        """Wait until this session reaches a router or peer (see :data:`LINK_TIMEOUT`).
+
+        Raises:
+            ClaimError: If it reaches none in time.
+        """
+        deadline = time.monotonic() + LINK_TIMEOUT
+        while True:
+            info = self.session.info
+            if list(info.routers_zid()) or list(info.peers_zid()):
+                return
+            if time.monotonic() > deadline:
+                raise ClaimError(
+                    f"cannot claim {module}: this session reaches no Zenoh router or peer "
+                    f"within {LINK_TIMEOUT:g} s, so who holds it is unknown; check "
+                    "MSCTL_ZENOH_CONNECT and that the assembly's router runs"
+                )
+            time.sleep(0.02)
 
     def _forget(self, claim: Claim) -> None:
         with self._lock:
