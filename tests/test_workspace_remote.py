@@ -16,10 +16,13 @@ from pathlib import Path
 
 import pytest
 from conftest import quick_peer_settings, quick_router, wait_until
+from typer.testing import CliRunner
 from workspace_rigs import TERMINAL, Remote, branch, head, progress_rows, repos_text
 
 from components.comm.node import Node
 from components.comm.session import open_session
+from msctl.app import app
+from msctl.errors import InputError, NotFoundError
 from msctl.launcher.control import host_namespace
 from msctl.workspace.remote import Refused, WorkspaceAgent, check_request, workspace_services
 
@@ -74,6 +77,39 @@ def test_an_agent_accepts_data_only(verb: str, args: str, expected: str) -> None
     with pytest.raises(Refused) as caught:
         check_request(verb, args)
     assert expected in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["update", "--all", "--lock", "x.repos"], "--lock does not apply with --all"),
+        (["update", "--all", "--status"], "--status does not apply with --all"),
+        (["update", "--all", "-w", "ws"], "--workspace does not apply with --all"),
+        (["update", "--all", "--jobs", "2"], "--jobs does not apply with --all"),
+        (["build", "--all", "--wheelhouse", "wh"], "MSCTL_WHEELHOUSE where the agent runs"),
+        (["build", "--all", "--workspace", "ws"], "MSCTL_WORKSPACE where the agent runs"),
+        (["build", "--all", "--force"], "--force does not apply with --all"),
+        (["build", "--all", "--platform", "manylinux2014_aarch64"], "--platform does not"),
+    ],
+)
+def test_options_all_does_not_send_are_refused_not_ignored(
+    args: list[str], expected: str, tmp_path: Path
+) -> None:
+    result = CliRunner().invoke(app, args, env={"MSCTL_HOME": str(tmp_path)})
+    assert isinstance(result.exception, InputError), result.output
+    assert expected in f"{result.exception} {result.exception.hint}"
+
+
+def test_a_workspace_set_in_the_environment_does_not_refuse_all(tmp_path: Path) -> None:
+    # The ground station's own MSCTL_WORKSPACE is not an option given to --all: the command
+    # goes on (and here stops at the missing file, before any network).
+    result = CliRunner().invoke(
+        app,
+        ["update", "--all", str(tmp_path / "nope.repos")],
+        env={"MSCTL_HOME": str(tmp_path), "MSCTL_WORKSPACE": str(tmp_path)},
+    )
+    assert isinstance(result.exception, NotFoundError)
+    assert "nope.repos: no such .repos file" in str(result.exception)
 
 
 def test_a_valid_update_request_carries_the_merged_files() -> None:

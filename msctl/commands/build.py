@@ -25,6 +25,7 @@ COMMAND_SETTINGS = {
 
 
 def command(
+    ctx: typer.Context,
     workspace: Path = typer.Option(
         None,
         "--workspace",
@@ -79,6 +80,32 @@ def command(
 
     if jobs is not None and jobs < 1:
         raise InputError(f"--jobs must be at least 1, not {jobs}")
+    if all_hosts:
+        from msctl.commands.update import refuse_with_all
+        from msctl.workspace.remote import build_all
+
+        on_robot = "run `msctl build` with it on the robot"
+        refuse_with_all(
+            ctx,
+            {
+                "workspace": "each robot's workspace is its agent's own setting "
+                "(MSCTL_WORKSPACE where the agent runs)",
+                "wheelhouse": "each robot's wheelhouse is its agent's own setting "
+                "(MSCTL_WHEELHOUSE where the agent runs); fill it here with "
+                "`msctl build --wheelhouse DIR --platform ...` and copy it there",
+                "platform": on_robot,
+                "python_version": on_robot,
+                "editable": on_robot,
+                "wheels": on_robot,
+                "force": on_robot,
+                "stop_on_error": on_robot,
+                "list_only": on_robot,
+                "jobs": "each agent builds with its own default (its CPUs)",
+            },
+        )
+
+        build_all(list(packages_up_to or []), offline, json_output, timeout)
+        return
     if (platform or python_version) and wheelhouse is None:
         raise InputError(
             "--platform and --python-version choose the wheels a download fetches",
@@ -93,11 +120,6 @@ def command(
             f"--wheelhouse {wheelhouse} does not exist on this computer",
             hint="fill it online with `msctl build --wheelhouse DIR`, then copy it here",
         )
-    if all_hosts:
-        from msctl.workspace.remote import build_all
-
-        build_all(list(packages_up_to or []), offline, json_output, timeout)
-        return
     ws = workspace_dir(workspace)
     if not ws.is_dir():
         raise InputError(f"workspace {ws} does not exist", hint="run `msctl update` first")

@@ -23,6 +23,7 @@ COMMAND_SETTINGS = {
 
 
 def command(
+    ctx: typer.Context,
     repos: Path = typer.Argument(
         None,
         metavar="REPOS",
@@ -70,6 +71,18 @@ def command(
     if all_hosts:
         from msctl.workspace.remote import update_all
 
+        refuse_with_all(
+            ctx,
+            {
+                "workspace": "each robot's workspace is its agent's own setting "
+                "(MSCTL_WORKSPACE where the agent runs)",
+                "lock": "run `msctl update --lock OUT` on the robot",
+                "show_status": "run `msctl update --status` on the robot",
+                "jobs": "each agent updates with its own default",
+                "retry": "each agent updates with its own default",
+            },
+        )
+
         base = repos or Path("workspace.repos")
         update_all(base, overlay or [], offline, shallow, json_output, timeout)
         return
@@ -83,6 +96,22 @@ def command(
 
     options = UpdateOptions(offline=offline, shallow=shallow, jobs=jobs, retries=retry)
     _update(ws, repos_file, overlays, repositories, options, lock, json_output)
+
+
+def refuse_with_all(ctx: typer.Context, reasons: dict[str, str]) -> None:
+    """Refuse options given on the command line that ``--all`` does not send to the agents
+    (rather than ignore them); ``reasons``: each parameter's name and what to do instead.
+
+    Raises:
+        InputError: Naming the first such option.
+    """
+    for name, why in reasons.items():
+        # By name: typer vendors click, and its ParameterSource enum is private.
+        source = ctx.get_parameter_source(name)
+        if source is not None and source.name == "COMMANDLINE":
+            option = next(p for p in ctx.command.params if p.name == name)
+            flag = max(option.opts, key=len)
+            raise InputError(f"{flag} does not apply with --all", hint=why)
 
 
 def _update(

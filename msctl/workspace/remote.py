@@ -315,13 +315,14 @@ _DONE = {"cloned", "updated", "unchanged", "refused", "failed", "built", "up to 
 _DONE |= {"blocked", "skipped"}
 
 
-def workspace_services(node: Any) -> dict[str, str]:
-    """``{host namespace: service}`` of every agent serving workspace requests."""
+def workspace_services(node: Any, timeout: float = 1.0) -> dict[str, str]:
+    """``{host namespace: service}`` of every agent serving workspace requests (the graph's
+    answer within ``timeout`` seconds)."""
     from components.comm.graph import snapshot
     from msctl.launcher.control import AGENT_SRV
 
     found = {}
-    for name, info in snapshot(node.session, node.domain).services().items():
+    for name, info in snapshot(node.session, node.domain, timeout).services().items():
         if name.startswith("/msctl/") and name.endswith(f"/{SERVICE}") and AGENT_SRV in info.types:
             found[name[: -len(SERVICE) - 1]] = name
     return found
@@ -439,7 +440,9 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
                         # named now, not after the whole --timeout: at once when its agent
                         # has left the graph, else after a few unanswered asks.
                         misses[namespace] = misses.get(namespace, 0) + 1
-                        gone = namespace not in workspace_services(node)
+                        # A generous wait for the graph's answer: on a loaded link an
+                        # answer cut short would read as the agent gone.
+                        gone = namespace not in workspace_services(node, timeout=5.0)
                         if gone or misses[namespace] >= MAX_MISSES:
                             why = "its agent left the network" if gone else str(exc)
                             seen = last_seen.get(namespace)
