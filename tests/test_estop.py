@@ -24,8 +24,11 @@ from running import Up
 
 from components.claims import Claims
 from components.comm import Node
+from components.comm.qos import QoS
 from components.comm.session import SessionSettings, open_session
 from components.estop import Estop
+from components.executor.core import Core
+from components.executor.interface import InterfaceSpec, Serve, Subscribe
 from components.messages import (
     DIAGNOSTIC_ARRAY,
     JOINT_STATE,
@@ -182,6 +185,72 @@ def test_msctl_estop_with_nothing_running_says_so(env) -> None:
     result = msctl(env, "estop")
     assert result.returncode == 4, result.stdout + result.stderr
     assert "no module to reach" in result.stderr
+
+
+class Backlogged(Core):
+    """A core whose samples pile up: what it handled, in order."""
+
+    SPEC = InterfaceSpec(
+        subscribe=(Subscribe("joint_states", JOINT_STATE, "on_states", QoS(depth=100)),),
+        serve=(
+            Serve("halt", TRIGGER, "on_halt", urgent=True),
+            Serve("recover", TRIGGER, "on_recover"),
+        ),
+    )
+
+    def __init__(self) -> None:
+        super().__init__("backlogged")
+        self.log: list[str] = []
+        self.arrived = 0
+
+    def on_states(self, message: Any, now: float) -> None:
+        self.log.append("sample")
+
+    def on_halt(self, request: Any, now: float) -> Any:
+        self.log.append("halt")
+        return msg(f"{TRIGGER}_Response", success=True, message="halted")
+
+    def on_recover(self, request: Any, now: float) -> Any:
+        self.log.append("recover")
+        return msg(f"{TRIGGER}_Response", success=True, message="recovered")
+
+
+def test_a_halt_is_handled_before_a_backlog_of_samples(open_sessions) -> None:
+    """The joint manager's halt is urgent: answered as soon as the running handler ends,
+    ahead of every queued sample (a recover, not urgent, waits its turn)."""
+    from components.executor.executor import Executor
+
+    session = open_sessions()
+    wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+    core = Backlogged()
+    operator = Node(open_sessions(), "operator", "/ground1")
+    with Executor(session=session) as executor:
+        component = executor.add(core, Backlogged.SPEC, "/limb7", "joint_manager")
+        feeder = operator.publisher("/limb7/joint_states", JOINT_STATE)
+        sample = joint_state([JointSample("limb7_joint1", 0.0, None, None)])
+
+        (subscription,) = [e for e in component.node._owned if hasattr(e, "received")]
+
+        def piled() -> bool:
+            # Nothing is handled while the executor does not spin: they wait in its queue.
+            if subscription.received < 20:
+                feeder.publish(sample)
+                return False
+            return True
+
+        wait_until(piled, 30.0, "twenty samples queued")
+        halt = operator.client("/limb7/halt", TRIGGER)
+        recover = operator.client("/limb7/recover", TRIGGER)
+        recovered = recover.call_async(recover.request_type()(), 10.0)
+        halted = halt.call_async(halt.request_type()(), 10.0)
+        wait_until(lambda: executor._urgent, 30.0, "the halt request queued")
+        while not (halted.done.is_set() and recovered.done.is_set()):
+            executor.spin_once(0.05)
+        assert halted.result().message == "halted" and recovered.result().success
+        assert core.log[0] == "halt", core.log[:5]
+        assert core.log.index("recover") > 20, core.log  # behind the twenty queued samples
+        assert component.errors == 0
+    operator.close()
 
 
 # --------------------------------------------------------------------------- end to end

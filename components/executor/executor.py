@@ -35,6 +35,7 @@ from components.executor.interface import InterfaceSpec, Serve, Subscribe
 log = logging.getLogger("msctl.executor")
 
 _STOP = object()
+_WAKE = object()  # an urgent request is waiting (Executor._urgent)
 
 
 @dataclass
@@ -128,6 +129,9 @@ class Executor:
         self._wall_offset = time.time() - time.monotonic()
         self._heartbeat = heartbeat
         self._claim_guard: ClaimGuard | None = None
+        # Urgent service requests (Serve.urgent): handled before any queued item, between
+        # the messages of an inbox and between timers. The work queue only wakes the loop.
+        self._urgent: deque[Any] = deque()
 
     # ------------------------------------------------------------------ building
     def add(
@@ -216,7 +220,11 @@ class Executor:
         handler = self._handler(component.core, serve.handler)
 
         def on_request(pending: PendingRequest) -> None:
-            self._work.put((component, handler, pending))
+            if serve.urgent:
+                self._urgent.append((component, handler, pending))
+                self._work.put(_WAKE)
+            else:
+                self._work.put((component, handler, pending))
 
         component.node.service(serve.service, serve.srv_type, on_request, deferred=True)
 
@@ -330,7 +338,19 @@ class Executor:
             wait = min(wait, self._heartbeat.period)
         return max(wait, 0.0)
 
+    def _serve_urgent(self) -> None:
+        """Handle every urgent request waiting (see :class:`Serve`'s ``urgent``)."""
+        while self._urgent:
+            try:
+                request = self._urgent.popleft()
+            except IndexError:
+                return
+            self._answer(*request)
+
     def _dispatch(self, item: Any) -> None:
+        self._serve_urgent()
+        if item is _WAKE:
+            return
         if isinstance(item, _Task):
             try:
                 item.work()
@@ -345,11 +365,15 @@ class Executor:
                         return
                     message = item.items.popleft()
                 self._call(item.component, item.handler, message, self.clock())
+                self._serve_urgent()
             return
         if isinstance(item, _Call):
             self._call(item.component, item.handler, *item.args, self.clock())
             return
-        component, handler, pending = item
+        self._answer(*item)
+
+    def _answer(self, component: Component, handler: Callable, pending: PendingRequest) -> None:
+        """Call a service handler and reply with what it returned."""
         with pending.handling():  # the handler may ask who called (current_caller)
             response = self._call(component, handler, pending.request, self.clock())
         if response is None:
@@ -364,6 +388,7 @@ class Executor:
     def _run_due_timers(self) -> None:
         now = self.clock()
         while self._timers and self._timers[0][0] <= now:
+            self._serve_urgent()
             due, seq, component, handler, period = heapq.heappop(self._timers)
             self._call(component, handler, now)
             following = due + period

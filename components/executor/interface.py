@@ -51,11 +51,16 @@ class Publish:
 
 @dataclass(frozen=True)
 class Serve:
-    """The core answers service ``service`` of ``srv_type`` with ``handler``."""
+    """The core answers service ``service`` of ``srv_type`` with ``handler``.
+
+    ``urgent`` requests are handled before anything queued (samples, timers, other
+    requests), as soon as the handler running finishes: a halt never waits behind data.
+    """
 
     service: str
     srv_type: str
     handler: str
+    urgent: bool = False
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,8 @@ JOINT_MANAGER = InterfaceSpec(
         Publish("diagnostics", DIAGNOSTIC_ARRAY),
     ),
     serve=(
-        Serve("halt", TRIGGER, "on_halt"),
+        # Before anything queued: a halt must not wait behind a backlog of joint_states.
+        Serve("halt", TRIGGER, "on_halt", urgent=True),
         Serve("recover", TRIGGER, "on_recover"),
         Serve("joints", LIST_JOINTS, "on_joints"),
     ),
