@@ -22,6 +22,16 @@ Measured:
    the last key event to the zero Twist's arrival. Target: the timeout plus one tick (50 ms);
    baseline: the timeout plus the bare publish -> receive p50.
 
+4. **``msctl estop`` -> every module halted** (``--part estop``), on ``msctl up --detach``
+   of dragon and two_dragons (each in its own MSCTL_HOME behind its own loopback router, as
+   tests/running.py does): the time from the first halt request to the last module's
+   acknowledgement, with :class:`components.estop.Estop` (the clients ``msctl estop`` and an
+   operator use), halting every module at once, then recovering (untimed) for the next
+   trial. Target: p99 < 50 ms. Baseline, in the same run: a bare Zenoh query round trip
+   from this process to a queryable in another process through the same router. Beside
+   it: one module's halt alone, and the real ``msctl estop`` command (its wall time, start
+   of the interpreter included, and the slowest acknowledgement it reports).
+
 Nothing here asserts a speed; it prints figures and ratios.
 """
 
@@ -389,14 +399,235 @@ def main(trials: int, pings: int) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- e-stop
+QUERYABLE = """
+import sys, zenoh
+from components.comm.session import SessionSettings, open_session
+session = open_session(SessionSettings(connect=(sys.argv[1],), listen=("tcp/127.0.0.1:0",)))
+queryable = session.declare_queryable(
+    f"bench/estop/ping/{sys.argv[2]}", lambda q: q.reply(q.key_expr, b"ok"), complete=True
+)
+print("ready", flush=True)
+sys.stdin.readline()
+queryable.undeclare()
+session.close()
+"""
+
+
+class Detached:
+    """``msctl up TEMPLATE --detach`` in its own MSCTL_HOME, behind its own loopback router."""
+
+    def __init__(self, home: Path, template: str) -> None:
+        self.template = template
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.env = {
+            **os.environ,
+            "MSCTL_HOME": str(home),
+            "MSCTL_HOST": "bench-laptop",  # none of the assembly's computers: simulated
+            "MSCTL_ZENOH_CONNECT": self.endpoint,
+            "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+            "MSCTL_ZENOH_MULTICAST": "0",
+            "PYTHONPATH": str(REPO),
+        }
+        result = self.msctl("up", template, "--detach", "--speed", "1", timeout=600.0)
+        if result.returncode != 0:
+            self.down()
+            raise RuntimeError(f"msctl up {template} failed: {result.stdout}{result.stderr}")
+
+    def msctl(self, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env=self.env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            cwd=REPO,
+            check=False,
+        )
+
+    def down(self) -> None:
+        self.msctl("down", timeout=120.0)
+
+
+def query_round_trips(
+    session: Any, endpoint: str, processes: int, samples: int
+) -> tuple[list[float], list[float]]:
+    """Bare Zenoh query round trips (s) to queryables in other processes: to one of them,
+    and to all ``processes`` at once (the time to the last reply)."""
+    import zenoh
+
+    helpers = [
+        subprocess.Popen(
+            [sys.executable, "-c", QUERYABLE, endpoint, str(i)],
+            cwd=REPO,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(processes)
+    ]
+    try:
+        for helper in helpers:
+            assert helper.stdout.readline().strip() == "ready"
+
+        def once(key: str, expected: int) -> float | None:
+            sent = time.monotonic()
+            got = 0
+            replies = session.get(
+                key,
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=2.0,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    got += 1
+                    if got == expected:
+                        return time.monotonic() - sent
+            return None
+
+        _until(lambda: once("bench/estop/ping/*", processes), 60.0, "every queryable's route")
+        one = [t for _ in range(samples) if (t := once("bench/estop/ping/0", 1)) is not None]
+        every = [
+            t for _ in range(samples) if (t := once("bench/estop/ping/*", processes)) is not None
+        ]
+        return one, every
+    finally:
+        for helper in helpers:
+            helper.stdin.write("\n")
+            helper.stdin.close()
+            helper.wait(30)
+            helper.stdout.close()
+
+
+def estop_figures(up: Detached, trials: int, pings: int) -> list[tuple[object, ...]]:
+    """The e-stop rows of one running assembly."""
+    import json
+
+    from components.assembly import load_assembly
+    from components.estop import Estop
+
+    assembly = load_assembly(Path(up.env["MSCTL_HOME"]) / "assembly")
+    modules = {
+        p.module: p.namespace
+        for p in assembly.components
+        if p.kind == "joint_manager" and p.module is not None
+    }
+    session = open_session(_peer(up.endpoint))
+    node = Node(session, "bench_estop")
+    rows: list[tuple[object, ...]] = []
+    try:
+        bare, bare_every = query_round_trips(session, up.endpoint, len(modules), pings)
+        with Estop(node, modules) as estop:
+            _until(lambda: all(a.ok for a in estop.halt()), 120.0, "every joint manager's halt")
+            estop.recover()
+            everyone, one = [], []
+            for _ in range(trials):
+                answers = estop.halt()
+                if all(a.ok for a in answers):
+                    everyone.append(max(a.seconds for a in answers))
+                estop.recover()
+                (single,) = estop.halt([next(iter(modules))])
+                if single.ok:
+                    one.append(single.seconds)
+                estop.recover()
+        cli_wall, cli_ack = [], []
+        for _ in range(5):
+            started = time.monotonic()
+            result = up.msctl("estop", "--json")
+            wall = time.monotonic() - started
+            if result.returncode == 0:
+                document = json.loads(result.stdout)
+                cli_wall.append(wall)
+                cli_ack.append(max(m["seconds"] for m in document["modules"]))
+            up.msctl("recover")
+        base = summary(bare)
+        label = f"{up.template} ({len(modules)} modules)"
+        for case, values, target in (
+            ("bare zenoh query round trip (baseline)", bare, None),
+            (f"bare query to {len(modules)} processes at once", bare_every, None),
+            ("one module's halt", one, None),
+            ("every module halted (Estop, at once)", everyone, 0.050),
+            ("msctl estop: slowest acknowledgement", cli_ack, 0.050),
+            ("msctl estop: command wall time", cli_wall, None),
+        ):
+            if not values:
+                rows.append((label, case, "-", "-", "-", "no answer"))
+                continue
+            figures = summary(values)
+            verdict = "-" if target is None else ("yes" if figures["p99"] < target else "NO")
+            rows.append(
+                (
+                    label,
+                    case,
+                    len(values),
+                    _ms(values, "p50"),
+                    _ms(values, "p99"),
+                    f"{figures['p50'] / base['p50']:.1f}",
+                    verdict,
+                )
+            )
+    finally:
+        node.close()
+        session.close()
+    return rows
+
+
+def estop_main(trials: int, pings: int, templates: tuple[str, ...]) -> int:
+    """``msctl estop`` on each template brought up, one at a time; print the figures."""
+    print(
+        f"msctl estop benchmark ({os.cpu_count()} CPUs, load averages "
+        f"{', '.join(f'{x:.1f}' for x in os.getloadavg())})",
+        flush=True,
+    )
+    rows: list[tuple[object, ...]] = []
+    for template in templates:
+        with tempfile.TemporaryDirectory(prefix=f"msctl-bench-estop-{template}-") as tmp:
+            print(f"msctl up {template} --detach ...", flush=True)
+            up = Detached(Path(tmp) / "home", template)
+            try:
+                print(f"e-stop on {template} ...", flush=True)
+                rows += estop_figures(up, trials, pings)
+            finally:
+                up.down()
+    print(f"load averages after: {', '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    print_table(
+        "msctl estop -> every module halted (ms; target p99 < 50 ms on loopback)",
+        ("assembly", "case", "n", "p50", "p99", "p50/baseline", "p99 < 50 ms"),
+        [r if len(r) == 7 else (*r[:2], "-", "-", "-", "-", r[-1]) for r in rows],
+    )
+    return 0
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--trials", type=int, default=200, help="Key -> wire trials per path.")
     parser.add_argument("--pings", type=int, default=500, help="Bare put -> receive samples.")
+    parser.add_argument(
+        "--part",
+        choices=("all", "keys", "estop"),
+        default="all",
+        help="keys: key -> wire and key -> stop; estop: msctl estop on dragon and two_dragons.",
+    )
+    parser.add_argument(
+        "--estop-trials", type=int, default=100, help="Halts of every module per assembly."
+    )
+    parser.add_argument(
+        "--templates",
+        default="dragon,two_dragons",
+        help="Comma-separated templates brought up for the e-stop part.",
+    )
     parser.add_argument("--serve", help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
     arguments = parser.parse_args()
     if arguments.serve:
         serve(arguments.serve, arguments.endpoint)
         sys.exit(0)
-    sys.exit(main(arguments.trials, arguments.pings))
+    code = 0
+    if arguments.part in ("all", "keys"):
+        code = main(arguments.trials, arguments.pings)
+    if arguments.part in ("all", "estop"):
+        templates = tuple(t for t in arguments.templates.split(",") if t)
+        code = code or estop_main(arguments.estop_trials, arguments.pings, templates)
+    sys.exit(code)

@@ -2,9 +2,10 @@
 
 The screen is thin: every key goes to the :class:`~msctl.teleop.operator.Operator` (which
 owns the core, the deadman and the wire, on its own thread), except the few the app binds
-itself: ``space`` e-stops every module this operator commands, ``escape``/``ctrl+c`` stop and
-quit, ``ctrl+r`` recovers after an e-stop. Losing the terminal's focus (textual's
-``AppBlur``) stops the motion.
+itself: ``space`` e-stops every module this operator holds (:mod:`components.estop`: every
+joint manager's ``halt`` at once), ``escape``/``ctrl+c`` stop and quit, ``ctrl+r`` recovers
+after an e-stop. Losing the terminal's focus (textual's ``AppBlur``) stops the motion; so
+does a claim taken over by another operator, for what it moved.
 
 It shows the mode and speed, the commanded modules, the deadman (moving or stopped, and why),
 the selected joint's position as a bar between its limits (the limb's joints in IK mode, the
@@ -221,7 +222,8 @@ class TeleopApp(App[None]):
         self.answers.extend((message.verb, a) for a in message.answers)
         failed = [a for a in message.answers if not a.ok]
         parts = [
-            f"{a.module} {'ok' if a.ok else 'NO ANSWER'} {a.seconds * 1e3:.0f} ms"
+            f"{a.module} {'ok' if a.ok else 'FAILED'}"
+            + (f" {a.seconds * 1e3:.0f} ms" if a.seconds is not None else " (no answer)")
             for a in message.answers
         ]
         self.status = f"{message.verb}: " + ", ".join(parts)
@@ -368,7 +370,7 @@ class _Failed:
         self.module = module
         self.ok = False
         self.message = message
-        self.seconds = 0.0
+        self.seconds: float | None = None
 
 
 def run_app(

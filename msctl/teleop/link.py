@@ -21,33 +21,14 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from components.assembly import ResolvedAssembly
-from components.messages import TRIGGER
-from msctl.errors import InputError, MsctlError, NetworkError, NotFoundError, did_you_mean
+from msctl.errors import MsctlError, NetworkError, NotFoundError, did_you_mean
 from msctl.teleop.keys import DRIVE, IK, JOINT
 from msctl.teleop.wire import JointJog, Output, TipJog, TwistDrive
 
 log = logging.getLogger(__name__)
 
-#: Seconds to wait for a module's joint manager to list its joints, or answer a halt.
+#: Seconds to wait for a module's joint manager to list its joints.
 ANSWER_TIMEOUT = 5.0
-HALT_TIMEOUT = 2.0
-
-
-@dataclass(frozen=True)
-class Acknowledged:
-    """One module's answer to a halt or recover.
-
-    Attributes:
-        module: The module.
-        ok: It answered with success.
-        message: What it said (or why there was no answer).
-        seconds: From the call to the answer.
-    """
-
-    module: str
-    ok: bool
-    message: str
-    seconds: float
 
 
 def robots_of(assembly: ResolvedAssembly) -> dict[str, str]:
@@ -150,6 +131,7 @@ class Link:
         unavailable: Mode -> why it cannot be used here.
         claims: The claims watcher (None: this link claims nothing).
         held: Slot -> this link's claim of the module (taken over ones stay, ``lost`` set).
+        estop: Halt and recover of the commanded modules (:class:`components.estop.Estop`).
     """
 
     node: Any
@@ -161,10 +143,8 @@ class Link:
     unavailable: dict[str, str] = field(default_factory=dict)
     claims: Any = None
     held: dict[str, Any] = field(default_factory=dict)
-    _halt_clients: dict[str, Any] = field(default_factory=dict)
-    _recover_clients: dict[str, Any] = field(default_factory=dict)
+    estop: Any = None
     _joints: JointJog | None = None
-    _pool: ThreadPoolExecutor | None = None
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -217,32 +197,33 @@ class Link:
                         raise
                 time.sleep(0.1)
 
-        pool = ThreadPoolExecutor(max_workers=max(len(slots), 1), thread_name_prefix="teleop")
-        listed = {slot: pool.submit(listing, slot) for slot in slots}
         infos: dict[str, Any] = {}
         silent: list[str] = []
-        for slot, future in listed.items():
-            try:
-                infos[slot] = future.result()
-            except ApiError as exc:
-                log.debug("%s: %s", slot, exc)
-                silent.append(slot)
+        with ThreadPoolExecutor(max(len(slots), 1), thread_name_prefix="teleop") as pool:
+            listed = {slot: pool.submit(listing, slot) for slot in slots}
+            for slot, future in listed.items():
+                try:
+                    infos[slot] = future.result()
+                except ApiError as exc:
+                    log.debug("%s: %s", slot, exc)
+                    silent.append(slot)
         if silent:
-            pool.shutdown(wait=False)
             raise NetworkError(
                 f"no answer from the joint manager of {', '.join(silent)} "
                 f"(/{silent[0]}/joints) within {timeout:g} s",
                 hint="is the assembly up? check `msctl ps` and `msctl health`",
             )
+        from components.estop import Estop
+
         handlers: dict[str, Any] = {}
-        link = cls(node, assembly, handlers, _pool=pool)
+        link = cls(node, assembly, handlers)
         try:
             for slot in slots:
                 controls = {j.name: j.control for j in assembly.module(slot).joints}
                 joints = [replace(i, control=controls.get(i.name, i.control)) for i in infos[slot]]
                 handlers[slot] = JointHandler(node, slot, joints)
-                link._halt_clients[slot] = node.client(f"/{slot}/halt", TRIGGER)
-                link._recover_clients[slot] = node.client(f"/{slot}/recover", TRIGGER)
+            # The halt and recover clients are declared now: space must not wait for them.
+            link.estop = Estop(node, {s: assembly.module(s).namespace for s in slots})
             link._joints = JointJog(handlers)
             link.unavailable.update(unavailable_modes(assembly, slots, cmd_vel))
             if IK not in link.unavailable:
@@ -348,37 +329,14 @@ class Link:
         return alarms[-1] if alarms else None
 
     # ------------------------------------------------------------------ halt and recover
-    def halt(self, modules: Sequence[str] | None = None) -> list[Acknowledged]:
-        """Call every module's ``halt`` at once; each answer with its time."""
-        return self._trigger(self._halt_clients, modules)
+    def halt(self, modules: Sequence[str] | None = None) -> list[Any]:
+        """Halt the modules (default: every commanded one) at once, through the e-stop's
+        clients; each module's :class:`~components.estop.Acknowledgement` and its time."""
+        return self.estop.halt(modules)
 
-    def recover(self, modules: Sequence[str] | None = None) -> list[Acknowledged]:
-        """Call every module's ``recover`` at once."""
-        return self._trigger(self._recover_clients, modules)
-
-    def _trigger(
-        self, clients: dict[str, Any], modules: Sequence[str] | None
-    ) -> list[Acknowledged]:
-        from components.comm.services import ServiceError
-
-        chosen = [m for m in (modules if modules is not None else clients) if m in clients]
-        if not chosen:
-            raise InputError("no module to call: none of them is commanded here")
-
-        def call(slot: str) -> Acknowledged:
-            client = clients[slot]
-            started = time.monotonic()
-            try:
-                response = client.call(client.request_type()(), timeout=HALT_TIMEOUT)
-            except ServiceError as exc:
-                return Acknowledged(slot, False, str(exc), time.monotonic() - started)
-            return Acknowledged(
-                slot, bool(response.success), str(response.message), time.monotonic() - started
-            )
-
-        if self._pool is None:
-            return [call(slot) for slot in chosen]
-        return list(self._pool.map(call, chosen))
+    def recover(self, modules: Sequence[str] | None = None) -> list[Any]:
+        """Recover the modules (default: every commanded one) at once."""
+        return self.estop.recover(modules)
 
     # ------------------------------------------------------------------ closing
     def close(self) -> None:
@@ -393,12 +351,7 @@ class Link:
             self.claims = None
         if self.drive is not None:
             self.drive.close()
-        for client in (*self._halt_clients.values(), *self._recover_clients.values()):
-            client.close()
-        self._halt_clients.clear()
-        self._recover_clients.clear()
+        if self.estop is not None:
+            self.estop.close()
         for handler in self.handlers.values():
             handler.close()
-        if self._pool is not None:
-            self._pool.shutdown(wait=False)
-            self._pool = None
