@@ -131,6 +131,60 @@ def test_a_node_leaving_the_graph_turns_its_module_error(
         module.close()
 
 
+def test_topics_view_and_drill_down_measure_rates_and_keep_joint_positions(
+    live: LiveHealth, module_session: Any, dragon: ResolvedAssembly
+) -> None:
+    """The topics view lists the graph's topics with type and counts; measured topics get
+    their rate from arrival times (no decoding); the drill-down keeps a joint's positions."""
+    from components.comm.qos import SENSOR
+    from components.messages import JOINT_STATE, JointSample, joint_state
+
+    node = Node(module_session, "joint_manager", "/limb1")
+    publisher = node.publisher("joint_states", JOINT_STATE, SENSOR)
+    sent = 0
+    stop = threading.Event()
+
+    def publish() -> None:
+        nonlocal sent
+        while not stop.wait(0.005):
+            sent += 1
+            samples = [JointSample("limb1_joint1", 0.001 * sent, 0.0, 0.0)]
+            publisher.publish(joint_state(samples))
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    try:
+        rows = wait_until(
+            lambda: {t.name: t for t in live.topics() if t.name == "/limb1/joint_states"},
+            timeout=15.0,
+            what="/limb1/joint_states on the graph",
+        )
+        row = rows["/limb1/joint_states"]
+        assert row.types == (JOINT_STATE,) and row.publishers == 1 and row.stats is None
+        live.watch_topics(["/limb1/joint_states"])
+        live.watch_joints("limb1")
+
+        def measured() -> Any:
+            stats = next(t.stats for t in live.topics() if t.name == "/limb1/joint_states")
+            return stats if stats is not None and stats.count >= 50 else None
+
+        stats = wait_until(measured, timeout=30.0, what="50 arrivals measured")
+        assert stats.rate > 0 and stats.age is not None
+        assert 0 < stats.min_interval <= stats.max_interval and stats.jitter >= 0
+        history = wait_until(
+            lambda: (h := live.joint_history("limb1_joint1")) and len(h) >= 3 and h,
+            timeout=30.0,
+            what="positions kept for the sparkline",
+        )
+        assert history == sorted(history)  # the positions sent only grow
+        live.watch_topics([])
+        assert all(t.stats is None for t in live.topics())
+    finally:
+        stop.set()
+        thread.join()
+        node.close()
+
+
 def test_wait_first_news_gives_up_after_its_timeout_when_modules_are_silent(
     live: LiveHealth,
 ) -> None:
