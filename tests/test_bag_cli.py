@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import resource
 import shutil
 import signal
@@ -117,7 +118,8 @@ def test_bag_info_prints_what_ros2_bag_info_prints(tmp_path: Path) -> None:
     result = cli("bag", "info", str(bag))
     assert result.exit_code == 0, result.output
     text = result.stdout
-    for label in ("Files:", "Bag size:", "Storage id:", "ROS Distro:", "Duration:", "Start:"):
+    labels = ("Files:", "Bag size:", "Storage id:", "ROS Distro:", "Duration:", "Start:", "End:")
+    for label in (*labels, "Messages:", "Topic information:"):
         assert label in text
     assert "Storage id:        mcap" in text
     assert "Messages:          30" in text
@@ -200,6 +202,72 @@ def test_play_then_echo_with_timing_rate_offset_and_remap(
     wait_until(lambda: len(inbox.items) == 20)
     assert [m.data for m in inbox.items] == [f"m{i}" for i in range(10, 30)]
     assert elapsed >= 0.19 / 2  # the spacing is kept (scaled by the rate), never compressed
+
+
+def test_play_loops_only_the_topics_asked_through_real_publishers(
+    tmp_path: Path, client: Any, talker: Node
+) -> None:
+    """--loop and --topics; what goes out carries rmw_zenoh's key, hash, a fresh 33-byte
+    attachment per sample, and a publisher token on the graph (the player's own node)."""
+    from components.comm.graph import snapshot
+
+    bag = tmp_path / "bag"
+    serialize = registry().serializer(STRING)
+    with BagWriter(bag) as writer:
+        chatter = writer.add_topic(
+            TopicSpec(
+                "/chatter", STRING, registry().type_hash(STRING), (), message_definition(STRING)
+            )
+        )
+        other = writer.add_topic(
+            TopicSpec(
+                "/other", STRING, registry().type_hash(STRING), (), message_definition(STRING)
+            )
+        )
+        start = time.time_ns()
+        for i in range(10):
+            writer.write(chatter, start + i * 1_000_000, serialize(msg(STRING, data=f"m{i}")))
+            writer.write(other, start + i * 1_000_000 + 1, serialize(msg(STRING, data="no")))
+    chatter_inbox = Inbox(talker, "/chatter")
+    other_inbox = Inbox(talker, "/other")
+    attachments: list[bytes] = []
+    raw = talker.session.declare_subscriber(
+        f"0/chatter/std_msgs::msg::dds_::String_/{registry().type_hash(STRING)}",
+        lambda sample: attachments.append(sample.attachment.to_bytes()),
+    )
+    player_node = Node(client, "player")
+    stop = threading.Event()
+    player = Player(player_node, inspect(bag), topics=["chatter"], loop=True)
+    seen_publisher: list[bool] = []
+
+    def play() -> None:
+        player.play(stop)
+
+    thread = threading.Thread(target=play, daemon=True)
+    try:
+        ready(player_node, "/chatter")
+        thread.start()
+        wait_until(lambda: len(chatter_inbox.items) >= 25, timeout=30, what="two passes and more")
+        seen_publisher.append(
+            any(
+                e.kind.name == "PUBLISHER" and e.topic == "/chatter" and e.node_fqn == "/player"
+                for e in snapshot(talker.session, timeout=1.0).entities()
+            )
+        )
+    finally:
+        stop.set()
+        thread.join(timeout=30)
+        player_node.close()
+        raw.undeclare()
+    report = player.report
+    assert report.loops >= 2 and set(report.topics) == {"/chatter"}
+    received = [m.data for m in chatter_inbox.items]
+    assert received[:25] == [f"m{i % 10}" for i in range(25)]
+    assert other_inbox.items == []
+    assert seen_publisher == [True]
+    assert all(len(a) == 33 for a in attachments)
+    sequences = [int.from_bytes(a[:8], "little") for a in attachments]
+    assert sequences[:25] == list(range(1, 26))  # one publisher, numbering on across loops
 
 
 def test_a_bag_written_by_rosbags_plays_with_its_own_definitions(
@@ -326,10 +394,15 @@ def test_record_sigterm_closes_cleanly_and_readers_agree(
 ) -> None:
     latched = talker.publisher("robot_description", STRING, LATCHED)
     latched.publish(msg(STRING, data="<robot/>"))
-    bag = tmp_path / "bag"
-    proc = start_record(env, "--all", "-o", str(bag), "--json", "--compression", "zstd")
+    # No -o: rosbag2's default name, in the current directory.
+    proc = start_record(env, "--all", "--json", "--compression", "zstd", cwd=tmp_path)
     flood = Flood(talker)
     try:
+        bag = wait_until(
+            lambda: next((p for p in tmp_path.glob("rosbag2_*") if p.is_dir()), None),
+            timeout=30,
+            what="the bag directory",
+        )
         wait_until(lambda: recorded_so_far(bag) > 300, timeout=30, what="messages on disk")
     finally:
         flood.close()
@@ -344,7 +417,9 @@ def test_record_sigterm_closes_cleanly_and_readers_agree(
     with Reader(bag) as reader:
         assert sum(c.msgcount for c in reader.connections) == reader.message_count
         assert reader.message_count == summary["messages"]
-    with open(bag / "bag_0.mcap", "rb") as stream:
+    assert re.fullmatch(r"rosbag2_\d{4}_\d\d_\d\d-\d\d_\d\d_\d\d", bag.name), bag.name
+    assert summary["directory"] == bag.name and summary["files"] == [f"{bag.name}_0.mcap"]
+    with open(bag / f"{bag.name}_0.mcap", "rb") as stream:
         assert make_reader(stream).get_summary().statistics.message_count == summary["messages"]
     assert not inspect(bag).needs_recovery
 
@@ -405,6 +480,13 @@ def test_record_splits_by_size_and_duration_without_losing_a_message(
         assert proc.returncode == 0, err
         chatter = strings_of(bag, "/robot/chatter")
         assert consecutive(chatter), name
+        # Across every split, the senders' sequence numbers (from the attachments) follow on.
+        sequences = []
+        for path in sorted(bag.glob("*.mcap"), key=lambda p: int(p.stem.rsplit("_", 1)[1])):
+            with open(path, "rb") as stream:
+                reader = make_reader(stream)
+                sequences += [m.sequence for _, _, m in reader.iter_messages(log_time_order=False)]
+        assert sequences == list(range(sequences[0], sequences[0] + len(chatter))), name
         described = inspect(bag)
         assert len(described.files) >= 3 and all(f.complete for f in described.files)
         assert not described.needs_recovery
@@ -457,6 +539,72 @@ def test_record_refuses_an_existing_directory_and_bad_options(
         )
         assert result.returncode == 2, (args, result.stderr)
         assert words in result.stderr and "Traceback" not in result.stderr
+
+
+def _tmux(*args: str) -> str:
+    return subprocess.run(
+        ["tmux", *args], capture_output=True, text=True, timeout=30.0, check=True
+    ).stdout
+
+
+@pytest.mark.e2e
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed")
+def test_in_a_terminal_a_live_line_shows_progress_and_space_pauses_and_resumes(
+    tmp_path: Path, env: dict[str, str], talker: Node
+) -> None:
+    """The real command in tmux: the rich progress line, space to pause and resume (nothing
+    written while paused), Ctrl-C, then the summary."""
+    bag = tmp_path / "bag"
+    exports = " ".join(
+        f"{k}={v}" for k, v in env.items() if k.startswith("MSCTL_") or k == "CYDR_CACHE_DIR"
+    )
+    # The pane stays after the command ends, so its last words can be read. The screen's
+    # width is the pane's (this process's COLUMNS, inherited by tmux, would say 80).
+    command = (
+        f"env -u COLUMNS -u LINES {exports} {MSCTL} record /robot/chatter -o {bag}; "
+        "echo EXITED $?; sleep 600"
+    )
+    session = f"msctl-record-{os.getpid()}"
+    _tmux("new-session", "-d", "-s", session, "-x", "160", "-y", "20", command)
+    flood = Flood(talker, period=0.005)
+
+    def screen() -> str:
+        return _tmux("capture-pane", "-p", "-t", session)
+
+    def shown() -> tuple[str, int, str] | None:
+        match = re.search(r"(recording|\[paused\]) (\d\d:\d\d:\d\d)\s+([\d,]+) msgs", screen())
+        return None if match is None else (match[1], int(match[3].replace(",", "")), match[2])
+
+    def after_tick(state: str) -> tuple[str, int, str]:
+        """The line once its clock moved on, in ``state``."""
+        first = wait_until(lambda: (v := shown()) and v[0] == state and v, timeout=60)
+        return wait_until(
+            lambda: (v := shown()) and v[0] == state and v[2] != first[2] and v, timeout=60
+        )
+
+    try:
+        moving = wait_until(lambda: (v := shown()) and v[1] > 0 and v, timeout=60, what="msgs")
+        assert moving[0] == "recording" and "(space: pause, Ctrl-C: stop)" in screen()
+        _tmux("send-keys", "-t", session, "Space")
+        held = after_tick("[paused]")
+        assert "(space: resume)" in screen()
+        assert after_tick("[paused]")[1] == held[1]  # nothing written while paused
+        _tmux("send-keys", "-t", session, "Space")
+        wait_until(
+            lambda: (v := shown()) and v[0] == "recording" and v[1] > held[1],
+            timeout=60,
+            what="recording again",
+        )
+        _tmux("send-keys", "-t", session, "C-c")
+        text = wait_until(lambda: "EXITED" in (t := screen()) and t, timeout=90, what="the end")
+    finally:
+        flood.close()
+        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True, check=False)
+    assert "EXITED 0" in text
+    assert re.search(rf"bag {re.escape(str(bag))}: [\d,]+ messages on 1 topic\(s\)", text), text
+    chatter = strings_of(bag, "/robot/chatter")
+    numbers = [int(v) for v in chatter]
+    assert numbers == sorted(numbers) and len(numbers) < numbers[-1] - numbers[0] + 1  # a gap
 
 
 # --------------------------------------------------------------------------- a simulated Dragon

@@ -3,6 +3,8 @@ latched topics, pause, unknown types, drops and upstream losses."""
 
 from __future__ import annotations
 
+import os
+import socket
 import struct
 import time
 from collections.abc import Callable, Iterator
@@ -23,6 +25,7 @@ from components.data_archiver.core import TopicSelection
 from components.messages import msg
 from msctl.recorder.bag import inspect, read_messages
 from msctl.recorder.errors import BagError
+from msctl.recorder.metadata import read_metadata
 from msctl.recorder.recorder import Recorder, parse_key
 
 STRING = "std_msgs/msg/String"
@@ -120,6 +123,11 @@ def test_records_everything_from_the_first_message_and_latched_samples(
         qos = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
     assert qos["/robot/robot_description"][0].durability.name == "TRANSIENT_LOCAL"
     assert qos["/robot/chatter"][0].durability.name == "VOLATILE"
+    who = read_metadata(tmp_path / "bag").custom_data
+    assert who == {
+        "recorded_by": f"msctl /msctl_record_{os.getpid()}",
+        "host": socket.gethostname(),
+    }
 
 
 def test_publish_time_and_sequence_come_from_the_attachment(

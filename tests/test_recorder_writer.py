@@ -222,6 +222,81 @@ def test_split_by_size_loses_nothing_and_every_file_is_finished(tmp_path: Path) 
     assert not inspect(bag).needs_recovery
 
 
+def test_each_split_finishes_its_file_and_rewrites_the_metadata_at_once(tmp_path: Path) -> None:
+    """Not only at close: a crash after a split loses nothing of the finished files."""
+    writer = BagWriter(tmp_path / "bag", max_bytes=64 * 1024)
+    chatter = writer.add_topic(spec("/chatter", STRING))
+    start = time.time_ns()
+    i = 0
+    while writer.file_count < 3:
+        writer.write(chatter, start + i * 1000, string(i), 0, i + 1)
+        i += 1
+    try:
+        on_disk = read_metadata(tmp_path / "bag")  # the bag still being written
+        assert [f.path for f in on_disk.files] == ["bag_0.mcap", "bag_1.mcap", "bag_2.mcap"]
+        finished = on_disk.files[:2]
+        assert all(f.message_count > 0 and f.duration > 0 for f in finished)
+        assert on_disk.message_count == sum(f.message_count for f in finished)
+        assert on_disk.topics[0].message_count == on_disk.message_count
+        for record in finished:
+            with open(tmp_path / "bag" / record.path, "rb") as stream:
+                summary = make_reader(stream).get_summary()
+            assert summary is not None
+            assert summary.statistics.message_count == record.message_count
+    finally:
+        writer.close()
+    assert read_metadata(tmp_path / "bag").message_count == i
+
+
+def test_metadata_yaml_has_every_field_ros2_bag_writes(tmp_path: Path) -> None:
+    start = 1_767_323_045_000_000_000
+    with BagWriter(tmp_path / "bag", compression="zstd", custom_data={"who": "test"}) as writer:
+        chatter = writer.add_topic(spec("/chatter", STRING, LATCHED))
+        for i in range(5):
+            writer.write(chatter, start + i * 250_000_000, string(i), 0, i + 1)
+    document = yaml.safe_load((tmp_path / "bag" / "metadata.yaml").read_text())
+    assert list(document) == ["rosbag2_bagfile_information"]
+    info = document["rosbag2_bagfile_information"]
+    assert set(info) == {
+        "version",
+        "storage_identifier",
+        "duration",
+        "starting_time",
+        "message_count",
+        "topics_with_message_count",
+        "compression_format",
+        "compression_mode",
+        "relative_file_paths",
+        "files",
+        "custom_data",
+        "ros_distro",
+    }
+    assert (info["version"], info["storage_identifier"], info["ros_distro"]) == (9, "mcap", "jazzy")
+    assert info["duration"] == {"nanoseconds": 1_000_000_000}
+    assert info["starting_time"] == {"nanoseconds_since_epoch": start}
+    assert info["message_count"] == 5
+    # Compression is inside the MCAP chunks, as rosbag2's MCAP storage does it.
+    assert (info["compression_format"], info["compression_mode"]) == ("", "")
+    assert info["custom_data"] == {"who": "test"}
+    (topic,) = info["topics_with_message_count"]
+    assert topic["message_count"] == 5
+    meta = topic["topic_metadata"]
+    assert meta["name"] == "/chatter" and meta["type"] == STRING
+    assert meta["serialization_format"] == "cdr"
+    assert meta["type_description_hash"] == registry().type_hash(STRING)
+    (profile,) = meta["offered_qos_profiles"]  # v9: a list of maps, not a YAML string
+    assert isinstance(profile, dict) and profile["durability"] == "transient_local"
+    assert info["relative_file_paths"] == ["bag_0.mcap"]
+    assert info["files"] == [
+        {
+            "path": "bag_0.mcap",
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "duration": {"nanoseconds": 1_000_000_000},
+            "message_count": 5,
+        }
+    ]
+
+
 def test_split_by_duration_uses_log_time(tmp_path: Path) -> None:
     with BagWriter(tmp_path / "bag", max_duration=1.0) as writer:
         chatter = writer.add_topic(spec("/chatter", STRING))

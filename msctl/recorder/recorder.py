@@ -142,6 +142,7 @@ class Recorder:
             max_bytes=max_bytes,
             max_duration=max_duration,
             fsync=fsync,
+            custom_data=_who(node, self._node_name, namespace),
         )
         # Appends and pops of a deque are atomic: callbacks append, the writer pops.
         self._queue: deque[tuple[int, Any, Any, Any]] = deque()
@@ -517,6 +518,14 @@ class Recorder:
                 self._on_stop(message)
             except Exception:
                 pass
+
+
+def _who(node: Any, name: str, namespace: str) -> dict[str, str]:
+    """``custom_data`` of a recording: which node on which computer made it."""
+    import socket
+
+    fqn = getattr(node, "fqn", None) or f"{namespace.rstrip('/')}/{name}"
+    return {"recorded_by": f"msctl {fqn}", "host": socket.gethostname()}
 
 
 def _keyed(attachment: bytes, topic_id: int, tracker: SequenceTracker) -> tuple[int, int]:
