@@ -521,6 +521,17 @@ class Claims:
     def survey(self, timeout: float = QUERY_TIMEOUT) -> list[ClaimInfo]:
         """Ask the network now for every live claim of the domain, oldest first (what a
         listing shows: it does not wait for this watcher's history)."""
+        young = self._made + SETTLE - time.monotonic()
+        if young > 0:
+            # A session linked a moment ago may not have heard every peer yet (see SETTLE):
+            # a listing missing one would say a held module is free.
+            time.sleep(young)
+        found = self._survey_once(timeout)
+        with self._lock:
+            found.update(self._tokens)
+        return sorted(found.values(), key=ClaimInfo.order)
+
+    def _survey_once(self, timeout: float) -> dict[str, ClaimInfo]:
         replies = self.session.liveliness().get(f"{PREFIX}/{self.domain}/**", timeout=timeout)
         found: dict[str, ClaimInfo] = {}
         for reply in replies:
@@ -528,9 +539,7 @@ class Claims:
                 info = parse_claim(str(reply.ok.key_expr))
                 if info is not None:
                     found[info.key] = info
-        with self._lock:
-            found.update(self._tokens)
-        return sorted(found.values(), key=ClaimInfo.order)
+        return found
 
     def claim(self, module: str, holder: str, node: Any, take: bool = False) -> Claim:
         """Claim ``module`` for ``holder``'s ``node``.
