@@ -18,8 +18,16 @@ port, and measures:
    in a server process on the data plane, at speed 5 (does it keep up?) and at speed 50
    (saturated: what it achieves), read from its ``/sim/diagnostics``.
 
+4. **What the safety checks cost** (issue 10's hardening): the CPU per command of every check
+   a ``joint_set`` meets on its way that the hardening added: the joint manager refusing a
+   whole message (oversize, ragged) and collapsing duplicates, the sender's publisher looked up
+   among the allowed ones (the GID check on ``joint_commands``), and the last stage (simulator
+   or motor interface) refusing a whole message, collapsing duplicates and checking each
+   joint's raw limits. Timed in this process on the same messages, for the one-joint command
+   of step 2 and for a seven-joint one, as a share of step 2's p50 measured in the same run.
+
 Targets: p50 command-to-state within 3x the bare round trip plus one simulation step;
-real-time factor of ``dragon_x4`` at least 5.
+real-time factor of ``dragon_x4`` at least 5; the added checks under 5 % of the p50.
 """
 
 from __future__ import annotations
@@ -46,7 +54,12 @@ if str(REPO) not in sys.path:  # runnable as `python bench/joints.py` from anywh
 from components.comm.node import Node  # noqa: E402
 from components.comm.session import SessionSettings, open_session  # noqa: E402
 from components.comm.types import registry  # noqa: E402
-from components.messages import JOINT_STATE, JointSample, joint_state  # noqa: E402
+from components.messages import (  # noqa: E402
+    JOINT_STATE,
+    JointSample,
+    joint_samples,
+    joint_state,
+)
 
 JOINT = "limb1_joint3"
 STEP = 0.05  # rad: small enough to settle quickly, far above joint_read's 1 mm threshold
@@ -302,6 +315,38 @@ def _resolve(root: Path) -> dict[str, Path]:
     return dirs
 
 
+def checks_cost(joints: int, rounds: int = 20000) -> float:
+    """Seconds of CPU per command spent in the hardening's checks, for a ``joint_set`` of
+    ``joints`` joints (see the module docstring, step 4): the joint manager's and the last
+    stage's whole-message and duplicate checks, the sender lookup, each joint's raw limits."""
+    from components.motors.base import RawLimits, check_command, refused_whole
+
+    names = [f"limb1_joint{i + 1}" for i in range(joints)]
+    message = joint_state([JointSample(n, 0.1 * i, None, None) for i, n in enumerate(names)])
+    checks = RawLimits(-2.0, 2.0, 5.0, 10.0).checks()
+    allowed = {bytes(16): "/limb1/joint_manager"}  # the GID -> node table a subscription keeps
+    gid = bytes(16)
+    size = 7
+
+    def one_command() -> None:
+        # Joint manager, on joint_set: refused whole? duplicates collapsed.
+        if refused_whole(message, size) is None:
+            latest = {s.name: s for s in joint_samples(message)}
+            assert len(latest) == len(message.name)
+        # The last stage: the sender, then the same whole-message checks, then each joint.
+        if gid in allowed and refused_whole(message, size) is None:
+            latest = {s.name: s for s in joint_samples(message)}
+            for _, position, velocity, effort in latest.values():
+                check_command(checks, position, velocity, effort)
+
+    for _ in range(1000):  # warm up
+        one_command()
+    started = time.process_time()
+    for _ in range(rounds):
+        one_command()
+    return (time.process_time() - started) / rounds
+
+
 def _ms(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q) * 1e3) if len(values) else math.nan
 
@@ -345,6 +390,16 @@ def main(samples: int, pings: int) -> int:
                 ("p50 / (3 x bare p50 + 1 step)", f"{lat50 / budget:.2f} (target <= 1)"),
             ]
             verdicts.append(("p50 within 3x bare round trip + 1 step", lat50 <= budget))
+            for joints in (1, 7):
+                cost = checks_cost(joints) * 1e3  # ms
+                share = cost / lat50
+                rows.append(
+                    (
+                        f"added checks, {joints}-joint command",
+                        f"{cost * 1e3:.1f} us CPU = {share * 100:.2f} % of the p50",
+                    )
+                )
+                verdicts.append((f"added checks < 5 % of p50 ({joints} joints)", share < 0.05))
 
             for name in ("dragon", "dragon_x4"):
                 print(f"real-time factor: {name} ...", flush=True)
