@@ -19,6 +19,7 @@ import errno
 import functools
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -490,7 +491,38 @@ def _use_lean_chunks(writer: Any) -> bool:
     if not hasattr(lean.record_writer, "_buffer"):
         return False
     writer._Writer__chunk_builder = lean
+    statistics = getattr(writer, "_Writer__statistics", None)
+    finalize = getattr(writer, "_Writer__finalize_chunk", None)
+    chunk_size = getattr(writer, "_Writer__chunk_size", None)
+    if statistics is not None and finalize is not None and isinstance(chunk_size, int):
+        writer.add_message = _lean_add_message(statistics, lean, finalize, chunk_size)
     return True
+
+
+def _lean_add_message(
+    statistics: Any, builder: Any, finalize: Callable[[], None], chunk_size: int
+) -> Callable[[int, int, bytes, int, int], None]:
+    """``Writer.add_message`` for a chunked writer with a lean builder: the same statistics,
+    record and chunking, without making a ``Message`` and four calls per message (a third
+    of what was left of the writer's time per message, py-spy on bench/record.py)."""
+    counts = statistics.channel_message_counts
+    append = builder.append
+    record_writer = builder.record_writer
+
+    def add_message(
+        channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int = 0
+    ) -> None:
+        if statistics.message_count == 0 or log_time < statistics.message_start_time:
+            statistics.message_start_time = log_time
+        if log_time > statistics.message_end_time:
+            statistics.message_end_time = log_time
+        counts[channel_id] += 1
+        statistics.message_count += 1
+        append(channel_id, sequence, log_time, publish_time, data)
+        if record_writer.count > chunk_size:
+            finalize()
+
+    return add_message
 
 
 @functools.cache
@@ -519,31 +551,32 @@ def _lean_chunk_builder_class(base: type) -> type:
         """The library's chunk builder with a one-call message record."""
 
         def add_message(self, message: Any) -> None:
+            self.append(
+                message.channel_id,
+                message.sequence,
+                message.log_time,
+                message.publish_time,
+                message.data,
+            )
+
+        def append(
+            self, channel: int, sequence: int, log_time: int, publish_time: int, data: bytes
+        ) -> None:
+            """:meth:`add_message` from the message's fields (no ``Message`` made)."""
             buffer = self.record_writer._buffer
-            log_time = message.log_time
             if self.num_messages == 0:
                 self.message_start_time = self.message_end_time = log_time
             elif log_time < self.message_start_time:
                 self.message_start_time = log_time
             elif log_time > self.message_end_time:
                 self.message_end_time = log_time
-            channel = message.channel_id
             index = self.message_indices.get(channel)
             if index is None:
                 index = self.message_indices[channel] = MessageIndex(channel_id=channel, records=[])
             index.records.append((log_time, buffer.tell()))
             self.num_messages += 1
-            data = message.data
-            buffer.write(
-                head.pack(
-                    opcode,
-                    22 + len(data),
-                    channel,
-                    message.sequence,
-                    log_time,
-                    message.publish_time,
-                )
-            )
+            size = 22 + len(data)
+            buffer.write(head.pack(opcode, size, channel, sequence, log_time, publish_time))
             buffer.write(data)
 
     return LeanChunkBuilder
