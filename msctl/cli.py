@@ -22,7 +22,7 @@ def main() -> None:
             from msctl.app import command
 
             # Standalone mode: typer prints its own usage errors and exits with code 2.
-            command()()
+            command(sys.argv[1:])()
         except MsctlError as exc:
             from rich.markup import escape
 
