@@ -18,6 +18,15 @@ OPTIONAL = {"rclpy", "rosidl_runtime_py"}
 INSTALLED_BY = {"pinocchio": ["pin"]}
 #: Test-extra tools used as programs or plugins rather than imported.
 TOOLS = {"pytest-timeout", "ruff", "pytest-textual-snapshot"}
+#: colcon and the extensions `msctl build` relies on, run as the ``colcon`` program.
+TOOLS |= {
+    "colcon-core",
+    "colcon-ros",
+    "colcon-python-setup-py",
+    "colcon-package-selection",
+    "colcon-parallel-executor",
+    "colcon-recursive-crawl",
+}
 
 
 def _imports(*folders: str) -> set[str]:
