@@ -1,0 +1,1 @@
+"""Fleet security: certificates, access control and per-host Zenoh configs (issue 15)."""

@@ -1,0 +1,251 @@
+"""Who may write what: a router's access control, derived from the component interfaces.
+
+Every router enforces at its edge, on ingress, by the identity of the link a message comes in
+on: components of its own computer reach it over plain TCP on loopback (subject ``local``),
+other computers and operators over mutual TLS (subject = the certificate's common name).
+
+The guarded inputs are every topic a module-placed kind subscribes to and every service it
+serves, as its :class:`~components.executor.interface.InterfaceSpec` declares them. Who may
+write each one:
+
+- raw commands (``joint_commands``), motor topics (``motors/...``) and ``rezero``: only the
+  module's own computer;
+- ``halt`` and ``recover``: the module's computer and operators;
+- ``joint_set``, ``ik_target`` and ``cmd_vel``: operators and ground stations, plus whichever
+  computer runs a component whose interface publishes it (the module's own kinematics
+  manager writes ``joint_set``);
+- any other input: the computers whose components publish it, else the module's computer;
+- supervisor and agent requests (``/msctl/...``): only operators.
+
+A ground station's router forwards its operators' commands, so a robot's router also takes
+operator-only traffic from ground-station links (the station checked the operator at its own
+edge). Reads (subscriptions, liveliness, replies) are open to the whole fleet; a link that
+matches no subject (no certificate from the fleet CA) is denied everything.
+
+Zenoh applies an explicit ``deny`` before any ``allow``; the rules allow the fleet broadly and
+deny each guarded key to every subject not allowed to write it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from components.assembly import ResolvedAssembly
+
+#: Who may write, by input name (relative to the module namespace).
+RAW = "raw"
+HALT = "halt"
+OPERATOR = "operator"
+_CLASSES: dict[str, str] = {
+    "joint_commands": RAW,
+    "rezero": RAW,
+    "halt": HALT,
+    "recover": HALT,
+    "joint_set": OPERATOR,
+    "ik_target": OPERATOR,
+    "cmd_vel": OPERATOR,
+}
+#: Subject id of this computer's own components (plain TCP on loopback).
+LOCAL = "local"
+#: Subject id of every operator identity.
+OPERATORS = "operators"
+#: Messages a writer sends.
+WRITES = ["put", "delete", "query"]
+#: Messages any member of the fleet may send: reading, serving, liveliness.
+READS = [
+    "declare_subscriber",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
+ALL_MESSAGES = WRITES + READS
+
+
+@dataclass(frozen=True)
+class GuardedInput:
+    """One input somebody must be allowed to write.
+
+    Attributes:
+        topic: Its fully qualified name (``/limb1/joint_set``).
+        hosts: Computers allowed to write it.
+        operators: Whether operators (and ground stations forwarding them) may.
+        stations: Whether ground-station computers may, on their own account.
+        why: The rule it follows, for ``msctl net config --explain`` and tests.
+    """
+
+    topic: str
+    hosts: frozenset[str]
+    operators: bool = False
+    stations: bool = False
+    why: str = ""
+
+
+@dataclass
+class FleetPrincipals:
+    """The identities an ACL names.
+
+    Attributes:
+        robots: Robot computers (host names).
+        stations: Ground-station computers.
+        operators: Operator common names (``operator:alice``), revoked ones left out.
+    """
+
+    robots: list[str]
+    stations: list[str]
+    operators: list[str] = field(default_factory=list)
+
+
+def principals(assembly: ResolvedAssembly, operators: Iterable[str]) -> FleetPrincipals:
+    """Robot and station computers from the assembly, operators as given."""
+    robots = [h for h, role in assembly.lock.host_plans.items() if role.role == "robot"]
+    stations = [h for h, role in assembly.lock.host_plans.items() if role.role == "ground"]
+    for host in assembly.hosts:
+        if host not in robots and host not in stations:
+            robots.append(host)
+    return FleetPrincipals(robots, stations, sorted(operators))
+
+
+def guarded_inputs(assembly: ResolvedAssembly) -> list[GuardedInput]:
+    """Every input of every module, with who may write it (see the module docstring)."""
+    from components import kinds
+    from components.executor.interface import InterfaceSpec
+
+    publishers: dict[str, set[str]] = {}
+    inputs: dict[str, tuple[str, str]] = {}  # topic -> (module host, input name)
+    module_host = {m.slot: m.host for m in assembly.modules}
+    namespaces = {m.slot: m.namespace.rstrip("/") for m in assembly.modules}
+    for component in assembly.components:
+        kind = kinds.get(component.kind)
+        spec = kinds.resolve(kind.interface) if kind.interface else None
+        if not isinstance(spec, InterfaceSpec) or component.module is None:
+            continue  # station kinds read across modules; their inputs are their own
+        base = namespaces[component.module]
+        for publish in spec.publish:
+            topic = _qualify(publish.topic, base)
+            publishers.setdefault(topic, set()).add(component.host)
+        served = [s.service for s in spec.serve if s.service.split("/")[-1] in _CLASSES]
+        # A service outside the table (``joints``) only answers questions: a read.
+        for name in [s.topic for s in spec.subscribe] + served:
+            if name.startswith("~"):
+                continue
+            inputs[_qualify(name, base)] = (module_host[component.module], name)
+    # The motor interface's inputs exist on every module whether a bus or the simulator
+    # serves them, and rezero is a motor-side service some module types add.
+    for slot, base in namespaces.items():
+        for name in ("joint_commands", "motors/halt", "motors/recover", "rezero"):
+            inputs.setdefault(_qualify(name, base), (module_host[slot], name))
+    guarded = []
+    for topic, (host, name) in sorted(inputs.items()):
+        klass = RAW if name.startswith("motors/") else _CLASSES.get(name)
+        writers = publishers.get(topic, set())
+        if klass == RAW:
+            guarded.append(GuardedInput(topic, frozenset({host}), why="module's own computer"))
+        elif klass == HALT:
+            guarded.append(GuardedInput(topic, frozenset({host}), operators=True,
+                                        why="module's computer and operators"))  # fmt: skip
+        elif klass == OPERATOR:
+            why = "operators, ground stations, its publishers"
+            guarded.append(
+                GuardedInput(topic, frozenset(writers), operators=True, stations=True, why=why)
+            )
+        else:
+            guarded.append(GuardedInput(topic, frozenset(writers or {host}), why="its publishers"))
+    return guarded
+
+
+def _qualify(name: str, base: str) -> str:
+    return name if name.startswith("/") else f"{base}/{name}"
+
+
+def key_expr(topic: str, domain: int) -> str:
+    """The key expression covering a topic's or service's data keys (every type, hash)."""
+    return f"{domain}/{topic.strip('/')}/**"
+
+
+def router_acl(
+    host: str, fleet: FleetPrincipals, guarded: list[GuardedInput], domain: int = 0
+) -> dict[str, Any]:
+    """The ``access_control`` block of ``host``'s router."""
+    station_router = host in fleet.stations
+    subjects: list[dict[str, Any]] = [{"id": LOCAL, "link_protocols": ["tcp"]}]
+    for other in [*fleet.robots, *fleet.stations]:
+        if other != host:
+            subjects.append({"id": _host_subject(other), "cert_common_names": [other]})
+    if fleet.operators:
+        subjects.append({"id": OPERATORS, "cert_common_names": list(fleet.operators)})
+    every = [s["id"] for s in subjects]
+
+    def subject_of(name: str) -> str:
+        return LOCAL if name == host else _host_subject(name)
+
+    def allowed(entry: GuardedInput) -> set[str]:
+        ids = {subject_of(h) for h in entry.hosts}
+        if entry.operators and fleet.operators:
+            ids.add(OPERATORS)
+        if entry.stations or (entry.operators and not station_router):
+            # On a robot router, station links carry the operators the station let in.
+            ids.update(subject_of(s) for s in fleet.stations)
+        return ids & set(every)
+
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "fleet-egress",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ALL_MESSAGES,
+            "key_exprs": ["**", "@ros2_lv/**", "@msctl/**"],
+        },
+        {
+            "id": "fleet-reads",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": READS,
+            "key_exprs": ["**", "@ros2_lv/**", "@msctl/**"],
+        },
+        {
+            "id": "fleet-writes",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": WRITES,
+            "key_exprs": [f"{domain}/**"],
+        },
+    ]
+    policies: list[dict[str, Any]] = [{"rules": [r["id"] for r in rules], "subjects": every}]
+    # One deny rule per set of excluded subjects keeps the block small: dragon's dozens of
+    # inputs fall into a handful of groups.
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for entry in guarded:
+        denied = tuple(s for s in every if s not in allowed(entry))
+        if denied:
+            groups.setdefault(denied, []).append(key_expr(entry.topic, domain))
+    requests = (OPERATORS,) if station_router else (OPERATORS, *map(subject_of, fleet.stations))
+    request_denied = tuple(s for s in every if s not in requests)
+    if request_denied:
+        groups.setdefault(request_denied, []).append(f"{domain}/msctl/**")
+    for index, (denied, keys) in enumerate(sorted(groups.items())):
+        rule_id = f"guarded-{index}"
+        rules.append(
+            {
+                "id": rule_id,
+                "permission": "deny",
+                "flows": ["ingress"],
+                "messages": WRITES,
+                "key_exprs": sorted(keys),
+            }
+        )
+        policies.append({"rules": [rule_id], "subjects": list(denied)})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def _host_subject(host: str) -> str:
+    return f"host:{host}"
