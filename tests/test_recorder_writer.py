@@ -73,7 +73,7 @@ def write_bag(directory: Path, count: int, start: int = 0, **options: object) ->
 
 # --------------------------------------------------------------------------- format
 def test_definitions_parse_back_to_the_registry_types_for_every_message_type() -> None:
-    store = registry()._store
+    types = registry()
     # Service parts (pkg/srv/X_Request) are named differently by rosbags' parser.
     for name in [n for n in registry().message_names() if "/msg/" in n]:
         text = message_definition(name)
@@ -81,7 +81,7 @@ def test_definitions_parse_back_to_the_registry_types_for_every_message_type() -
         parsed = get_types_from_msg(text, name)
         for type_name, definition in parsed.items():
             fields = [(f, d) for f, d in definition[1]]
-            assert fields == list(store.fielddefs[type_name][1]), (name, type_name)
+            assert fields == list(types.definition(type_name)[1]), (name, type_name)
 
 
 def test_definition_has_dependencies_after_80_equals_and_msg_lines() -> None:

@@ -254,3 +254,43 @@ def test_empty_message_gets_the_rosidl_placeholder(reg: TypeRegistry) -> None:
         "structure_needs_at_least_one_member"
     ]
     assert reg.type_hash("std_srvs/srv/Empty") == Empty.hash_rihs01()
+
+
+def test_the_shipped_jazzy_snapshot_is_the_installed_rosbags_store() -> None:
+    """The definitions read from the snapshot are rosbags' own, for the rosbags installed;
+    after an upgrade of rosbags this fails until `write_snapshot()` is run again (the
+    registry meanwhile reads rosbags directly: slower, never wrong)."""
+    import json
+    from importlib.metadata import version
+
+    from rosbags.typesys import Stores, get_typestore
+
+    from components.comm.types import JAZZY_SNAPSHOT, jazzy_definitions
+
+    written = json.loads(JAZZY_SNAPSHOT.read_text(encoding="utf-8"))["rosbags"]
+    assert written == version("rosbags"), "run components.comm.types.write_snapshot()"
+    assert jazzy_definitions() == dict(get_typestore(Stores.ROS2_JAZZY).fielddefs)
+
+
+def test_a_type_is_made_with_what_it_uses_when_first_encoded() -> None:
+    from components.comm.types import TypeRegistry
+
+    types = TypeRegistry()
+    assert types.known("sensor_msgs/msg/JointState")
+    assert "sensor_msgs/msg/JointState" not in types._store.fielddefs  # data only so far
+    encode = types.serializer("sensor_msgs/msg/JointState")
+    made = set(types._store.fielddefs)
+    assert {"sensor_msgs/msg/JointState", "std_msgs/msg/Header"} <= made
+    assert "builtin_interfaces/msg/Time" in made and "geometry_msgs/msg/Twist" not in made
+    message = types.msg_class("sensor_msgs/msg/JointState")(
+        header=types.msg_class("std_msgs/msg/Header")(
+            stamp=types.msg_class("builtin_interfaces/msg/Time")(sec=1, nanosec=2),
+            frame_id="base",
+        ),
+        name=["j1"],
+        position=np.array([0.5]),
+        velocity=np.array([], dtype=float),
+        effort=np.array([], dtype=float),
+    )
+    back = types.deserializer("sensor_msgs/msg/JointState")(encode(message))
+    assert list(back.name) == ["j1"] and back.position[0] == 0.5

@@ -4,6 +4,14 @@ Message definitions come from the ROS 2 Jazzy type store of ``rosbags``; service
 (which that store lacks) and msctl's own types are shipped as ``.srv``/``.msg`` text under
 ``interfaces/`` and registered at start. Project code may register more from text.
 
+Definitions are plain data until a type is used: building ``rosbags``' Jazzy store (its
+Python classes for every type of six distributions) cost about 0.33 s of every process that
+touched a message, every component and every ``msctl`` command, most of them using two or
+three types. The Jazzy definitions are read from a snapshot shipped beside the interfaces
+(``interfaces/jazzy_types.json``, checked against ``rosbags`` by the tests; an installed
+``rosbags`` of another version is read directly instead), and a type's classes and codec are
+made, with those of the types it uses, the first time it is encoded, decoded or built.
+
 Type hashes follow REP 2011 and are computed here, not by ``rosbags``: its routine maps
 ``char`` to FIELD_TYPE_CHAR, whereas ROS maps a ``.msg`` ``char`` to IDL ``uint8``, which
 breaks every service hash (``service_msgs/msg/ServiceEventInfo`` has a ``char[16]``).
@@ -24,6 +32,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
 _INTERFACES = Path(__file__).with_name("interfaces")
+#: The Jazzy store's definitions as data (see the module docstring, :func:`write_snapshot`).
+JAZZY_SNAPSHOT = _INTERFACES / "jazzy_types.json"
 
 # REP 2011 / type_description_interfaces FieldType ids.
 _NESTED = 1
@@ -103,8 +113,10 @@ class TypeRegistry:
     """
 
     def __init__(self) -> None:
-        self._store = get_typestore(Stores.ROS2_JAZZY)
-        self._lock = threading.Lock()
+        # Every known definition, as data; the store holds only the types made so far.
+        self._defs: dict[str, tuple[Any, Any]] = jazzy_definitions()
+        self._store = get_typestore(Stores.EMPTY)
+        self._lock = threading.RLock()
         self._services: dict[str, ServiceParts] = {}
         self._hashes: dict[str, str] = {}
         self._load_bundled()
@@ -126,7 +138,7 @@ class TypeRegistry:
         """
         name = normalize_type_name(name)
         with self._lock:
-            if name in self._store.fielddefs:
+            if name in self._defs:
                 return
             if not _has_fields(text):
                 # rosidl gives an empty structure one uint8 member; CDR and hash both see it.
@@ -139,13 +151,13 @@ class TypeRegistry:
             for _, fields in types.values():
                 for field_name, desc in fields:
                     nested = _nested_name(desc)
-                    if nested and nested not in types and nested not in self._store.fielddefs:
+                    if nested and nested not in types and nested not in self._defs:
                         # Caught here, not later as a bare KeyError when the type is hashed.
                         raise ValueError(
                             f"the definition of {name} uses unknown type {nested} "
                             f"(field {field_name!r}); register that type first"
                         )
-            self._store.register(types)
+            self._defs.update(types)  # made into classes when first used (_ready)
             self._hashes.clear()
 
     def register_srv(self, name: str, text: str) -> None:
@@ -182,11 +194,19 @@ class TypeRegistry:
             canonical = normalize_type_name(name)
         except UnknownTypeError:
             return False
-        return canonical in self._store.fielddefs or canonical in self._services
+        return canonical in self._defs or canonical in self._services
 
     def message_names(self) -> list[str]:
         """Every registered message type name."""
-        return sorted(self._store.fielddefs)
+        return sorted(self._defs)
+
+    def definition(self, name: str) -> tuple[Any, Any]:
+        """``(constants, fields)`` of a message type, as ``rosbags`` describes them.
+
+        Raises:
+            UnknownTypeError: If the type is not registered.
+        """
+        return self._defs[self._known_msg(name)]
 
     def service_names(self) -> list[str]:
         """Every registered service type name."""
@@ -217,7 +237,7 @@ class TypeRegistry:
 
     def fields(self, name: str) -> list[tuple[str, Any]]:
         """The (field name, rosbags field description) pairs of a message type."""
-        return list(self._store.fielddefs[self._require_msg(name)][1])
+        return list(self._defs[self._known_msg(name)][1])
 
     def serialize(self, message: Any, name: str) -> bytes:
         """CDR bytes (with the 4-byte encapsulation header) of a message."""
@@ -277,7 +297,7 @@ class TypeRegistry:
         if canonical in self._services:
             description = self._service_description(canonical)
         else:
-            self._require_msg(canonical)
+            self._known_msg(canonical)
             description = self._message_description(canonical)
         referenced: dict[str, dict[str, Any]] = {}
         self._collect_references(description, referenced)
@@ -292,8 +312,33 @@ class TypeRegistry:
 
     # ----------------------------------------------------------------- internals
     def _require_msg(self, name: str) -> str:
-        canonical = normalize_type_name(name)
+        """The canonical name of a message type, its classes and codec made (see
+        :meth:`_ready`)."""
+        canonical = self._known_msg(name)
         if canonical not in self._store.fielddefs:
+            self._ready(canonical)
+        return canonical
+
+    def _ready(self, canonical: str) -> None:
+        """Make the classes of a type and of every type it uses that is not made yet."""
+        with self._lock:
+            needed: dict[str, tuple[Any, Any]] = {}
+            pending = [canonical]
+            while pending:
+                name = pending.pop()
+                if name in needed or name in self._store.fielddefs:
+                    continue
+                needed[name] = self._defs[name]
+                for _, desc in needed[name][1]:
+                    nested = _nested_name(desc)
+                    if nested:
+                        pending.append(nested)
+            if needed:
+                self._store.register(needed)
+
+    def _known_msg(self, name: str) -> str:
+        canonical = normalize_type_name(name)
+        if canonical not in self._defs:
             if canonical in self._services:
                 raise UnknownTypeError(
                     f"{canonical} is a service type; use it with a service, not a topic"
@@ -305,7 +350,7 @@ class TypeRegistry:
         return canonical
 
     def _message_description(self, name: str) -> dict[str, Any]:
-        _, fields = self._store.fielddefs[name]
+        _, fields = self._defs[name]
         described = [{"name": field, "type": _field_type(desc)} for field, desc in fields] or [
             {"name": "structure_needs_at_least_one_member", "type": _plain(3)}
         ]
@@ -396,6 +441,50 @@ def _split_srv(text: str) -> list[str]:
         else:
             sections[-1].append(line)
     return ["\n".join(lines) + "\n" for lines in sections]
+
+
+def jazzy_definitions() -> dict[str, tuple[Any, Any]]:
+    """The ROS 2 Jazzy type store's definitions: from :data:`JAZZY_SNAPSHOT` when it was
+    written from the installed ``rosbags``, else from ``rosbags`` itself (slower)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        installed = version("rosbags")
+    except PackageNotFoundError:
+        installed = ""
+    try:
+        snapshot = json.loads(JAZZY_SNAPSHOT.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        snapshot = {}
+    if installed and snapshot.get("rosbags") == installed:
+        return {
+            name: (
+                [tuple(c) for c in consts],
+                [(field, _desc(desc)) for field, desc in fields],
+            )
+            for name, (consts, fields) in snapshot["types"].items()
+        }
+    return dict(get_typestore(Stores.ROS2_JAZZY).fielddefs)
+
+
+def write_snapshot(path: Path = JAZZY_SNAPSHOT) -> None:
+    """Write :data:`JAZZY_SNAPSHOT` from the installed ``rosbags`` (after upgrading it)."""
+    from importlib.metadata import version
+
+    types = dict(sorted(get_typestore(Stores.ROS2_JAZZY).fielddefs.items()))
+    document = {"rosbags": version("rosbags"), "types": types}
+    path.write_text(json.dumps(document, separators=(",", ":")) + "\n", encoding="utf-8")
+
+
+def _desc(value: Any) -> tuple[Any, Any]:
+    """A field description read back from JSON: ``(Nodetype, detail)`` with tuples."""
+    node = Nodetype(value[0])
+    detail = value[1]
+    if node in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return node, (_desc(detail[0]), detail[1])
+    if node == Nodetype.NAME:
+        return node, detail
+    return node, tuple(detail)
 
 
 @cache

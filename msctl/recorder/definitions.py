@@ -23,28 +23,19 @@ SEPARATOR = "=" * 80
 INFINITE = {"sec": 9223372036, "nsec": 854775807}
 
 
-def _typestore() -> Any:
-    # The registry keeps its definitions (constants included) in a rosbags type store; its
-    # public API has fields but not constants, and a schema must carry both.
-    from components.comm.types import registry
-
-    return registry()._store
-
-
 def message_definition(type_name: str) -> str | None:
     """The complete ``ros2msg`` definition of a message type, or ``None`` if msctl has none.
 
     Args:
         type_name: ``pkg/msg/Name``.
     """
-    from components.comm.types import UnknownTypeError, normalize_type_name
+    from components.comm.types import UnknownTypeError, normalize_type_name, registry
 
+    types = registry()
     try:
         canonical = normalize_type_name(type_name)
+        types.definition(canonical)
     except UnknownTypeError:
-        return None
-    store = _typestore()
-    if canonical not in store.fielddefs:
         return None
     order: list[str] = []
     pending = [canonical]
@@ -53,18 +44,18 @@ def message_definition(type_name: str) -> str | None:
         if name in order:
             continue
         order.append(name)
-        for _, desc in store.fielddefs[name][1]:
+        for _, desc in types.definition(name)[1]:
             nested = _nested(desc)
             if nested and nested not in order and nested not in pending:
                 pending.append(nested)
-    parts = [_msg_text(store, order[0])]
+    parts = [_msg_text(types, order[0])]
     for name in order[1:]:
-        parts.append(f"{SEPARATOR}\nMSG: {name}\n{_msg_text(store, name)}")
+        parts.append(f"{SEPARATOR}\nMSG: {name}\n{_msg_text(types, name)}")
     return "".join(parts)
 
 
-def _msg_text(store: Any, name: str) -> str:
-    consts, fields = store.fielddefs[name]
+def _msg_text(types: Any, name: str) -> str:
+    consts, fields = types.definition(name)
     lines = [f"{kind} {const}={_constant(value)}" for const, kind, value in consts]
     lines += [f"{_field_type(desc)} {field}" for field, desc in fields]
     return "\n".join(lines) + "\n"
