@@ -33,6 +33,7 @@ _GROUPS: dict[str, str] = {
     "assemble": "msctl.commands.assemble",
     "agent": "msctl.commands.agent",
     "bag": "msctl.commands.bag",
+    "net": "msctl.commands.net",
 }
 _COMMANDS: dict[str, str] = {
     "up": "msctl.commands.up",
@@ -51,6 +52,7 @@ _COMMANDS: dict[str, str] = {
     "recover": "msctl.commands.recover",
     "update": "msctl.commands.update",
     "build": "msctl.commands.build",
+    "doctor": "msctl.commands.doctor",
 }
 
 

@@ -35,7 +35,7 @@ OPERATOR_PREFIX = "operator:"
 CA_NAME = "msctl fleet CA"
 CA_DAYS = 3650
 IDENTITY_DAYS = 365
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,62}$")
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,62}$")
 
 
 class PkiError(ValueError):
@@ -87,7 +87,7 @@ def check_name(name: str, what: str) -> str:
     """Reject a host or operator name a certificate or a file name cannot carry."""
     if not _NAME.match(name):
         raise PkiError(
-            f"{what} {name!r} is not a usable name: use letters, digits, '.', '_' or '-' "
+            f"{what} {name!r} is not a usable name: use letters, digits, '.', '_', '@' or '-' "
             "(at most 63, starting with a letter or digit)"
         )
     return name

@@ -1,0 +1,276 @@
+"""``msctl doctor``'s checks: the preflight of a field day, on one computer.
+
+Each check returns :class:`Finding` rows (OK, WARN or ERROR with what to do). Time and the
+session come from the caller, so tests give a skewed clock and a real loopback router.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import shutil
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+OK, WARN, ERROR = "OK", "WARN", "ERROR"
+#: Clock offsets beyond these break watchdogs and bag timestamps.
+CLOCK_WARN_S = 0.050
+CLOCK_ERROR_S = 0.500
+#: Certificates expiring within this are flagged.
+EXPIRY_WARN = timedelta(days=7)
+#: Free space for logs and bags.
+DISK_WARN_BYTES = 2 * 1024**3
+DISK_ERROR_BYTES = 200 * 1024**2
+#: What a component process imports (checked without importing: fast, no side effects).
+RUNTIME_MODULES = ("zenoh", "msgspec", "rosbags", "numpy", "rich", "typer")
+SIMULATION_MODULES = ("mujoco",)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One line of the preflight.
+
+    Attributes:
+        host: The computer checked.
+        check: What was checked (``clock``, ``router``, ``bus limb1``...).
+        status: ``OK``, ``WARN`` or ``ERROR``.
+        detail: What was found, and for WARN/ERROR what to do.
+        value: The measured value, when there is one (seconds, bytes, a hash).
+    """
+
+    host: str
+    check: str
+    status: str
+    detail: str
+    value: Any = None
+
+
+def version(host: str, lock_file: Path | None) -> list[Finding]:
+    """msctl's version and the lock's hash (compared across hosts by the caller)."""
+    from msctl import __version__
+
+    found = [Finding(host, "msctl version", OK, __version__, __version__)]
+    if lock_file is None or not lock_file.is_file():
+        found.append(
+            Finding(host, "assembly lock", WARN, "no resolved assembly: run `msctl assemble`")
+        )
+    else:
+        digest = hashlib.sha256(lock_file.read_bytes()).hexdigest()[:16]
+        found.append(Finding(host, "assembly lock", OK, f"{lock_file} sha256 {digest}", digest))
+    return found
+
+
+def agreement(findings: Iterable[Finding], check: str) -> list[Finding]:
+    """An ERROR per host whose ``check`` value differs from the first host's."""
+    rows = [f for f in findings if f.check == check and f.value is not None]
+    if not rows:
+        return []
+    reference = rows[0]
+    return [
+        Finding(
+            f.host,
+            f"{check} equal",
+            ERROR,
+            f"{f.value} here, {reference.value} on {reference.host}: run `msctl update` and "
+            "`msctl assemble` so every host runs the same",
+            f.value,
+        )
+        for f in rows[1:]
+        if f.value != reference.value
+    ]
+
+
+def clock_offset(host: str, offset_s: float | None, source: str) -> Finding:
+    """Grade a clock offset between this computer and ``source``."""
+    if offset_s is None:
+        return Finding(host, "clock", WARN, f"no timestamped sample from {source} to compare")
+    size = abs(offset_s)
+    status = ERROR if size > CLOCK_ERROR_S else WARN if size > CLOCK_WARN_S else OK
+    detail = f"{offset_s * 1000:+.1f} ms against {source}"
+    if status != OK:
+        detail += ": synchronise the clocks (chrony/NTP) before driving or recording"
+    return Finding(host, "clock", status, detail, offset_s)
+
+
+def measure_clock_offset(
+    session: Any, key: str, now_ns: Callable[[], int], timeout: float = 3.0
+) -> tuple[float | None, str]:
+    """Offset of this clock from the Zenoh timestamp of the next sample on ``key``.
+
+    The sample's timestamp is the publisher's clock at sending; the offset ignores the
+    transit time, which on a working link is far below the 50 ms warning.
+
+    Returns:
+        Seconds this clock is ahead (positive) or behind, and the key of the sample (or
+        ``None`` and ``key`` when nothing timestamped came within ``timeout``).
+    """
+    arrived = threading.Event()
+    found: dict[str, Any] = {}
+
+    def on_sample(sample: Any) -> None:
+        if sample.timestamp is not None and not arrived.is_set():
+            found["local"] = now_ns()
+            found["remote"] = sample.timestamp.get_time().timestamp() * 1e9
+            found["key"] = str(sample.key_expr)
+            arrived.set()
+
+    subscriber = session.declare_subscriber(key, on_sample)
+    try:
+        arrived.wait(timeout)
+    finally:
+        subscriber.undeclare()
+    if not arrived.is_set():
+        return None, key
+    return (found["local"] - found["remote"]) / 1e9, found["key"]
+
+
+def router(host: str, session: Any, endpoints: Iterable[str]) -> Finding:
+    """Whether this session reaches a router, and over which link type."""
+    protocols = sorted({e.split("/", 1)[0] for e in endpoints})
+    routers = list(session.info.routers_zid())
+    if not routers:
+        return Finding(
+            host,
+            "router",
+            ERROR,
+            f"no router at {', '.join(endpoints)}: run `msctl up` or `msctl router`",
+            None,
+        )
+    link = "/".join(protocols)
+    status = OK if "tls" in protocols else WARN
+    detail = f"{routers[0]} over {link}"
+    if status == WARN:
+        detail += ": not encrypted; run `msctl net init` and `msctl up --secure` in the field"
+    return Finding(host, "router", status, detail, link)
+
+
+def certificates(host: str, home: Path | None, now: datetime | None = None) -> list[Finding]:
+    """Every identity of the fleet: verifies against the CA, not expiring within 7 days."""
+    from msctl.net import pki
+
+    if not pki.initialised(home):
+        return [Finding(host, "certificates", WARN, "no fleet CA: run `msctl net init`")]
+    now = now or datetime.now(UTC)
+    found = []
+    for identity in pki.identities(home):
+        problem = pki.verify(identity.cert, home)
+        left = identity.expires - now if identity.expires else None
+        if problem:
+            row = Finding(
+                host,
+                f"cert {identity.common_name}",
+                ERROR,
+                f"{identity.cert} does not verify: {problem}",
+            )
+        elif left is None or left <= timedelta(0):
+            row = Finding(
+                host,
+                f"cert {identity.common_name}",
+                ERROR,
+                "expired: `msctl net revoke` and issue it again",
+            )
+        elif left < EXPIRY_WARN:
+            row = Finding(
+                host,
+                f"cert {identity.common_name}",
+                WARN,
+                f"expires in {left.days} days: issue it again",
+            )
+        else:
+            row = Finding(
+                host, f"cert {identity.common_name}", OK, f"valid until {identity.expires:%Y-%m-%d}"
+            )
+        found.append(row)
+    return found
+
+
+def devices(host: str, assembly: Any, simulated: bool, sys_root: Path = Path("/")) -> list[Finding]:
+    """The CAN interfaces and serial ports this host's modules' buses need."""
+    found = []
+    for module in assembly.modules:
+        if module.host != host:
+            continue
+        channel = module.bus.channel
+        check = f"bus {module.slot}"
+        if simulated:
+            found.append(Finding(host, check, OK, f"{channel} not needed: simulated"))
+            continue
+        if channel.startswith("/"):
+            path = sys_root / channel.lstrip("/")
+            if not path.exists():
+                found.append(
+                    Finding(
+                        host,
+                        check,
+                        ERROR,
+                        f"serial port {channel} is missing: plug "
+                        "the adapter in, or fix the unit's calibration file",
+                    )
+                )
+            elif not os.access(path, os.R_OK | os.W_OK):
+                found.append(
+                    Finding(
+                        host,
+                        check,
+                        ERROR,
+                        f"serial port {channel} is not "
+                        "readable and writable: add the user to group dialout",
+                    )
+                )
+            else:
+                found.append(Finding(host, check, OK, f"serial port {channel}"))
+        else:
+            path = sys_root / "sys" / "class" / "net" / channel
+            if not path.exists():
+                found.append(
+                    Finding(
+                        host,
+                        check,
+                        ERROR,
+                        f"CAN interface {channel} is missing: "
+                        f"`ip link set {channel} up type can bitrate "
+                        f"{module.bus.bitrate or 1000000}`",
+                    )
+                )
+            else:
+                found.append(Finding(host, check, OK, f"CAN interface {channel}"))
+    return found
+
+
+def disk(host: str, directory: Path) -> Finding:
+    """Free space where logs and bags go."""
+    while not directory.exists() and directory != directory.parent:
+        directory = directory.parent
+    free = shutil.disk_usage(directory).free
+    status = ERROR if free < DISK_ERROR_BYTES else WARN if free < DISK_WARN_BYTES else OK
+    detail = f"{free / 1024**3:.1f} GiB free at {directory}"
+    if status != OK:
+        detail += ": free space (old bags: `msctl bag info`) before recording"
+    return Finding(host, "disk", status, detail, free)
+
+
+def python_env(host: str, simulated: bool) -> list[Finding]:
+    """The modules components import are installed."""
+    wanted = RUNTIME_MODULES + (SIMULATION_MODULES if simulated else ())
+    missing = [m for m in wanted if importlib.util.find_spec(m) is None]
+    if missing:
+        return [
+            Finding(
+                host,
+                "python",
+                ERROR,
+                f"missing {', '.join(missing)}: `pip install -e .` in the venv msctl runs from",
+            )
+        ]
+    return [Finding(host, "python", OK, f"imports {', '.join(wanted)}")]
+
+
+def worst(findings: Iterable[Finding]) -> str:
+    """The worst status among ``findings``."""
+    statuses = {f.status for f in findings}
+    return ERROR if ERROR in statuses else WARN if WARN in statuses else OK

@@ -1,0 +1,92 @@
+"""``msctl net``: the fleet CA and identities on disk, listings, configs; real subprocesses."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from msctl.net import acl, pki
+
+
+def _msctl(home: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "MSCTL_HOME": str(home), "MSCTL_HOST": "hl-limb-01"}
+    return subprocess.run(
+        [sys.executable, "-m", "msctl", *args], env=env, capture_output=True, text=True, timeout=60
+    )
+
+
+@pytest.fixture(scope="module")
+def home(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An MSCTL_HOME with dragon resolved and the fleet initialised for it."""
+    from msctl.assembler import resolve
+    from msctl.assembler.store import write_resolution
+
+    home = tmp_path_factory.mktemp("home")
+    write_resolution(home / "assembly", resolve("dragon", {}))
+    done = _msctl(home, "net", "init", "--operator", "alice@ground1")
+    assert done.returncode == 0, done.stderr
+    return home
+
+
+def test_init_makes_an_identity_per_host_and_operator_with_private_keys(home: Path) -> None:
+    shown = json.loads(_msctl(home, "net", "show", "--json").stdout)
+    names = [i["common_name"] for i in shown["identities"]]
+    assert names == [
+        "ground1", "hl-limb-01", "hl-limb-02", "hl-wheel-01", "hl-wheel-02",
+        "operator:alice@ground1",
+    ]  # fmt: skip
+    assert all(i["days_left"] >= 364 for i in shown["identities"])
+    for key in [*home.glob("net/identities/*/key.pem"), home / "net/ca/ca.key"]:
+        assert stat.S_IMODE(key.stat().st_mode) == 0o600, key
+    for identity in pki.identities(home):
+        assert pki.verify(identity.cert, home) is None
+        assert pki.subject_cn(identity.cert) == identity.common_name
+
+
+def test_add_operator_then_revoke_changes_the_generated_acl(home: Path) -> None:
+    assert _msctl(home, "net", "add-operator", "bob@ground1").returncode == 0
+    config = json.loads(_msctl(home, "net", "config").stdout)
+    operators = next(s for s in config["access_control"]["subjects"] if s["id"] == acl.OPERATORS)
+    assert "operator:bob@ground1" in operators["cert_common_names"]
+    assert _msctl(home, "net", "revoke", "bob@ground1").returncode == 0
+    shown = json.loads(_msctl(home, "net", "show", "--json").stdout)
+    assert {"common_name": "operator:bob@ground1", "revoked": True}.items() <= next(
+        i for i in shown["identities"] if i["common_name"] == "operator:bob@ground1"
+    ).items()
+    config = json.loads(_msctl(home, "net", "config").stdout)
+    operators = next(s for s in config["access_control"]["subjects"] if s["id"] == acl.OPERATORS)
+    assert operators["cert_common_names"] == ["operator:alice@ground1"]
+
+
+def test_config_is_written_and_zenoh_accepts_it(home: Path, tmp_path: Path) -> None:
+    target = tmp_path / "ground1.json5"
+    done = _msctl(home, "net", "config", "ground1", "-o", str(target))
+    assert done.returncode == 0, done.stderr
+    config = json.loads(target.read_text())
+    assert config["mode"] == "router" and config["connect"]["endpoints"] == []
+    assert config["scouting"]["multicast"]["enabled"] is False
+    assert config["transport"]["link"]["tls"]["enable_mtls"] is True
+    assert config["access_control"]["default_permission"] == "deny"
+    zenoh.Config.from_file(str(target))  # raises on a key Zenoh does not know
+    robot = json.loads(_msctl(home, "net", "config", "hl-wheel-01").stdout)
+    assert robot["connect"]["endpoints"] == ["tls/ground1:7448"]
+    component = json.loads(_msctl(home, "net", "config", "hl-wheel-01", "--component").stdout)
+    assert component["mode"] == "client"
+
+
+def test_bad_input_names_what_is_wrong(home: Path, tmp_path: Path) -> None:
+    unknown = _msctl(home, "net", "config", "nowhere")
+    assert unknown.returncode == 2 and "'nowhere'" in unknown.stderr
+    assert "hl-limb-01" in unknown.stderr
+    bad = _msctl(home, "net", "add-operator", "al ice")
+    assert bad.returncode == 2 and "'al ice'" in bad.stderr
+    assert _msctl(home, "net", "revoke", "carol").returncode == 2
+    empty = _msctl(tmp_path, "net", "config", "ground1")
+    assert empty.returncode == 2 and "msctl assemble" in empty.stderr
