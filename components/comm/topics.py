@@ -400,6 +400,10 @@ class Subscription:
             except Exception as exc:
                 drops.drop(self.topic, "malformed", f"{type(exc).__name__}: {exc}")
                 return
+        if self._closed:
+            # Zenoh may still run a callback for a sample it had in hand when the subscriber
+            # was undeclared: once closed, nothing more is delivered.
+            return
         self.received += 1
         try:
             self._callback(message)
