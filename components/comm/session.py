@@ -16,6 +16,10 @@ Environment variables:
     MSCTL_ZENOH_LISTEN     comma-separated endpoints to listen on (peer default tcp/127.0.0.1:0)
     MSCTL_ZENOH_MULTICAST  ``1`` to enable multicast scouting (default off)
     MSCTL_ZENOH_LEASE_MS   link lease in ms (default 1000: a frozen peer is noticed in ~1 s)
+    MSCTL_IDENTITY         connect with this fleet identity (``msctl net``): an operator
+                           name (``alice@ground1``) or a host name; the session becomes a
+                           mutual-TLS client of ``tls/localhost:7448`` unless
+                           MSCTL_ZENOH_CONNECT says where
     ROS_DOMAIN_ID          ROS domain, the first chunk of every key (default 0)
 """
 
@@ -31,6 +35,8 @@ from typing import Any
 DEFAULT_ROUTER_PORT = 7447
 DEFAULT_CONNECT = (f"tcp/localhost:{DEFAULT_ROUTER_PORT}",)
 DEFAULT_ROUTER_LISTEN = (f"tcp/[::]:{DEFAULT_ROUTER_PORT}",)
+#: Where a secured router (``msctl net config``) takes other computers, over mutual TLS.
+SECURE_ROUTER_PORT = 7448
 # Zenoh's default lease is 10 s: a frozen peer would keep its tokens (and its place in the
 # graph) for ten seconds. 1 s with 4 keep-alives per lease notices it in about a second
 # while tolerating a couple of lost Wi-Fi frames.
@@ -100,6 +106,13 @@ class SessionSettings:
             changes["lease_ms"] = _integer(value, "MSCTL_ZENOH_LEASE_MS", minimum=100)
         if value := env.get("ROS_DOMAIN_ID"):
             changes["domain"] = _integer(value, "ROS_DOMAIN_ID", minimum=0)
+        # A router serves with its own config (``msctl router --secure``), never as a client.
+        if (value := env.get("MSCTL_IDENTITY")) and overrides.get("mode") != "router":
+            changes["mode"] = "client"  # a secured router's ACL must see every message
+            changes["listen"] = ()
+            changes["extra"] = {"transport/link/tls": identity_tls(value)}
+            if not env.get("MSCTL_ZENOH_CONNECT"):
+                changes["connect"] = (f"tls/localhost:{SECURE_ROUTER_PORT}",)
         changes.update({k: v for k, v in overrides.items() if v is not None})
         settings = replace(settings, **changes)
         settings.validate()
@@ -170,6 +183,32 @@ class SessionSettings:
             except Exception as exc:
                 raise SessionConfigError(f"Zenoh rejected {path}={value!r}: {exc}") from exc
         return config
+
+
+def identity_tls(name: str) -> dict[str, Any]:
+    """The mutual-TLS settings of fleet identity ``name`` (see ``msctl net``).
+
+    ``name`` is a host (its CN) or an operator (``alice@ground1``, CN ``operator:...``).
+
+    Raises:
+        SessionConfigError: If ``msctl net`` made no such identity here.
+    """
+    from components.assembly import state_dir
+
+    net = state_dir() / "net"
+    for common_name in (name, f"operator:{name}"):
+        folder = net / "identities" / common_name.replace(":", "-")
+        if (folder / "cert.pem").is_file() and (folder / "key.pem").is_file():
+            return {
+                "root_ca_certificate": str(net / "ca" / "ca.pem"),
+                "connect_certificate": str(folder / "cert.pem"),
+                "connect_private_key": str(folder / "key.pem"),
+                "enable_mtls": True,
+            }
+    raise SessionConfigError(
+        f"MSCTL_IDENTITY={name!r}: no such identity in {net / 'identities'}; run "
+        f"`msctl net add-operator {name}` (or `msctl net show` for the known ones)"
+    )
 
 
 def _endpoints(text: str, variable: str) -> tuple[str, ...]:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import threading
 import time
+from pathlib import Path
 
 import typer
 
-from msctl.errors import NetworkError
+from msctl.errors import InputError, NetworkError
 
 COMMAND_SETTINGS = {"help": "Run a Zenoh router (default tcp/[::]:7447, as rmw_zenohd)."}
 
@@ -26,6 +28,18 @@ def command(
     duration: float = typer.Option(
         None, "--for", help="Stop after this many seconds (default: until Ctrl-C)."
     ),
+    secure: bool = typer.Option(
+        False,
+        "--secure",
+        help="Run this computer's router from the config `msctl net config` generates: "
+        "mutual TLS and access control (also MSCTL_SECURE=1).",
+    ),
+    host: str = typer.Option(
+        None, "--host", help="With --secure: act as this computer (default MSCTL_HOST)."
+    ),
+    config_file: Path = typer.Option(
+        None, "--config", help="Run from this json5 Zenoh config (e.g. `msctl net config -o`)."
+    ),
 ) -> None:
     """Run a Zenoh router so ROS 2 nodes and msctl components on this computer meet."""
     from components.comm.session import (
@@ -37,8 +51,11 @@ def command(
     from msctl.console import err
 
     endpoints = tuple(listen) if listen else DEFAULT_ROUTER_LISTEN
+    if secure or config_file is not None:
+        config_file = config_file or _secure_config(host)
+        endpoints, connect = _endpoints_of(config_file)
     try:
-        settings = router_settings(listen=endpoints)
+        settings = router_settings(listen=endpoints, config_file=config_file)
         if connect:
             settings = settings.__class__(**{**settings.__dict__, "connect": tuple(connect)})
         session = open_session(settings)
@@ -67,3 +84,45 @@ def command(
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         err.print("router stopped")
+
+
+def _secure_config(host: str | None) -> Path:
+    """Write this computer's generated router config under MSCTL_HOME/net; its path."""
+    import os
+    import socket
+
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.net import config as netconfig
+    from msctl.net import pki
+
+    host = host or os.environ.get("MSCTL_HOST") or socket.gethostname()
+    if not pki.initialised():
+        raise InputError(
+            f"--secure: the fleet has no certificate authority in {pki.net_dir()}",
+            hint="run `msctl net init` (then copy MSCTL_HOME/net to every computer)",
+        )
+    try:
+        document = netconfig.router_config(load_assembly(), host)
+    except (AssemblyError, netconfig.NetConfigError, pki.PkiError) as exc:
+        raise InputError(f"--secure: {exc}") from exc
+    target = pki.net_dir() / f"router-{host}.json5"
+    target.write_text(netconfig.dumps(document))
+    return target
+
+
+def _endpoints_of(config_file: Path) -> tuple[tuple[str, ...], list[str]]:
+    """The listen and connect endpoints a json5 config names (msctl's own settings are
+    applied over the file, so they must repeat them)."""
+    import zenoh
+
+    try:
+        config = zenoh.Config.from_file(str(config_file))
+        listen = json.loads(config.get_json("listen/endpoints"))
+        connect = json.loads(config.get_json("connect/endpoints"))
+    except Exception as exc:
+        raise InputError(f"cannot use Zenoh config {config_file}: {exc}") from exc
+    if isinstance(listen, dict):  # per-mode form: {"router": [...]}
+        listen = listen.get("router", [])
+    if isinstance(connect, dict):
+        connect = connect.get("router", [])
+    return tuple(listen), list(connect)

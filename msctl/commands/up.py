@@ -51,6 +51,9 @@ def command(
     detach: bool = typer.Option(False, "--detach", help="Return once up; keep running."),
     host: str = typer.Option(None, "--host", help="Act as this computer (default MSCTL_HOST)."),
     all_hosts: bool = typer.Option(False, "--all", help="Start every host's part via agents."),
+    insecure: bool = typer.Option(
+        False, "--insecure", help="With --all: allow agents over a link that is not TLS."
+    ),
     use: list[str] = typer.Option(None, "--use", help="SLOT=UNIT when resolving TEMPLATE."),
     defaults: bool = typer.Option(
         False, "--defaults", help="When resolving TEMPLATE: every other slot on its default unit."
@@ -74,8 +77,10 @@ def command(
     if not kill_unresponsive > 0:
         raise InputError(f"--kill-unresponsive-after must be positive, not {kill_unresponsive}")
     if all_hosts:
-        from msctl.launcher.remote import up_all
+        from msctl.launcher.remote import refuse_plain_links, up_all
 
+        if not insecure:
+            refuse_plain_links()
         up_all(load_resolved(template, use or [], defaults), sim, speed, timeout)
         return
     host = host or this_host()

@@ -265,3 +265,30 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
             f"not healthy after {timeout:g} s: {', '.join(late[:6])}",
             hint="see `msctl ps` and `msctl logs <component>`",
         )
+
+
+#: Hosts whose links never leave the computer: plain TCP to them is not exposed.
+_LOOPBACK = ("127.", "localhost", "[::1]")
+
+
+def refuse_plain_links() -> None:
+    """Refuse to send agents requests over a link that leaves the computer unencrypted.
+
+    Anyone on the network could send the same requests over such a link (``up``, ``down``,
+    ``stop``). Loopback links are fine: they never leave the computer.
+
+    Raises:
+        InputError: Naming the endpoint, how to secure the fleet, and ``--insecure``.
+    """
+    from components.comm.session import SessionSettings
+
+    for endpoint in SessionSettings.from_env().connect:
+        protocol, _, address = endpoint.partition("/")
+        if protocol != "tls" and not address.startswith(_LOOPBACK):
+            raise InputError(
+                f"msctl up --all would command the agents over {endpoint}, which is not TLS: "
+                "anyone on that network could do the same",
+                hint="run `msctl net init`, copy MSCTL_HOME/net to every computer, start the "
+                "agents with MSCTL_SECURE=1 and set MSCTL_IDENTITY to your operator name; or "
+                "pass --insecure on a network you trust",
+            )

@@ -78,18 +78,33 @@ def router_reachable(endpoint: str, timeout: float = 0.5) -> bool:
 
 
 def listen_endpoint_for(connect_endpoint: str) -> str:
-    """Where to listen so that ``connect_endpoint`` reaches us (rmw_zenohd's default for
-    the default ``tcp/localhost:7447``)."""
+    """Where to listen so that ``connect_endpoint`` reaches us: loopback only for the
+    default ``tcp/localhost:7447`` (a plain router open to every interface let anyone on
+    the network command the robot); ``MSCTL_ROUTER_LISTEN`` adds endpoints on purpose."""
     if connect_endpoint.startswith("tcp/localhost:"):
-        return "tcp/[::]:" + connect_endpoint.rsplit(":", 1)[1]
+        return "tcp/127.0.0.1:" + connect_endpoint.rsplit(":", 1)[1]
     return connect_endpoint
+
+
+def router_argv(connect_endpoint: str) -> list[str]:
+    """``msctl router``'s arguments for the embedded router.
+
+    ``MSCTL_SECURE=1`` runs the router from the config ``msctl net config`` generates for
+    this computer (mutual TLS, access control); otherwise it listens where
+    :func:`listen_endpoint_for` says plus every endpoint in ``MSCTL_ROUTER_LISTEN``
+    (comma-separated, e.g. ``tcp/0.0.0.0:7447`` on a trusted field network).
+    """
+    if os.environ.get("MSCTL_SECURE") == "1":
+        return ["router", "--secure"]
+    argv = ["router", "--listen", listen_endpoint_for(connect_endpoint)]
+    for extra in filter(None, os.environ.get("MSCTL_ROUTER_LISTEN", "").split(",")):
+        argv += ["--listen", extra.strip()]
+    return argv
 
 
 def start_router(supervisor: Supervisor, endpoint: str) -> ManagedProcess:
     """Start an embedded router (``msctl router``) as a supervised process for ``endpoint``."""
-    router = supervisor.add(
-        ROUTER_PROCESS, boot.argv("msctl", "router", "--listen", listen_endpoint_for(endpoint))
-    )
+    router = supervisor.add(ROUTER_PROCESS, boot.argv("msctl", *router_argv(endpoint)))
     # Stopped while it still starts, it ends quietly (msctl.launcher.boot).
     with boot.held_sigint():
         supervisor.start(router.name)
