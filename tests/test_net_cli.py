@@ -39,9 +39,13 @@ def test_init_makes_an_identity_per_host_and_operator_with_private_keys(home: Pa
     shown = json.loads(_msctl(home, "net", "show", "--json").stdout)
     names = [i["common_name"] for i in shown["identities"]]
     assert names == [
-        "ground1", "hl-limb-01", "hl-limb-02", "hl-wheel-01", "hl-wheel-02",
+        "ground1",
+        "hl-limb-01",
+        "hl-limb-02",
+        "hl-wheel-01",
+        "hl-wheel-02",
         "operator:alice@ground1",
-    ]  # fmt: skip
+    ]
     assert all(i["days_left"] >= 364 for i in shown["identities"])
     for key in [*home.glob("net/identities/*/key.pem"), home / "net/ca/ca.key"]:
         assert stat.S_IMODE(key.stat().st_mode) == 0o600, key
@@ -90,3 +94,28 @@ def test_bad_input_names_what_is_wrong(home: Path, tmp_path: Path) -> None:
     assert _msctl(home, "net", "revoke", "carol").returncode == 2
     empty = _msctl(tmp_path, "net", "config", "ground1")
     assert empty.returncode == 2 and "msctl assemble" in empty.stderr
+
+
+def test_ros_enclave_gets_an_identity_and_an_rmw_form_config(home: Path) -> None:
+    done = _msctl(
+        home,
+        "net",
+        "ros-enclave",
+        "/field/viewer",
+        "--router",
+        "ground1",
+        "--publish",
+        "/chatter",
+        "--subscribe",
+        "/limb1/joint_read",
+    )
+    assert done.returncode == 0, done.stderr
+    config = json.loads(done.stdout)
+    assert config["connect"]["endpoints"] == ["tls/ground1:7448"]
+    rules = {r["id"]: r for r in config["access_control"]["rules"]}
+    assert rules["graph"]["key_exprs"] == ["@ros2_lv/0/**"]
+    assert rules["publications"]["key_exprs"] == ["0/chatter/**"]
+    shown = json.loads(_msctl(home, "net", "show", "--json").stdout)
+    viewer = next(i for i in shown["identities"] if i["common_name"] == "/field/viewer")
+    assert viewer["role"] == "ros enclave" and not viewer["revoked"]
+    assert _msctl(home, "net", "ros-enclave", "viewer", "--router", "ground1").returncode == 2

@@ -51,8 +51,13 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Any:
         local.declare_queryable(key, lambda q: q.reply(q.key_expr, b"ok"), complete=True)
         for key in ("0/limb1/halt/**", "0/msctl/hl_limb_01/request/**")
     ]
-    state = {"home": home, "ports": ports, "assembly": assembly, "received": received,
-             "local": local}  # fmt: skip
+    state = {
+        "home": home,
+        "ports": ports,
+        "assembly": assembly,
+        "received": received,
+        "local": local,
+    }
     try:
         yield state
     finally:
@@ -159,3 +164,45 @@ def test_liveliness_crosses_the_acl(fleet: dict[str, Any]) -> None:
         token.undeclare()
     finally:
         robot.close()
+
+
+def test_a_ros_enclave_config_in_rmw_zenoh_form_joins(tmp_path: Path) -> None:
+    """An enclave identity from the fleet CA, its rmw_zenoh-form config, a router that knows
+    it: the router accepts it, its publication arrives, a raw command does not."""
+    from msctl.net.ros import enclave_config
+
+    assembly = resolved_assembly(tmp_path / "asm", "dragon")
+    pki.init_fleet(list(assembly.hosts), [], home=tmp_path)
+    pki.issue("/field/viewer", home=tmp_path)
+    ports = netconfig.Ports(local=free_port(), tls=free_port())
+    router_config = netconfig.router_config(assembly, ROBOT, home=tmp_path, ports=ports)
+    assert {"id": "ros_enclaves", "cert_common_names": ["/field/viewer"]} in (
+        router_config["access_control"]["subjects"]
+    )
+    router = _open(router_config)
+    local = _open(netconfig.component_config(ROBOT, ports))
+    received: list[str] = []
+    subscriber = local.declare_subscriber("0/**", lambda s: received.append(str(s.key_expr)))
+    enclave = _open(
+        enclave_config(
+            "/field/viewer",
+            f"tls/127.0.0.1:{ports.tls}",
+            publish=["/chatter"],
+            subscribe=["/limb1/joint_read"],
+            home=tmp_path,
+        )
+    )
+    try:
+        assert list(enclave.info.routers_zid())
+        enclave.put("0/limb1/joint_commands/t/h", b"x")
+        wait_until(
+            lambda: enclave.put("0/chatter/t/h", b"x") or "0/chatter/t/h" in received,
+            10.0,
+            "the enclave's chatter",
+        )
+        assert "0/limb1/joint_commands/t/h" not in received
+    finally:
+        enclave.close()
+        subscriber.undeclare()
+        local.close()
+        router.close()

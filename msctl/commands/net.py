@@ -131,9 +131,12 @@ def show(json_output: bool = JSON_OPT) -> None:
         if row["days_left"] is not None and row["days_left"] < EXPIRY_WARNING_DAYS:
             state = "[yellow]expiring[/]" if row["days_left"] >= 0 else "[red]expired[/]"
         table.add_row(
-            row["common_name"], row["role"], (row["expires"] or "-")[:10],
-            "-" if row["days_left"] is None else str(row["days_left"]), state,
-        )  # fmt: skip
+            row["common_name"],
+            row["role"],
+            (row["expires"] or "-")[:10],
+            "-" if row["days_left"] is None else str(row["days_left"]),
+            state,
+        )
     out.print(table)
 
 
@@ -176,3 +179,48 @@ def config(
         return
     output.write_text(text)
     err.print(f"wrote {output}", highlight=False)
+
+
+@app.command("ros-enclave")
+def ros_enclave(
+    enclave: str = typer.Argument(..., help="The enclave's path (/field/viewer), also its CN."),
+    router: str = typer.Option(..., "--router", help="The computer whose router it joins."),
+    publish: list[str] = typer.Option(None, "--publish", help="A topic it publishes."),
+    subscribe: list[str] = typer.Option(None, "--subscribe", help="A topic it reads."),
+    serve: list[str] = typer.Option(None, "--serve", help="A service it serves."),
+    call: list[str] = typer.Option(None, "--call", help="A service it calls."),
+    output: Path = typer.Option(None, "--output", "-o", help="Write the json5 here."),
+) -> None:
+    """An identity for a ROS 2 enclave and its session config in rmw_zenoh's form."""
+    from msctl.console import err, out
+    from msctl.errors import InputError
+    from msctl.net import config as netconfig
+    from msctl.net import pki
+    from msctl.net.ros import enclave_config, is_enclave
+
+    if (
+        not is_enclave(enclave)
+        or "//" in enclave
+        or not pki.check_name(enclave.strip("/").replace("/", "-"), "enclave")
+    ):
+        raise InputError(f"enclave {enclave!r} is not a path like /field/viewer")
+    try:
+        if not pki.identity_dir(enclave).is_dir():
+            pki.issue(enclave)
+        ports = netconfig.Ports()
+        document = enclave_config(
+            enclave,
+            f"tls/{ports.address(router)}:{ports.tls_port(router)}",
+            publish or [],
+            subscribe or [],
+            serve or [],
+            call or [],
+        )
+    except (netconfig.NetConfigError, pki.PkiError) as exc:
+        _fail(exc)
+    text = netconfig.dumps(document)
+    if output is None:
+        out.print(text, end="", markup=False, highlight=False)
+        return
+    output.write_text(text)
+    err.print(f"wrote {output}; restart the routers so their ACL names {enclave}")

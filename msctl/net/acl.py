@@ -51,6 +51,8 @@ _CLASSES: dict[str, str] = {
 LOCAL = "local"
 #: Subject id of every operator identity.
 OPERATORS = "operators"
+#: Subject id of the ROS enclaves with an identity from the fleet CA.
+ROS_ENCLAVES = "ros_enclaves"
 #: Messages a writer sends.
 WRITES = ["put", "delete", "query"]
 #: Messages any member of the fleet may send: reading, serving, liveliness.
@@ -92,21 +94,26 @@ class FleetPrincipals:
         robots: Robot computers (host names).
         stations: Ground-station computers.
         operators: Operator common names (``operator:alice``), revoked ones left out.
+        enclaves: ROS enclaves (``/field/viewer``) with an identity from the fleet CA: they
+            read and write like any member, never a guarded input.
     """
 
     robots: list[str]
     stations: list[str]
     operators: list[str] = field(default_factory=list)
+    enclaves: list[str] = field(default_factory=list)
 
 
-def principals(assembly: ResolvedAssembly, operators: Iterable[str]) -> FleetPrincipals:
-    """Robot and station computers from the assembly, operators as given."""
+def principals(
+    assembly: ResolvedAssembly, operators: Iterable[str], enclaves: Iterable[str] = ()
+) -> FleetPrincipals:
+    """Robot and station computers from the assembly, operators and enclaves as given."""
     robots = [h for h, role in assembly.lock.host_plans.items() if role.role == "robot"]
     stations = [h for h, role in assembly.lock.host_plans.items() if role.role == "ground"]
     for host in assembly.hosts:
         if host not in robots and host not in stations:
             robots.append(host)
-    return FleetPrincipals(robots, stations, sorted(operators))
+    return FleetPrincipals(robots, stations, sorted(operators), sorted(enclaves))
 
 
 def guarded_inputs(assembly: ResolvedAssembly) -> list[GuardedInput]:
@@ -177,6 +184,8 @@ def router_acl(
             subjects.append({"id": _host_subject(other), "cert_common_names": [other]})
     if fleet.operators:
         subjects.append({"id": OPERATORS, "cert_common_names": list(fleet.operators)})
+    if fleet.enclaves:
+        subjects.append({"id": ROS_ENCLAVES, "cert_common_names": list(fleet.enclaves)})
     every = [s["id"] for s in subjects]
 
     def subject_of(name: str) -> str:

@@ -108,9 +108,10 @@ def router_config(
         )
     ports = ports or Ports()
     revoked = pki.revoked_names(home)
-    operators = [i.common_name for i in pki.identities(home) if i.role == "operator"]
-    operators = [cn for cn in operators if cn not in revoked]
-    fleet = acl.principals(assembly, operators)
+    names = [i.common_name for i in pki.identities(home) if i.common_name not in revoked]
+    operators = [cn for cn in names if pki.role_of(cn) == "operator"]
+    enclaves = [cn for cn in names if pki.role_of(cn) == "ros enclave"]
+    fleet = acl.principals(assembly, operators, enclaves)
     identity = pki.read_identity(host, home)
     return {
         "mode": "router",

@@ -63,6 +63,13 @@ class Identity:
     revoked: bool = False
 
 
+def role_of(common_name: str) -> str:
+    """``host``, ``operator`` or ``ros enclave`` (a CN that is a path, ``/field/viewer``)."""
+    if common_name.startswith(OPERATOR_PREFIX):
+        return "operator"
+    return "ros enclave" if common_name.startswith("/") else "host"
+
+
 def net_dir(home: Path | None = None) -> Path:
     """``$MSCTL_HOME/net``."""
     return (home or state_dir()) / "net"
@@ -80,7 +87,10 @@ def operator_cn(name: str) -> str:
 
 def identity_dir(common_name: str, home: Path | None = None) -> Path:
     """Where an identity's files live (a CN's ``:`` is not welcome in file names)."""
-    return net_dir(home) / "identities" / common_name.replace(":", "-")
+    name = common_name.replace(":", "-")
+    if name.startswith("/"):  # a ROS enclave path
+        name = "enclave" + name.replace("/", "%")
+    return net_dir(home) / "identities" / name
 
 
 def check_name(name: str, what: str) -> str:
@@ -147,9 +157,9 @@ def issue(common_name: str, home: Path | None = None, days: int = IDENTITY_DAYS)
     target = identity_dir(common_name, home)
     target.parent.mkdir(parents=True, exist_ok=True)
     ca_dir = net_dir(home) / "ca"
-    is_operator = common_name.startswith(OPERATOR_PREFIX)
+    is_operator = common_name.startswith((OPERATOR_PREFIX, "/"))
     names = (
-        f"URI:msctl:{common_name}"
+        f"URI:msctl:{common_name.replace('/', '%2F')}"
         if is_operator
         else f"DNS:{common_name},DNS:localhost,IP:127.0.0.1"
     )
@@ -164,7 +174,7 @@ def issue(common_name: str, home: Path | None = None, days: int = IDENTITY_DAYS)
         _openssl(
             "req", "-new", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
             "-keyout", str(work / "key.pem"), "-out", str(work / "req.csr"),
-            "-subj", f"/CN={common_name}",
+            "-subj", "/CN=" + common_name.replace("/", "\\/"),  # '/' separates RDNs
         )  # fmt: skip
         _openssl(
             "x509", "-req", "-in", str(work / "req.csr"), "-CA", str(ca_dir / "ca.pem"),
@@ -205,7 +215,7 @@ def read_identity(common_name: str, home: Path | None = None) -> Identity:
     cert = target / "cert.pem"
     return Identity(
         common_name=common_name,
-        role="operator" if common_name.startswith(OPERATOR_PREFIX) else "host",
+        role=role_of(common_name),
         cert=cert,
         key=target / "key.pem",
         expires=expiry(cert) if cert.is_file() else None,
@@ -218,10 +228,10 @@ def identities(home: Path | None = None, with_revoked: bool = False) -> list[Ide
     found = []
     for cert in sorted(root.glob("*/cert.pem")) if root.is_dir() else []:
         found.append(read_identity(subject_cn(cert), home))
-    found.sort(key=lambda i: (i.role != "host", i.common_name))
+    found.sort(key=lambda i: (("host", "operator", "ros enclave").index(i.role), i.common_name))
     if with_revoked:
         for cn in sorted(_revoked(home)):
-            found.append(Identity(cn, "operator" if cn.startswith(OPERATOR_PREFIX) else "host",
+            found.append(Identity(cn, role_of(cn),
                                   Path(), Path(), None, revoked=True))  # fmt: skip
     return found
 
