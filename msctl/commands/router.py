@@ -7,6 +7,7 @@ import signal
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -102,12 +103,35 @@ def _secure_config(host: str | None) -> Path:
             hint="run `msctl net init` (then copy MSCTL_HOME/net to every computer)",
         )
     try:
-        document = netconfig.router_config(load_assembly(), host)
+        assembly = load_assembly()
+        document = netconfig.router_config(
+            assembly, host, ports=_ports(), off_robot=host not in assembly.hosts
+        )
     except (AssemblyError, netconfig.NetConfigError, pki.PkiError) as exc:
         raise InputError(f"--secure: {exc}") from exc
     target = pki.net_dir() / f"router-{host}.json5"
     target.write_text(netconfig.dumps(document))
     return target
+
+
+def _ports() -> Any:
+    """The router's ports: loopback where this computer's sessions connect
+    (MSCTL_ZENOH_CONNECT, default 7447), TLS from MSCTL_NET_TLS_PORT (default 7448)."""
+    import os
+
+    from components.comm.session import SessionSettings
+    from msctl.net.config import LOCAL_PORT, TLS_PORT, Ports
+
+    local = LOCAL_PORT
+    for endpoint in SessionSettings.from_env(mode="router").connect:
+        protocol, _, address = endpoint.partition("/")
+        if protocol == "tcp" and address.startswith(("127.", "localhost")):
+            local = int(address.rsplit(":", 1)[1])
+    try:
+        tls = int(os.environ.get("MSCTL_NET_TLS_PORT") or TLS_PORT)
+    except ValueError:
+        raise InputError("MSCTL_NET_TLS_PORT must be a port number") from None
+    return Ports(local=local, tls=tls)
 
 
 def _endpoints_of(config_file: Path) -> tuple[tuple[str, ...], list[str]]:

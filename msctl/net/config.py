@@ -95,23 +95,37 @@ def router_config(
     home: Path | None = None,
     ports: Ports | None = None,
     domain: int = 0,
+    off_robot: bool = False,
 ) -> dict[str, Any]:
     """The Zenoh config of ``host``'s router.
+
+    ``off_robot``: ``host`` runs the whole assembly simulated (``msctl up`` off-robot), so
+    its own components write every module's inputs.
 
     Raises:
         NetConfigError: If ``host`` is not in the assembly, or has no identity.
     """
-    if host not in assembly.hosts:
+    if off_robot:
+        # One computer runs every module (simulated): it is every module's own computer.
+        assembly_guarded = [
+            acl.GuardedInput(g.topic, frozenset({host}), g.operators, g.stations, g.why)
+            for g in acl.guarded_inputs(assembly)
+        ]
+    elif host not in assembly.hosts:
         raise NetConfigError(
             f"host {host!r} runs nothing in assembly {assembly.template!r} "
             f"(its hosts: {', '.join(assembly.hosts)})"
         )
     ports = ports or Ports()
     revoked = pki.revoked_names(home)
-    names = [i.common_name for i in pki.identities(home) if i.common_name not in revoked]
+    names = [cn for cn in pki.common_names(home) if cn not in revoked]
     operators = [cn for cn in names if pki.role_of(cn) == "operator"]
     enclaves = [cn for cn in names if pki.role_of(cn) == "ros enclave"]
     fleet = acl.principals(assembly, operators, enclaves)
+    if off_robot:
+        fleet.robots = [host]
+    if not off_robot:
+        assembly_guarded = acl.guarded_inputs(assembly)
     identity = pki.read_identity(host, home)
     return {
         "mode": "router",
@@ -130,7 +144,7 @@ def router_config(
         "scouting": {"multicast": {"enabled": False}, "delay": 0},
         "timestamping": {"enabled": True},
         "transport": {"link": {"tls": tls_block(identity, home)}},
-        "access_control": acl.router_acl(host, fleet, acl.guarded_inputs(assembly), domain),
+        "access_control": acl.router_acl(host, fleet, assembly_guarded, domain),
     }
 
 
