@@ -47,8 +47,19 @@ def run(
     host: str = typer.Option(
         None, "--host", envvar="MSCTL_HOST", help="This computer's name (env MSCTL_HOST)."
     ),
+    secure: bool = typer.Option(
+        False,
+        "--secure",
+        envvar="MSCTL_SECURE",
+        help="Run the agent's router from `msctl net config`: mutual TLS and access control "
+        "(env MSCTL_SECURE).",
+    ),
 ) -> None:
     """Run the agent: idle until `msctl up --all` sends it an assembly; Ctrl-C stops all."""
+    if secure:
+        import os
+
+        os.environ["MSCTL_SECURE"] = "1"  # read where the agent starts its router
     if ctx.invoked_subcommand is not None:
         return
     from msctl.launcher.agent import Agent

@@ -54,6 +54,13 @@ def command(
     insecure: bool = typer.Option(
         False, "--insecure", help="With --all: allow agents over a link that is not TLS."
     ),
+    secure: bool = typer.Option(
+        False,
+        "--secure",
+        envvar="MSCTL_SECURE",
+        help="Run the embedded router from `msctl net config`: mutual TLS and access control "
+        "(env MSCTL_SECURE).",
+    ),
     use: list[str] = typer.Option(None, "--use", help="SLOT=UNIT when resolving TEMPLATE."),
     defaults: bool = typer.Option(
         False, "--defaults", help="When resolving TEMPLATE: every other slot on its default unit."
@@ -76,6 +83,9 @@ def command(
         raise InputError(f"--speed must be positive, not {speed}")
     if not kill_unresponsive > 0:
         raise InputError(f"--kill-unresponsive-after must be positive, not {kill_unresponsive}")
+    if secure:
+        # The embedded router, started by the supervisor (maybe detached), reads it.
+        os.environ["MSCTL_SECURE"] = "1"
     if all_hosts:
         from msctl.launcher.remote import refuse_plain_links, up_all
 
