@@ -115,3 +115,26 @@ def test_doctor_command_json_and_exit_status(tmp_path: Path) -> None:
     assert done.returncode == 1 and report["status"] == doctor.ERROR
     router = next(f for f in report["findings"] if f["check"] == "router")
     assert router["status"] == doctor.ERROR and "msctl up" in router["detail"]
+
+
+@pytest.mark.e2e
+def test_doctor_all_asks_every_supervisor(tmp_path: Path) -> None:
+    from tests.running import Up
+
+    up = Up(tmp_path, "minimal")
+    try:
+        saved = dict(up.env)
+        up.env["MSCTL_HOST"] = "ground-laptop"  # a second computer, asking the first
+        try:
+            done = up.msctl("doctor", "--all", "--json", "--clock-timeout", "5", timeout=90)
+        finally:
+            up.env = saved
+    finally:
+        up.down()
+    report = json.loads(done.stdout)
+    hosts = {f["host"] for f in report["findings"]}
+    assert hosts == {"ground-laptop", "test-laptop"}, report
+    clock = {f["host"]: f for f in report["findings"] if f["check"] == "clock"}
+    assert clock["test-laptop"]["value"] is not None  # the running assembly's samples
+    lock = [f for f in report["findings"] if f["check"] == "assembly lock"]
+    assert len({f["value"] for f in lock}) == 1  # one MSCTL_HOME: the same lock

@@ -1,43 +1,37 @@
-"""``msctl doctor``: the preflight of a field day, on this computer."""
+"""``msctl doctor``: the preflight of a field day, on this computer or every one."""
 
 from __future__ import annotations
 
 import typer
 
 COMMAND_SETTINGS = {
-    "help": "Preflight: versions, clocks, router and link, certificates, "
-    "buses, disk, Python environment."
+    "help": "Preflight: versions, clocks, router and link, certificates, buses, disk, Python."
 }
 
 
 def command(
+    all_hosts: bool = typer.Option(
+        False, "--all", help="Every host, through its supervisor or agent, and compare them."
+    ),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON document."),
     clock_timeout: float = typer.Option(
         3.0, "--clock-timeout", help="Seconds to wait for a timestamped sample to compare clocks."
     ),
 ) -> None:
-    """Check this computer is ready; exit status 1 on any ERROR."""
+    """Check this computer (or every one) is ready; exit status 1 on any ERROR."""
     import dataclasses
     import os
     import socket
-    import time
 
     from rich.table import Table
 
-    from components.assembly import AssemblyError, load_assembly, lock_path, state_dir
     from components.comm.session import SessionConfigError, SessionSettings, open_session
     from msctl.console import err, out, print_json
     from msctl.net import doctor
 
     host = os.environ.get("MSCTL_HOST") or socket.gethostname()
     findings: list[doctor.Finding] = []
-    try:
-        assembly = load_assembly()
-    except AssemblyError:
-        assembly = None
-    findings += doctor.version(host, lock_path() if assembly else None)
-    simulated = assembly is None or host not in {m.host for m in assembly.modules}
-    with err.status("checking the router and the clock"):
+    with err.status("checking this computer" + (" and every host" if all_hosts else "")):
         settings = SessionSettings.from_env(mode="client")
         try:
             session = open_session(settings)
@@ -49,18 +43,16 @@ def command(
             )
         else:
             try:
-                findings.append(doctor.router(host, session, settings.connect))
-                offset, source = doctor.measure_clock_offset(
-                    session, f"{settings.domain}/**", time.time_ns, clock_timeout
+                findings += doctor.this_computer(
+                    host, session, settings.connect, settings.domain, clock_timeout
                 )
-                findings.append(doctor.clock_offset(host, offset, source))
+                if all_hosts:
+                    findings += _other_hosts(session, settings.domain, host, clock_timeout)
             finally:
                 session.close()
-    findings += doctor.certificates(host, None)
-    if assembly is not None:
-        findings += doctor.devices(host, assembly, simulated)
-    findings.append(doctor.disk(host, state_dir()))
-    findings += doctor.python_env(host, simulated)
+        if all_hosts:
+            for check in ("msctl version", "assembly lock"):
+                findings += doctor.agreement(findings, check)
     status = doctor.worst(findings)
     if json_output:
         print_json({"status": status, "findings": [dataclasses.asdict(f) for f in findings]})
@@ -72,3 +64,22 @@ def command(
         out.print(table)
     if status == doctor.ERROR:
         raise typer.Exit(1)
+
+
+def _other_hosts(session: object, domain: int, here: str, timeout: float) -> list:
+    """Every other host's findings, asked of its supervisor or agent."""
+    from components.comm.node import Node
+    from msctl.launcher.fleet import ask_all
+    from msctl.net import doctor
+
+    node = Node(session, f"msctl_doctor_{id(session)}", "/", domain=domain)
+    found = []
+    try:
+        for namespace, answer in ask_all(node, "doctor", timeout=timeout + 10.0).items():
+            if "error" in answer:
+                found.append(doctor.Finding(namespace, "reachable", doctor.ERROR, answer["error"]))
+            elif answer.get("host") != here:
+                found += [doctor.Finding(**f) for f in answer.get("findings", [])]
+    finally:
+        node.close()
+    return found

@@ -350,6 +350,10 @@ class Agent:
         Raises:
             RequestError: If the request cannot be carried out in the agent's state.
         """
+        if verb == "doctor":
+            from msctl.launcher.run import doctor_payload
+
+            return doctor_payload(self.host, self.session, self.settings), "ok"
         if verb == "ps":
             return self.document(), "ok"
         if verb == "up":

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 AGENT_SRV = "msctl_msgs/srv/AgentRequest"
-VERBS = ("ps", "logs", "restart", "stop", "start", "down", "up")
+VERBS = ("ps", "logs", "restart", "stop", "start", "down", "up", "doctor")
 _ARG_KEYS: dict[str, set[str]] = {
     "ps": set(),
     "logs": {"component", "lines"},
@@ -25,6 +25,7 @@ _ARG_KEYS: dict[str, set[str]] = {
     "start": {"component"},
     "down": set(),
     "up": {"assembly", "sim", "speed"},
+    "doctor": set(),
 }
 _HOST_CHARS = re.compile(r"[^A-Za-z0-9_]")
 #: Bounds on a request's arguments, checked before they are parsed. The largest request is

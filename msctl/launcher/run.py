@@ -86,6 +86,16 @@ def listen_endpoint_for(connect_endpoint: str) -> str:
     return connect_endpoint
 
 
+def doctor_payload(host: str, session: Any, settings: Any) -> dict[str, Any]:
+    """``msctl doctor``'s findings for this computer, as a request's answer."""
+    import dataclasses
+
+    from msctl.net import doctor
+
+    found = doctor.this_computer(host, session, settings.connect, settings.domain)
+    return {"host": host, "findings": [dataclasses.asdict(f) for f in found]}
+
+
 def router_argv(connect_endpoint: str) -> list[str]:
     """``msctl router``'s arguments for the embedded router.
 
@@ -363,6 +373,8 @@ class Launch:
     def _do(self, verb: str, args: dict[str, Any]) -> Any:
         if verb == "ps":
             return self.document()
+        if verb == "doctor":
+            return doctor_payload(self.plan.host, self.session, self.settings)
         if verb == "down":
             self.request_stop()
             return {"host": self.plan.host}

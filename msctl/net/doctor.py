@@ -274,3 +274,36 @@ def worst(findings: Iterable[Finding]) -> str:
     """The worst status among ``findings``."""
     statuses = {f.status for f in findings}
     return ERROR if ERROR in statuses else WARN if WARN in statuses else OK
+
+
+def this_computer(
+    host: str,
+    session: Any,
+    endpoints: Iterable[str],
+    domain: int = 0,
+    clock_timeout: float = 1.0,
+    now_ns: Callable[[], int] | None = None,
+) -> list[Finding]:
+    """Every check of this computer, through an open ``session`` (a supervisor's or agent's,
+    for ``msctl doctor --all``; the command's own otherwise)."""
+    import time
+
+    from components.assembly import AssemblyError, load_assembly, lock_path, state_dir
+
+    try:
+        assembly = load_assembly()
+    except AssemblyError:
+        assembly = None
+    found = version(host, lock_path() if assembly else None)
+    found.append(router(host, session, list(endpoints)))
+    offset, source = measure_clock_offset(
+        session, f"{domain}/**", now_ns or time.time_ns, clock_timeout
+    )
+    found.append(clock_offset(host, offset, source))
+    found += certificates(host, None)
+    simulated = assembly is None or host not in {m.host for m in assembly.modules}
+    if assembly is not None:
+        found += devices(host, assembly, simulated)
+    found.append(disk(host, state_dir()))
+    found += python_env(host, simulated)
+    return found
