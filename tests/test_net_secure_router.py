@@ -206,3 +206,39 @@ def test_a_ros_enclave_config_in_rmw_zenoh_form_joins(tmp_path: Path) -> None:
         subscriber.undeclare()
         local.close()
         router.close()
+
+
+def test_operator_at_the_station_reaches_the_robot_through_linked_routers(
+    tmp_path: Path,
+) -> None:
+    """Station and robot routers linked over mutual TLS as the topology says: an operator
+    on the station's router sets limb1's joints; raw commands stop at the station."""
+    assembly = resolved_assembly(tmp_path / "asm", "dragon")
+    pki.init_fleet(list(assembly.hosts), ["alice"], home=tmp_path)
+    ports = netconfig.Ports(
+        addresses={h: "127.0.0.1" for h in assembly.hosts},
+        tls_ports={"ground1": free_port(), ROBOT: free_port()},
+        local_ports={"ground1": free_port(), ROBOT: free_port()},
+    )
+    station = _open(netconfig.router_config(assembly, "ground1", home=tmp_path, ports=ports))
+    robot = _open(netconfig.router_config(assembly, ROBOT, home=tmp_path, ports=ports))
+    local = _open(netconfig.component_config(ROBOT, ports))
+    received: list[str] = []
+    subscriber = local.declare_subscriber("0/**", lambda s: received.append(str(s.key_expr)))
+    operator = _open(netconfig.operator_config("alice", "ground1", tmp_path, ports))
+    try:
+        operator.put("0/limb1/joint_commands/t/h", b"x")
+        wait_until(
+            lambda: (
+                operator.put("0/limb1/joint_set/t/h", b"x") or "0/limb1/joint_set/t/h" in received
+            ),
+            15.0,
+            "the operator's joint_set across both routers",
+        )
+        assert "0/limb1/joint_commands/t/h" not in received
+    finally:
+        operator.close()
+        subscriber.undeclare()
+        local.close()
+        robot.close()
+        station.close()
