@@ -209,6 +209,8 @@ class Subscription:
         self.token_key = self.entity.token()
         self.type_hash = reg.type_hash(self.type_name)
         self.received = 0
+        # Set before the subscriber is declared: a latched topic's history arrives at once.
+        self._closed = False
         self._last_attachment: bytes | None = None
         self.senders: frozenset[str] | None = None if senders is None else frozenset(senders)
         self._guarded = guarded or senders is not None
@@ -257,7 +259,6 @@ class Subscription:
             self._publishers.undeclare()
             raise
         self._token = session.liveliness().declare_token(self.token_key)
-        self._closed = False
 
     def _on_publisher_token(self, sample: Any) -> None:
         import zenoh
