@@ -13,10 +13,10 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from conftest import quick_peer_settings, quick_router
 
 from components.comm.session import open_session
 from msctl.net import doctor
-from tests.conftest import quick_peer_settings, quick_router
 
 
 def _publish(publisher: Any, stop: threading.Event) -> None:
@@ -119,7 +119,7 @@ def test_doctor_command_json_and_exit_status(tmp_path: Path) -> None:
 
 @pytest.mark.e2e
 def test_doctor_all_asks_every_supervisor(tmp_path: Path) -> None:
-    from tests.running import Up
+    from running import Up
 
     up = Up(tmp_path, "minimal")
     try:

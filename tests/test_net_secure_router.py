@@ -14,10 +14,10 @@ from typing import Any
 
 import pytest
 import zenoh
+from conftest import free_port, resolved_assembly, wait_until
 
 from msctl.net import config as netconfig
 from msctl.net import pki
-from tests.conftest import free_port, resolved_assembly, wait_until
 
 ROBOT = "hl-limb-01"  # limb1's computer in dragon
 OTHER_ROBOT = "hl-limb-02"  # limb2's computer

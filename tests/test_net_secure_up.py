@@ -10,10 +10,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import free_port
+from running import Up
 
 from msctl.net import pki
-from tests.conftest import free_port
-from tests.running import Up
 
 
 class SecureUp(Up):

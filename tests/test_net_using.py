@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import free_port, resolved_assembly, wait_until
 
 from components.comm.session import SessionConfigError, SessionSettings, open_session
 from msctl.launcher.run import router_argv
 from msctl.net import config as netconfig
 from msctl.net import pki
-from tests.conftest import free_port, resolved_assembly, wait_until
 
 
 def _env(home: Path, **more: str) -> dict[str, str]:
