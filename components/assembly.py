@@ -312,6 +312,8 @@ class LockDocument:
         mobile: Whether the assembly moves (floating base in simulation).
         claims: ``"open"``: an unclaimed module takes commands from anyone; ``"required"``:
             only from the holder of its claim (:mod:`components.claims`).
+        secure: Whether every router runs the fleet's generated config (mutual TLS, access
+            control; the template's ``[network] secure``).
         units: Slot -> unit serial, in template order.
         modules: One plan per slot, in template order.
         components: Every component, robot side then ground stations.
@@ -341,6 +343,7 @@ class LockDocument:
     artifacts: Artifacts = field(default_factory=Artifacts)
     sources: Sources | None = None
     claims: Literal["open", "required"] = "open"
+    secure: bool = False
 
 
 def encode_lock(lock: LockDocument) -> str:
@@ -404,6 +407,11 @@ class ResolvedAssembly:
         """``"open"`` or ``"required"``: whether a module takes commands only from the holder
         of its claim even while nobody holds it."""
         return self.lock.claims
+
+    @property
+    def secure(self) -> bool:
+        """Whether the assembly's routers run the fleet's generated config (mutual TLS)."""
+        return self.lock.secure
 
     @property
     def root_links(self) -> tuple[str, ...]:

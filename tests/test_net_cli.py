@@ -119,3 +119,32 @@ def test_ros_enclave_gets_an_identity_and_an_rmw_form_config(home: Path) -> None
     viewer = next(i for i in shown["identities"] if i["common_name"] == "/field/viewer")
     assert viewer["role"] == "ros enclave" and not viewer["revoked"]
     assert _msctl(home, "net", "ros-enclave", "viewer", "--router", "ground1").returncode == 2
+
+
+def test_a_template_network_secure_is_checked_and_carried_in_the_lock(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import shutil
+
+    from components.assembly import decode_lock, encode_lock
+    from msctl.assembler import resolve
+    from msctl.errors import InputError
+
+    copy = tmp_path / "assemblies"
+    root = Path(__file__).resolve().parents[1]
+    shutil.copytree(root / "assemblies", copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setenv("MSCTL_ASSEMBLIES_DIR", str(copy))
+    template = copy / "minimal.toml"
+    text = template.read_text()
+    assert resolve("minimal").lock.secure is False
+    template.write_text(text + "\n[network]\nsecure = true\n")
+    lock = resolve("minimal").lock
+    assert lock.secure is True and decode_lock(encode_lock(lock)).secure is True
+    for bad, said in (
+        ('secure = "yes"', "field network.secure is 'yes'"),
+        ("tls = true", "field network.tls is not a network setting"),
+    ):
+        template.write_text(text + f"\n[network]\n{bad}\n")
+        with pytest.raises(InputError) as caught:
+            resolve("minimal")
+        assert f"{template}: {said}" in str(caught.value)

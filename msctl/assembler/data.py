@@ -140,6 +140,9 @@ def _check_finite(path: Path, value: Any, where: str) -> None:
 #: A template's ``claims`` values (see :class:`Template`).
 CLAIM_POLICIES = ("open", "required")
 
+#: What a template's ``[network]`` table may say.
+NETWORK_KEYS = ("secure",)
+
 
 class _Fields:
     """Typed access to one TOML table, with errors naming the file and the field."""
@@ -708,6 +711,9 @@ class Template:
     #: ``"open"``: an unclaimed module takes commands from anyone; ``"required"``: only from
     #: the holder of its claim (see :mod:`components.claims`).
     claims: str = "open"
+    #: ``[network] secure = true``: every computer's router runs the config ``msctl net
+    #: config`` generates (mutual TLS, access control), as ``--secure`` does.
+    secure: bool = False
 
     def slot(self, name: str) -> SlotDef:
         """The slot called ``name`` (KeyError if none)."""
@@ -873,6 +879,14 @@ def _parse_template(path: Path) -> Template:
             'claims = "open" (an unclaimed module takes anyone\'s commands; the default)',
         )
 
+    network = f.sub("network", {})
+    for key in network.table:
+        if key not in NETWORK_KEYS:
+            raise InputError(
+                f"{network.where(key)} is not a network setting",
+                hint=f"the [network] table takes {', '.join(NETWORK_KEYS)}",
+            )
+
     return Template(
         name=path.stem,
         path=path,
@@ -882,6 +896,7 @@ def _parse_template(path: Path) -> Template:
         connections=tuple(connections),
         stations=tuple(stations),
         claims=claims,
+        secure=network.get("secure", bool, False, "true or false"),
     )
 
 

@@ -7,6 +7,7 @@ import os
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -95,6 +96,7 @@ def _down_every_host(local_runs: bool) -> None:
     try:
         with connected("down") as node:
             answers = ask_all(node, "down")
+            there = _still_there(node, [n for n, a in answers.items() if "error" in a])
     except NetworkError as exc:
         if local_runs:
             raise  # a supervisor runs here, yet its router is gone: worth saying loudly
@@ -102,10 +104,62 @@ def _down_every_host(local_runs: bool) -> None:
         # the operator could reach: the goal of `down` is met.
         err.print(f"nothing is running ({exc.message}, and no supervisor runs here)")
         return
+    failed = []
     for namespace, answer in answers.items():
-        err.print(f"{namespace}: {answer.get('error', 'stopping')}", highlight=False)
+        if "error" not in answer:
+            err.print(f"{namespace}: stopping", highlight=False)
+        elif namespace in there:
+            err.print(f"{namespace}: {answer['error']}", highlight=False)
+            failed.append(namespace)
+        else:
+            err.print(f"{namespace}: left the network before it could be asked", highlight=False)
+    failed.sort()
+    if failed:
+        raise MsctlError(
+            f"{', '.join(failed)} did not stop: {answers[failed[0]]['error']}",
+            hint=_identity_hint() or "see them with `msctl ps`; run `msctl down --all` again",
+        )
     if not answers and not local_runs:
+        if hint := _identity_hint():
+            # A fleet's access control hides supervisors from who may not stop them: an
+            # empty answer proves nothing runs only to an operator.
+            raise MsctlError("no agent or supervisor answered, so nothing was stopped", hint=hint)
         err.print("nothing is running: no agent or supervisor answered")
+
+
+def _still_there(node: Any, namespaces: list[str], settle: float = 2.0) -> set[str]:
+    """Which of ``namespaces`` are still on the graph after ``settle`` s at most.
+
+    A supervisor that could not be asked but left the network meanwhile (its agent stopped;
+    its token outlives it by a moment) is gone, not refusing.
+    """
+    from msctl.launcher.fleet import supervisors
+
+    deadline = time.monotonic() + settle
+    there = set(namespaces)
+    while there:
+        there &= set(supervisors(node))
+        if not there or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    return there
+
+
+def _identity_hint() -> str | None:
+    """Why a secured fleet may not answer this identity (None: no identity, or an operator)."""
+    identity = os.environ.get("MSCTL_IDENTITY")
+    if not identity:
+        return None
+    from msctl.net import pki
+
+    identities = pki.net_dir() / "identities"
+    if (identities / f"{pki.OPERATOR_PREFIX}{identity}".replace(":", "-")).is_dir():
+        return None
+    return (
+        f"MSCTL_IDENTITY={identity} is not an operator of this fleet, and a secured fleet "
+        "answers only operators' requests (ground stations' too, on robot routers): set "
+        "MSCTL_IDENTITY to an operator (`msctl net add-operator NAME`)"
+    )
 
 
 def _down_through_agent(document: dict) -> None:

@@ -111,6 +111,10 @@ def command(
         except OSError as exc:  # writing the resolution into MSCTL_HOME
             raise state.home_not_writable(Path(exc.filename or state.state_dir()), exc) from exc
         lock.note(template=assembly.template)
+        if assembly.secure:
+            # `[network] secure = true` says what --secure does: the embedded router (maybe
+            # started by a detached supervisor, which inherits this) runs the generated config.
+            os.environ["MSCTL_SECURE"] = "1"
         if os.environ.get(_DAEMON_ENV) != "1":
             _refuse_if_agent_serves(host)
         plan = plan_host(assembly, host, sim)
