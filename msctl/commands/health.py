@@ -131,12 +131,14 @@ def _watch(assembly, json_output: bool, duration: float) -> None:
         while deadline is None or time.monotonic() < deadline:
             live.evaluate()
             fresh = live.take_alarms()
-            for alarm in fresh:
-                line = json.dumps(alarm.to_json()) if json_output else alarm.line()
-                sys.stdout.write(line + "\n")
             if fresh:
-                sys.stdout.flush()
+                # Saved before shown: whoever reads a line and then presses Ctrl-C finds it in
+                # the file (shown first, a KeyboardInterrupt in between lost it).
                 log.append(fresh)
+                for alarm in fresh:
+                    line = json.dumps(alarm.to_json()) if json_output else alarm.line()
+                    sys.stdout.write(line + "\n")
+                sys.stdout.flush()
             time.sleep(0.2)  # the evaluation rate: level changes are timed to 0.2 s
 
 
