@@ -91,6 +91,15 @@ class ComponentKind:
             claim; joint managers then take its commands as the holder's (see
             :func:`components.claims.command_rule`). A module-placed relay forwards to its
             own module, a station-placed one to any.
+        own_process: Each of its components runs in a process of its own rather than with
+            the other components of its kind on its station or module, so that one failing
+            (an operator's script raising) is restarted alone.
+        named: A station lists each of its components by name, with its own parameters
+            (``autonomous_operator = [{ name = "steering", script = "steering" }]``); a bare
+            count is refused.
+        validate: ``"module:function"`` checking a component's parameters as a whole,
+            called as ``function(params, robots)`` with the template's robots (their root
+            slots); raises ``ValueError`` naming what is wrong.
     """
 
     name: str
@@ -108,6 +117,9 @@ class ComponentKind:
     namespace: str = ""
     not_rebuilt_alone: str = ""
     claim_relay: bool = False
+    own_process: bool = False
+    named: bool = False
+    validate: str | None = None
 
     @property
     def runnable(self) -> bool:
@@ -249,8 +261,12 @@ def _is_scalar(f: dataclasses.Field[Any]) -> bool:
     return factory is dataclasses.MISSING or not dataclasses.is_dataclass(factory)
 
 
-def check_params(kind: ComponentKind, params: Mapping[str, Any]) -> None:
-    """Check a component's parameters against its kind: names, types, ranges.
+def check_params(
+    kind: ComponentKind, params: Mapping[str, Any], robots: Iterable[str] | None = None
+) -> None:
+    """Check a component's parameters against its kind: names, types, ranges, and the kind's
+    own check of them as a whole (:attr:`ComponentKind.validate`, given ``robots``: the
+    template's robots by root slot, when known).
 
     Raises:
         KindError: Naming the parameter, what is wrong and what is accepted.
@@ -279,6 +295,11 @@ def check_params(kind: ComponentKind, params: Mapping[str, Any]) -> None:
                 resolve(path)(params[key])
             except (TypeError, ValueError) as exc:
                 raise KindError(f"{kind.name} parameter {key}: {exc}") from None
+    if kind.validate is not None:
+        try:
+            resolve(kind.validate)(params, None if robots is None else tuple(robots))
+        except (TypeError, ValueError) as exc:
+            raise KindError(f"{kind.name}: {exc}") from None
 
 
 def _typed(fields: Mapping[str, dataclasses.Field[Any]], values: Mapping[str, Any]) -> dict:

@@ -155,6 +155,32 @@ CASES: dict[str, tuple[Mutation, dict[str, str], list[str]]] = {
         {},
         ["dragon.toml: field stations[0].components", "joint_manager"],
     ),
+    "two station components given one name": (
+        edit(
+            "assemblies/dragon.toml",
+            "data_monitor = 1",
+            'data_monitor = [{ name = "human_operator" }]',
+        ),
+        {},
+        [
+            "dragon.toml: field stations[0].components.data_monitor",
+            "two components of station gc1 are named 'human_operator'",
+        ],
+    ),
+    "a named station component with a parameter its kind does not take": (
+        edit(
+            "assemblies/dragon.toml",
+            "data_monitor = 1",
+            'data_monitor = [{ name = "watch", period = 1.0 }]',
+        ),
+        {},
+        ["dragon.toml: field stations[0].components.data_monitor[0] (watch)", "'period'"],
+    ),
+    "a named station component whose name is no ROS name": (
+        edit("assemblies/dragon.toml", "data_monitor = 1", 'data_monitor = [{ name = "1st" }]'),
+        {},
+        ["dragon.toml: field stations[0].components.data_monitor[0].name is '1st'"],
+    ),
     "the README tour's override name typo": (
         edit(LOCKED, 'name = "locked_joint"', 'name = "lock_joint"'),
         WITH_03,
@@ -222,6 +248,23 @@ def test_refused_at_assemble_naming_file_field_and_rule(
     message = f"{caught.value} {getattr(caught.value, 'hint', '') or ''}"
     for piece in expected:
         assert piece in message, message
+
+
+def test_station_components_listed_by_name_take_their_own_parameters(
+    world: dict[str, Path],  # noqa: F811
+) -> None:
+    """A kind given as a list of tables: one component per table, named by it, with its
+    parameters over the station's ``params.<kind>``."""
+    edit(
+        "assemblies/dragon.toml",
+        "data_monitor = 1",
+        'data_monitor = [{ name = "watch" }, { name = "slow_watch", publish_period = 5.0 }]',
+    )(world)
+    append("assemblies/dragon.toml", "params = { data_monitor = { max_items = 10 } }\n")(world)
+    plans = {c.name: c for c in resolve("dragon").lock.components if c.kind == "data_monitor"}
+    assert set(plans) == {"gc1/watch", "gc1/slow_watch"}
+    assert plans["gc1/watch"].params == {"max_items": 10}
+    assert plans["gc1/slow_watch"].params == {"max_items": 10, "publish_period": 5.0}
 
 
 def test_the_shipped_data_is_accepted_as_it_is(world: dict[str, Path]) -> None:  # noqa: F811

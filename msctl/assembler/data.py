@@ -586,12 +586,40 @@ def _check_unique_ids(ids: dict[str, int | None], where: str) -> None:
         seen[motor_id] = joint
 
 
-def _check_kind_params(kind: str, params: dict[str, Any], where: str) -> None:
-    """A component's parameters against its kind's entry (names, types, ranges)."""
+def _check_kind_params(
+    kind: str, params: dict[str, Any], where: str, robots: list[str] | None = None
+) -> None:
+    """A component's parameters against its kind's entry (names, types, ranges; with the
+    template's ``robots``, the kind's own check of them as a whole)."""
     try:
-        kinds.check_params(kinds.get(kind), params)
+        kinds.check_params(kinds.get(kind), params, robots)
     except kinds.KindError as exc:
         raise InputError(f"{where}: {exc}", hint="fix or remove that parameter") from None
+
+
+def _named_components(
+    counts: _Fields, kind: str, defaults: dict[str, Any], robots: list[str]
+) -> list[tuple[str, str, dict[str, Any]]]:
+    """A station's components of ``kind`` given as a list of tables, each with a ``name``
+    and its parameters (over the station's ``params.<kind>``), each checked."""
+    items = counts.entries(kind, f"{kind} table")
+    if len(items) > kinds.MAX_PER_STATION:
+        raise InputError(
+            f"{counts.where(kind)} lists {len(items)} components",
+            hint=f"a station runs 0 to {kinds.MAX_PER_STATION} components of one kind",
+        )
+    out = []
+    for i, item in enumerate(items):
+        entry = _Fields(counts.path, item, f"{counts.prefix}{kind}[{i}].")
+        component = entry.name("name")
+        own = {**defaults, **{k: v for k, v in item.items() if k != "name"}}
+        where = f"{counts.path}: field {counts.prefix}{kind}[{i}] ({component})"
+        try:
+            kinds.check_params(kinds.get(kind), own, robots)
+        except kinds.KindError as exc:
+            raise InputError(f"{where}: {exc}", hint="fix or remove that parameter") from None
+        out.append((kind, component, own))
+    return out
 
 
 def _check_extensions(module: ModuleType, injections: Any, overrides: Any, source: str) -> None:
@@ -689,11 +717,19 @@ class ConnectionDef:
 
 @dataclass(frozen=True)
 class StationDef:
-    """A ground-control station: its host and how many of each component kind it runs."""
+    """A ground-control station: its host and the components it runs.
+
+    Attributes:
+        name: The station's name (its namespace).
+        host: Its computer.
+        components: ``(kind, name, params)`` of each component, in data order; a kind
+            given as a count ``n`` has components ``kind`` (n = 1) or ``kind_1`` ...
+            ``kind_n``, a kind given as a list has the names the list gives.
+    """
 
     name: str
     host: str
-    components: tuple[tuple[str, int, dict[str, Any]], ...]
+    components: tuple[tuple[str, str, dict[str, Any]], ...]
 
 
 @dataclass(frozen=True)
@@ -837,6 +873,8 @@ def _parse_template(path: Path) -> Template:
                 )
             seen.add(slot)
 
+    # Robots by their root slot: what a station component may be given as its robot.
+    robots = [s.name for s in slots if s.name not in {c.child for c in connections}]
     stations: list[StationDef] = []
     for i, raw in enumerate(f.get("stations", list, [], "a list of stations tables")):
         s = _Fields(path, raw, f"stations[{i}].")
@@ -847,28 +885,49 @@ def _parse_template(path: Path) -> Template:
         counts = s.sub("components", {})
         params = s.sub("params", {})
         station_kinds = [k.name for k in kinds.placed(kinds.Placement.STATION)]
-        entries = []
+        entries: list[tuple[str, str, dict[str, Any]]] = []
         for kind in counts.table:
             if kind not in station_kinds:
                 raise InputError(
                     f"{counts.where(kind)}: {kind!r} is not a ground-station component kind",
                     hint=f"use one of {', '.join(station_kinds)}",
                 )
-            count = counts.get(kind, int, what="a count")
+            kind_params = dict(params.get(kind, dict, {}))
+            if not kinds.get(kind).named:  # a named one's are checked with each component's
+                _check_kind_params(kind, kind_params, params.where(kind), robots)
+            if isinstance(counts.table[kind], list):
+                entries += _named_components(counts, kind, kind_params, robots)
+                continue
+            if kinds.get(kind).named:
+                raise InputError(
+                    f"{counts.where(kind)} is {counts.table[kind]!r}: each {kind} is named, "
+                    "with its parameters",
+                    hint=f'write {kind} = [{{ name = "...", ... }}], one table per component '
+                    f"(see assemblies/two_dragons.toml)",
+                )
+            count = counts.get(kind, int, what="a count, or a list of named components")
             if not 0 <= count <= kinds.MAX_PER_STATION:
                 raise InputError(
                     f"{counts.where(kind)} is {count}",
                     hint=f"a station runs 0 to {kinds.MAX_PER_STATION} components of one kind",
                 )
-            kind_params = dict(params.get(kind, dict, {}))
-            _check_kind_params(kind, kind_params, params.where(kind))
-            entries.append((kind, count, kind_params))
+            for n in range(count):
+                entries.append((kind, kind if count == 1 else f"{kind}_{n + 1}", kind_params))
         for kind in params.table:
             if kind not in counts.table:
                 raise InputError(
                     f"{params.where(kind)}: the station runs no {kind}",
                     hint=f"add {kind} to the station's components, or remove its params",
                 )
+        seen: dict[str, str] = {}
+        for kind, component, _ in entries:
+            if component in seen:
+                raise InputError(
+                    f"{counts.where(kind)}: two components of station {name} are named "
+                    f"{component!r} (a {seen[component]} and a {kind})",
+                    hint="give each a distinct name: it is its node's name on the graph",
+                )
+            seen[component] = kind
         stations.append(StationDef(name, host, tuple(entries)))
 
     claims = f.get("claims", str, "open", '"open" or "required"')

@@ -398,20 +398,17 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
         parts.append(ModulePart(slot, module.urdf, limits, dict(module.connectors)))
 
     for station in template.stations:
-        for kind_name, count, params in station.components:
-            for i in range(count):
-                components.append(
-                    ComponentPlan(
-                        name=f"{station.name}/{kind_name}"
-                        if count == 1
-                        else f"{station.name}/{kind_name}_{i + 1}",
-                        kind=kind_name,
-                        host=station.host,
-                        module=None,
-                        namespace=f"/{station.name}",
-                        params=dict(params),
-                    )
+        for kind_name, component, params in station.components:
+            components.append(
+                ComponentPlan(
+                    name=f"{station.name}/{component}",
+                    kind=kind_name,
+                    host=station.host,
+                    module=None,
+                    namespace=f"/{station.name}",
+                    params=dict(params),
                 )
+            )
 
     mounts: list[Mount] = []
     connections: list[Connection] = []

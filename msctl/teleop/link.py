@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from components.assembly import ResolvedAssembly
+from components.robots import cmd_vel_topic, robots_of, root_link
 from msctl.errors import MsctlError, NetworkError, NotFoundError, did_you_mean
 from msctl.teleop.keys import DRIVE, IK, JOINT
 from msctl.teleop.wire import JointJog, Output, TipJog, TwistDrive
@@ -29,52 +30,6 @@ log = logging.getLogger(__name__)
 
 #: Seconds to wait for a module's joint manager to list its joints.
 ANSWER_TIMEOUT = 5.0
-
-
-def robots_of(assembly: ResolvedAssembly) -> dict[str, str]:
-    """Each module's robot, named by the robot's root module: modules joined by connections
-    (``limb1.tip`` carries ``wheel1.mount``) form one robot."""
-    parent: dict[str, str] = {m.slot: m.slot for m in assembly.modules}
-
-    def find(slot: str) -> str:
-        while parent[slot] != slot:
-            parent[slot] = parent[parent[slot]]
-            slot = parent[slot]
-        return slot
-
-    for connection in assembly.connections:
-        a = find(connection.parent.split(".", 1)[0])
-        b = find(connection.child.split(".", 1)[0])
-        if a != b:
-            parent[b] = a
-    # Each group is named by its robot's root as the assembler placed it.
-    names = {find(robot.root): robot.root for robot in assembly.lock.robots if robot.root in parent}
-    return {slot: names.get(find(slot), find(slot)) for slot in parent}
-
-
-def root_link(assembly: ResolvedAssembly, robot: str) -> str:
-    """The root link of the robot named by its root module (a stamped Twist's frame)."""
-    for placement in assembly.lock.robots:
-        if placement.root == robot:
-            return placement.root_link
-    return assembly.module(robot).root_link
-
-
-def cmd_vel_topic(assembly: ResolvedAssembly, modules: Sequence[str]) -> str | None:
-    """The ``cmd_vel`` of the robot the modules belong to: ``/cmd_vel`` when the assembly is
-    one robot, ``/<robot's root module>/cmd_vel`` when it has several; None when the
-    assembly does not move or the modules span several robots."""
-    # Something to drive: a mobile assembly with velocity-controlled joints (wheels).
-    rolling = any(j.control == "velocity" for m in assembly.modules for j in m.joints)
-    if not assembly.mobile or not rolling:
-        return None
-    robots = robots_of(assembly)
-    if len(set(robots.values())) == 1:
-        return "/cmd_vel"
-    mine = {robots[m] for m in modules}
-    if len(mine) != 1:
-        return None
-    return f"/{mine.pop()}/cmd_vel"
 
 
 def check_modules(assembly: ResolvedAssembly, modules: Sequence[str]) -> list[str]:
