@@ -17,7 +17,7 @@ OPTIONAL = {"rclpy", "rosidl_runtime_py"}
 #: Modules their distribution's metadata does not list (cmeel wheels install under a prefix).
 INSTALLED_BY = {"pinocchio": ["pin"]}
 #: Test-extra tools used as programs or plugins rather than imported.
-TOOLS = {"pytest-timeout", "ruff", "pytest-textual-snapshot"}
+TOOLS = {"pytest-timeout", "pytest-xdist", "ruff", "pytest-textual-snapshot"}
 #: colcon and the extensions `msctl build` relies on, run as the ``colcon`` program.
 TOOLS |= {
     "colcon-core",
