@@ -19,6 +19,7 @@ from components.comm.types import registry
 JOINT_STATE = "sensor_msgs/msg/JointState"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TWIST = "geometry_msgs/msg/Twist"
 TRIGGER = "std_srvs/srv/Trigger"
 
 

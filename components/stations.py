@@ -1,4 +1,4 @@
-"""Ground-station kinds the assembler plans and the operator tools will run.
+"""Ground-station kinds the assembler plans and no code runs yet (the autonomous operator).
 
 Each is a typed entry now, so templates are checked against it at ``msctl assemble``; none
 has a builder yet, so the launcher reports them as not built instead of starting a
@@ -9,11 +9,6 @@ lands.
 from components.kinds import ComponentKind, Placement
 
 KINDS = (
-    ComponentKind(
-        name="human_operator",
-        summary="a station's operator: claims, the second deadman (msctl teleop)",
-        placement=Placement.STATION,
-    ),
     ComponentKind(
         name="autonomous_operator",
         summary="a supervised Python-API script, main(robot)",
