@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from conftest import wait_until
+from supervisor_rig import quick_supervisor
 
 from components import kinds
 from components.assembly import ResolvedAssembly, from_document
@@ -92,29 +93,8 @@ def pid_gone(pid: int) -> bool:
 @pytest.fixture
 def supervisor(tmp_path: Path) -> Iterator[Supervisor]:
     """A supervisor with quick backoff; everything it started is killed at teardown."""
-    sup = Supervisor(
-        tmp_path / "logs",
-        RestartPolicy(max_restarts=3, window=30.0, backoff_initial=0.05, backoff_max=1.0),
-        ShutdownPolicy(after_sigint=0.5, after_sigterm=0.5),
-    )
-    pgids: set[int] = set()
-    original = sup._spawn
-
-    def spawn(process):
-        original(process)
-        if process.popen is not None:
-            pgids.add(process.popen.pid)
-
-    sup._spawn = spawn  # type: ignore[method-assign]
-    try:
+    with quick_supervisor(tmp_path / "logs", backoff_max=1.0) as sup:
         yield sup
-    finally:
-        sup.shutdown()
-        for pgid in pgids:
-            try:
-                os.killpg(pgid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
 
 
 def poll_until(sup: Supervisor, predicate, timeout: float = 5.0) -> list[str]:

@@ -23,10 +23,11 @@ from typing import Any
 
 import pytest
 from conftest import free_port, resolved_assembly, wait_until
+from supervisor_rig import quick_supervisor
 
 from msctl.launcher.run import WORKER_FINAL_EXITS
 from msctl.launcher.state import group_alive, process_group_alive
-from msctl.launcher.supervisor import ProcessState, RestartPolicy, ShutdownPolicy, Supervisor
+from msctl.launcher.supervisor import ProcessState, Supervisor
 
 PY = sys.executable
 
@@ -49,29 +50,8 @@ sys.exit(int(sys.argv[2]))
 @pytest.fixture
 def supervisor(tmp_path: Path) -> Iterator[Supervisor]:
     """A supervisor with quick backoff; every group it started is killed at teardown."""
-    sup = Supervisor(
-        tmp_path / "logs",
-        RestartPolicy(max_restarts=3, window=30.0, backoff_initial=0.05, backoff_max=0.2),
-        ShutdownPolicy(after_sigint=0.5, after_sigterm=0.5),
-    )
-    pgids: set[int] = set()
-    original = sup._spawn
-
-    def spawn(process):
-        original(process)
-        if process.popen is not None:
-            pgids.add(process.popen.pid)
-
-    sup._spawn = spawn  # type: ignore[method-assign]
-    try:
+    with quick_supervisor(tmp_path / "logs", backoff_max=0.2) as sup:
         yield sup
-    finally:
-        sup.shutdown()
-        for pgid in pgids:
-            try:
-                os.killpg(pgid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
 
 
 def add_worker(
