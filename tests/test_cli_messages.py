@@ -116,7 +116,7 @@ def test_run_with_no_router_fails_fast_naming_the_endpoint(tmp_path: Path) -> No
     }
     result = _msctl("run", str(script), env=env)
     assert result.returncode == 3, result.stderr
-    assert f"no Zenoh router or peer reachable at {endpoint} within 2 s" in result.stderr
+    assert f"no Zenoh router or peer reachable at {endpoint} (connection refused)" in result.stderr
 
 
 @pytest.mark.e2e

@@ -30,7 +30,7 @@ import re
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import fields
+from dataclasses import fields, replace
 from typing import Any
 
 from components.api.errors import (
@@ -315,9 +315,13 @@ async def connect(
     """
     from components.claims import Claims
     from components.comm import Node, SessionSettings, open_session
+    from components.comm.session import SessionOpenError
 
     settings = settings or SessionSettings.from_env()
-    session = await asyncio.to_thread(open_session, settings)
+    try:
+        session = await asyncio.to_thread(open_session, _failing_fast(settings))
+    except SessionOpenError as exc:
+        raise RobotNotFoundError(_unreachable(settings, _refusal(exc))) from exc
     node = None
     handlers: list[JointHandler] = []
     try:
@@ -367,6 +371,38 @@ NETWORK_WAIT = 2.0
 NOTHING_RUNS_WAIT = 2.0
 
 
+def _failing_fast(settings: Any) -> Any:
+    """``settings`` whose session fails to open when its connect endpoints refuse it.
+
+    With multicast scouting off those endpoints are the only way to the robot, and Zenoh
+    knows at once that they refuse (``msctl topic list`` says so in a fraction of a second):
+    waiting for a peer that cannot come helps nobody. Once open, the session still
+    reconnects to a restarted router by itself. With scouting on, a peer may yet be found
+    without them, so the short wait of :func:`_wait_for_network` decides instead.
+    """
+    keys = ("connect/exit_on_failure", "connect/timeout_ms")
+    if settings.multicast or not settings.connect or any(k in settings.extra for k in keys):
+        return settings
+    return replace(settings, extra={**settings.extra, keys[0]: True, keys[1]: 0})
+
+
+def _refusal(exc: Exception) -> str:
+    """What Zenoh's long open error says, in a few words."""
+    text = str(exc)
+    for words in ("Connection refused", "No route to host", "Network is unreachable"):
+        if words in text:
+            return words.lower()
+    return "could not connect"
+
+
+def _unreachable(settings: Any, why: str) -> str:
+    return (
+        f"no Zenoh router or peer reachable at {', '.join(settings.connect) or 'any'} ({why}); "
+        "start the assembly with `msctl up <template>`, or point MSCTL_ZENOH_CONNECT at its "
+        "router"
+    )
+
+
 async def _wait_for_network(session: Any, settings: Any, wait: float) -> None:
     """Fail fast when no router or peer answers at the configured endpoints."""
     deadline = time.monotonic() + wait
@@ -375,11 +411,7 @@ async def _wait_for_network(session: Any, settings: Any, wait: float) -> None:
         if list(info.routers_zid()) or list(info.peers_zid()):
             return
         if time.monotonic() > deadline:
-            raise RobotNotFoundError(
-                f"no Zenoh router or peer reachable at {', '.join(settings.connect) or 'any'} "
-                f"within {wait:g} s; start the assembly with `msctl up <template>`, or point "
-                "MSCTL_ZENOH_CONNECT at its router"
-            )
+            raise RobotNotFoundError(_unreachable(settings, f"nothing answered in {wait:g} s"))
         await asyncio.sleep(0.02)
 
 
