@@ -68,3 +68,32 @@ def test_run_with_no_router_fails_at_the_refusal_as_topic_list_does(
     assert "within" not in line, line
     listed = msctl("topic", "list", env=nowhere)
     assert listed.returncode == result.returncode == 3, listed.stderr
+
+
+# ------------------------------------------------------------------------------ point 11
+def test_assembling_while_an_up_is_still_starting_is_refused_and_the_lock_file_kept(
+    tmp_path: Path, nowhere: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from msctl.launcher.state import RunLock
+
+    assert msctl("assemble", "minimal", env=nowhere).returncode == 0
+    lock_file = tmp_path / "home" / "assembly" / "assembly.lock.json"
+    before = lock_file.read_bytes()
+    # An `msctl up` holds the run lock from its first moment; its state file comes only
+    # once its processes have started (and read the lock file): hold the lock as it does.
+    monkeypatch.setenv("MSCTL_HOME", nowhere["MSCTL_HOME"])
+    run = RunLock.acquire(template="minimal", host="test-laptop", by="msctl up")
+    try:
+        result = msctl("assemble", "dragon", env=nowhere)
+        assert result.returncode == 2, result.stderr
+        line = one_line(result)
+        assert f"assembly minimal is starting (pid {os.getpid()}: msctl up" in line, line
+        assert "would replace the lock file under it" in line and "msctl down" in line, line
+        assert lock_file.read_bytes() == before
+        # The same lock refuses a second `up` (the check above did not take it over).
+        again = msctl("up", "minimal", "--for", "1", env=nowhere)
+        assert again.returncode == 3 and "minimal is already up" in again.stderr, again.stderr
+    finally:
+        run.release()
+    assert msctl("assemble", "dragon", env=nowhere).returncode == 0
+    assert lock_file.read_bytes() != before

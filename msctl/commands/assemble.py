@@ -178,18 +178,27 @@ def resolve_and_write(
 def _refuse_while_running() -> None:
     """A running assembly's workers read the lock file when they (re)start: never replace it
     under them."""
-    from msctl.launcher.state import read_state, supervisor_alive
+    from msctl.launcher.state import read_state, run_lock_holder, supervisor_alive
 
+    hint = "stop it with `msctl down` first, then assemble and `msctl up` again"
     running = read_state()
-    if not supervisor_alive(running):
-        return
-    assert running is not None
-    raise InputError(
-        f"assembly {running.get('template', '?')} is running (supervisor pid "
-        f"{running.get('supervisor_pid')} on {running.get('host', 'this computer')}); "
-        "resolving again now would replace the lock file under it",
-        hint="stop it with `msctl down` first, then assemble and `msctl up` again",
-    )
+    if supervisor_alive(running):
+        assert running is not None
+        raise InputError(
+            f"assembly {running.get('template', '?')} is running (supervisor pid "
+            f"{running.get('supervisor_pid')} on {running.get('host', 'this computer')}); "
+            "resolving again now would replace the lock file under it",
+            hint=hint,
+        )
+    # Still starting: its state file is not written yet, its workers read the lock file now.
+    holder = run_lock_holder()
+    if holder is not None:
+        raise InputError(
+            f"assembly {holder.get('template') or '?'} is starting (pid {holder.get('pid')}: "
+            f"{holder.get('by') or 'msctl up'} on {holder.get('host') or 'this computer'}); "
+            "resolving again now would replace the lock file under it",
+            hint=hint,
+        )
 
 
 def note_off_defaults(template: str, units: dict[str, str]) -> None:

@@ -97,7 +97,7 @@ class RunLock:
         except OSError as exc:
             raise home_not_writable(path.parent, exc) from exc
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _flock_soon(fd)
         except BlockingIOError:
             other = _read_holder(fd)
             os.close(fd)
@@ -136,6 +136,51 @@ class RunLock:
         if self.fd >= 0:
             os.close(self.fd)
             self.fd = -1
+
+
+def _flock_soon(fd: int, patience: float = 0.2) -> None:
+    """Take the lock exclusively, waiting at most ``patience`` seconds.
+
+    A holder keeps it for a whole run; a command that only asks whether a run holds it
+    (:func:`run_lock_holder`) holds it for microseconds, and must not be taken for one.
+
+    Raises:
+        BlockingIOError: If it is still held after ``patience``.
+    """
+    deadline = time.monotonic() + patience
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.01)
+
+
+def run_lock_holder() -> dict[str, Any] | None:
+    """Who holds this MSCTL_HOME's run lock, when another process does (else ``None``).
+
+    An ``msctl up`` holds it from its first moment, long before its state file says it runs
+    (that is written once its processes have started): the lock is what tells a run that is
+    still starting. The holder's own process (an ``msctl up TEMPLATE`` resolving before it
+    starts) is not another.
+    """
+    try:
+        fd = os.open(lock_path(), os.O_RDONLY)
+    except OSError:
+        return None  # never taken here, or unreadable: nothing to go by
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _read_holder(fd)
+            return None if holder.get("pid") == os.getpid() else holder or {"pid": None}
+        except OSError:
+            return None
+        return None
+    finally:
+        os.close(fd)
 
 
 def _read_holder(fd: int, tries: int = 20) -> dict[str, Any]:
