@@ -3,7 +3,10 @@ own MSCTL_HOME, behind its own router on a free loopback port, and ``msctl down`
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -22,9 +25,12 @@ class Up:
         home: Its MSCTL_HOME.
         template: The template to bring up.
         extra: More ``msctl up`` arguments.
+        env: More environment variables for every command (``MSCTL_TRANSPORT``...).
     """
 
-    def __init__(self, home: Path, template: str, *extra: str) -> None:
+    def __init__(
+        self, home: Path, template: str, *extra: str, env: dict[str, str] | None = None
+    ) -> None:
         self.home = home
         self.template = template
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -36,6 +42,7 @@ class Up:
             "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
             "MSCTL_ZENOH_MULTICAST": "0",
             "PYTHONPATH": str(ROOT),
+            **(env or {}),
         }
         result = self.msctl("up", template, "--detach", "--speed", "1", *extra, timeout=120.0)
         assert result.returncode == 0, result.stdout + result.stderr
@@ -59,6 +66,28 @@ class Up:
         )
 
     def down(self) -> None:
-        """``msctl down``, verified."""
-        result = self.msctl("down", timeout=60.0)
+        """``msctl down``, verified; whatever it could not stop is killed all the same, so a
+        failed test leaves no assembly running into the next ones."""
+        try:
+            result = self.msctl("down", timeout=60.0)
+        except subprocess.TimeoutExpired:
+            self.kill_leftovers()
+            raise
+        if result.returncode != 0:
+            self.kill_leftovers()
         assert result.returncode == 0, result.stdout + result.stderr
+
+    def kill_leftovers(self) -> None:
+        """SIGKILL the supervisor and every process group its state file names."""
+        try:
+            document = json.loads((self.home / "run" / "state.json").read_text())
+        except (OSError, ValueError):
+            return
+        pids = [document.get("supervisor_pid")]
+        pgids = [p.get("pgid") for p in document.get("processes", [])]
+        for pid in filter(None, pids):
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        for pgid in filter(None, pgids):
+            with contextlib.suppress(OSError):
+                os.killpg(pgid, signal.SIGKILL)
