@@ -148,3 +148,16 @@ def test_a_template_network_secure_is_checked_and_carried_in_the_lock(
         with pytest.raises(InputError) as caught:
             resolve("minimal")
         assert f"{template}: {said}" in str(caught.value)
+
+
+def test_an_off_robot_router_links_to_no_real_robot(home: Path) -> None:
+    from components.assembly import load_assembly
+    from msctl.net import config as netconfig
+
+    assembly = load_assembly(home / "assembly")
+    pki.init_fleet(["laptop"], [], home=home / "laptop-net")  # its own identity
+    on_robot = netconfig.router_config(assembly, "hl-wheel-01", home=home)
+    assert on_robot["connect"]["endpoints"] == ["tls/ground1:7448"]
+    # The laptop simulates the whole assembly: its router must not reach the real robots.
+    off = netconfig.router_config(assembly, "laptop", home=home / "laptop-net", off_robot=True)
+    assert off["connect"]["endpoints"] == []

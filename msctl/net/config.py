@@ -127,6 +127,9 @@ def router_config(
     if not off_robot:
         assembly_guarded = acl.guarded_inputs(assembly)
     identity = pki.read_identity(host, home)
+    # Off-robot the whole assembly is simulated here: linking to the real robots' routers
+    # would mix simulated and real data on the same topics.
+    linked = [] if off_robot else links(assembly, host)
     return {
         "mode": "router",
         "listen": {
@@ -136,10 +139,7 @@ def router_config(
             ]
         },
         "connect": {
-            "endpoints": [
-                f"tls/{ports.address(other)}:{ports.tls_port(other)}"
-                for other in links(assembly, host)
-            ]
+            "endpoints": [f"tls/{ports.address(other)}:{ports.tls_port(other)}" for other in linked]
         },
         "scouting": {"multicast": {"enabled": False}, "delay": 0},
         "timestamping": {"enabled": True},
