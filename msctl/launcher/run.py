@@ -125,7 +125,7 @@ def wait_for_router(
     supervisor: Supervisor,
     router: ManagedProcess,
     endpoint: str,
-    timeout: float = 10.0,
+    timeout: float = 30.0,  # a loaded machine starts a (secure) router in 10+ s
     stopping: Callable[[], bool] | None = None,
 ) -> bool:
     """Wait until the embedded router answers on ``endpoint``; mark it running.
