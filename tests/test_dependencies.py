@@ -12,8 +12,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 OURS = {"msctl", "components", "assemblies", "calibration", "bench", "conftest", "examples"}
-#: Imported only on the optional ROS 2 path (``MSCTL_TRANSPORT=rclpy``), never installed by pip.
-OPTIONAL = {"rclpy", "rosidl_runtime_py"}
+#: ROS 2 packages: installed by the ``ros`` extra, each module ``x_y`` from distribution
+#: ``ros-x-y`` (the ros-python-wheels names), whether or not they are installed here.
+ROS = {"rclpy", "std_msgs", "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "std_srvs"}
+OPTIONAL = ROS
 #: Modules their distribution's metadata does not list (cmeel wheels install under a prefix).
 INSTALLED_BY = {"pinocchio": ["pin"]}
 #: Test-extra tools used as programs or plugins rather than imported.
@@ -80,3 +82,19 @@ def test_what_only_the_tests_import_is_in_the_test_extra() -> None:
     assert _undeclared(imported, runtime | extra) == [], "tests import these, undeclared"
     assert _unused(extra - TOOLS, imported) == [], "in the test extra, never imported"
     assert not extra & runtime
+
+
+def _ros_distribution(module: str) -> str:
+    return "ros-" + module.replace("_", "-")
+
+
+def test_what_is_imported_from_ros_is_the_ros_extra_and_nothing_else() -> None:
+    """Every ROS 2 package msctl, its tests or its benchmarks import is in the ``ros`` extra,
+    and the extra holds nothing they do not import."""
+    extra = {_name(r) for r in _project()["optional-dependencies"]["ros"]}
+    imported = _imports("msctl", "components", "tests", "bench") & ROS
+    assert "rclpy" in imported
+    assert {_ros_distribution(m) for m in imported} == extra
+    everything = _imports("msctl", "components", "tests", "bench")
+    unknown = sorted(m for m in everything if m.endswith(("_msgs", "_srvs")) and m not in ROS)
+    assert unknown == [], "ROS message packages imported but missing from ROS (and the extra)"

@@ -53,6 +53,14 @@ class Recording:
         from msctl.recorder.errors import BagError
         from msctl.recorder.recorder import Recorder
 
+        if executor.transport != "zenoh":
+            # The recorder reads Zenoh keys and tokens; on rclpy the data is on DDS.
+            self._error = (
+                f"the data archiver records msctl's Zenoh data plane, and this process runs on "
+                f"{executor.transport}: record the ROS graph with `ros2 bag record`, or run "
+                "the components on Zenoh (unset MSCTL_TRANSPORT)"
+            )
+            return
         try:
             self.directory.parent.mkdir(parents=True, exist_ok=True)
             recorder = Recorder(

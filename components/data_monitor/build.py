@@ -54,7 +54,7 @@ class MonitorFeeds:
         if publish_raw is not None and isinstance(component.core, DataMonitorCore):
             component.core.publish_encoded(publish_raw)
         feed = NodeFeed(self.nodes, on_node)
-        graph = feed.attach(executor.session, component.node.domain)
+        graph = feed.follow(executor.graph)
         self.built.resources.append(feed)
         executor.call_soon(component, "on_graph_ready")
         self.poller = SupervisorPoller(component.node, graph, on_supervisors).start()

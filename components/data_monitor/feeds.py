@@ -45,6 +45,12 @@ class NodeFeed:
         self.graph = Graph(session, domain, on_change=self._on_change)
         return self.graph
 
+    def follow(self, open_graph: Callable[..., Any]) -> Any:
+        """Start following the graph ``open_graph(on_change=...)`` opens (an executor's
+        :meth:`~components.executor.executor.Executor.graph`, whatever its data plane)."""
+        self.graph = open_graph(on_change=self._on_change)
+        return self.graph
+
     def _on_change(self, entity: Entity, alive: bool) -> None:
         if entity.kind is not EntityKind.NODE or entity.node_fqn not in self.nodes:
             return

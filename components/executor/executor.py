@@ -118,7 +118,7 @@ class Executor:
     ) -> None:
         self._settings = settings or SessionSettings.from_env()
         self._owns_session = session is None
-        self.session = session if session is not None else open_session(self._settings)
+        self._session = self._open_plane(session)
         self.clock = clock
         self.components: list[Component] = []
         self._work: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -133,6 +133,40 @@ class Executor:
         # the messages of an inbox and between timers. The work queue only wakes the loop.
         self._urgent: deque[Any] = deque()
 
+    # ------------------------------------------------------------------ the plane
+    #: The data plane the components' nodes are on (``rclpy`` for the RclpyExecutor).
+    transport = "zenoh"
+
+    def _open_plane(self, session: Any) -> Any:
+        """Open the data plane; returns the Zenoh session (the given one, or a new one)."""
+        return session if session is not None else open_session(self._settings)
+
+    @property
+    def session(self) -> Any:
+        """The Zenoh session: msctl's data plane here; on rclpy, its control plane (claims,
+        supervisors), opened when first asked for."""
+        return self._session
+
+    @property
+    def domain(self) -> int:
+        """The ROS domain id of the data plane."""
+        return self._settings.domain
+
+    def _node(self, name: str, namespace: str) -> Any:
+        """A node on the data plane (the Zenoh one here)."""
+        return Node(self.session, name, namespace, domain=self._settings.domain)
+
+    def graph(self, on_change: Callable[[Any, bool], None] | None = None) -> Any:
+        """A live view of the data plane's graph, the caller closes it.
+
+        Args:
+            on_change: Called with ``(entity, alive)`` for every change, from another thread
+                (nodes already up are reported at once).
+        """
+        from components.comm.graph import Graph
+
+        return Graph(self.session, self._settings.domain, on_change=on_change)
+
     # ------------------------------------------------------------------ building
     def add(
         self,
@@ -142,12 +176,7 @@ class Executor:
         node_name: str | None = None,
     ) -> Component:
         """Bind ``core`` to the data plane under ``namespace`` as node ``node_name``."""
-        node = Node(
-            self.session,
-            node_name or core.name.replace("/", "_").replace("-", "_"),
-            namespace,
-            domain=self._settings.domain,
-        )
+        node = self._node(node_name or core.name.replace("/", "_").replace("-", "_"), namespace)
         component = Component(core.name, core, spec, node)
         try:
             for output in spec.publish:
@@ -441,8 +470,8 @@ class Executor:
             self._claim_guard.claims.close()
         for component in reversed(self.components):
             component.node.close()
-        if self._owns_session:
-            self.session.close()
+        if self._owns_session and self._session is not None:
+            self._session.close()
 
     def __enter__(self) -> Executor:
         return self

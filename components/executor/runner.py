@@ -41,6 +41,7 @@ def run_built(
     on_ready: Callable[[Executor], None] | None = None,
     heartbeat: Heartbeat | None = None,
     rebuild: Callable[[str], BuiltComponent] | None = None,
+    transport: str = "zenoh",
 ) -> None:
     """Run ``built`` components in one process until stopped, then release everything.
 
@@ -54,18 +55,28 @@ def run_built(
         rebuild: Builds one component anew by name; with it, the supervisor's ``rebuild``
             orders (``MSCTL_ORDERS_FD``, :mod:`components.executor.orders`) replace that one
             component while the others run on.
+        transport: ``zenoh`` (msctl's data plane) or ``rclpy`` (every core a real rclpy node,
+            :mod:`components.executor.rclpy_executor`); the same steps either way.
 
     Raises:
         RebuildFailed: If a rebuild order failed: the process stopped, to be restarted.
+        RclpyUnavailable: If ``transport`` is ``rclpy`` and rclpy cannot be imported.
         Exception: Whatever adding a component or an ``on_bound`` hook raised; what was
             opened is closed first.
     """
     settings = settings or SessionSettings.from_env()
     live = list(built)  # what is bound now, in order; rebuilt ones are replaced in place
     failed: list[str] = []
-    session = open_session(settings)
+    session = None
+    if transport == "rclpy":
+        from components.executor.rclpy_executor import RclpyExecutor
+
+        executor: Executor = RclpyExecutor(settings, heartbeat=heartbeat)
+    else:
+        session = open_session(settings)
     try:
-        executor = Executor(settings, session=session, heartbeat=heartbeat)
+        if session is not None:
+            executor = Executor(settings, session=session, heartbeat=heartbeat)
         try:
             components: dict[str, Component] = {}
             for item in live:
@@ -88,12 +99,14 @@ def run_built(
                 on_ready(executor)
             executor.run(duration)
         finally:
-            # run() closes the nodes; this covers a failure before run() was reached.
-            executor.close()
+            # run() closes the nodes; this covers a failure before run() was reached. The
+            # resources (graph watchers) close first: on rclpy they read the context.
             for item in reversed(live):
                 item.close()
+            executor.close()
     finally:
-        session.close()
+        if session is not None:
+            session.close()
     if failed:
         raise RebuildFailed(failed[0])
 

@@ -106,20 +106,25 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         if interrupted.is_set():
             raise KeyboardInterrupt
-        if transport == "rclpy":
-            _run_on_rclpy(built, args.duration)
-        elif transport == "zenoh":
-            from components.executor.runner import RebuildFailed, run_built
-
-            try:
-                run_built(built, duration=args.duration, heartbeat=heartbeat, rebuild=build)
-            except RebuildFailed as exc:
-                # Not a final exit: restarted whole, the process builds everything afresh.
-                print(f"error: {exc}; restarting the whole process", file=sys.stderr)
-                return 1
-        else:
+        if transport not in ("zenoh", "rclpy"):
+            for item in built:
+                item.close()
             print(f"error: MSCTL_TRANSPORT={transport!r}: use zenoh or rclpy", file=sys.stderr)
             return 2
+        from components.executor.runner import RebuildFailed, run_built
+
+        try:
+            run_built(
+                built,
+                duration=args.duration,
+                heartbeat=heartbeat,
+                rebuild=build,
+                transport=transport,
+            )
+        except RebuildFailed as exc:
+            # Not a final exit: restarted whole, the process builds everything afresh.
+            print(f"error: {exc}; restarting the whole process", file=sys.stderr)
+            return 1
     except (SessionConfigError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3
@@ -130,25 +135,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     log.info("stopped cleanly")
     return 0
-
-
-def _run_on_rclpy(built: list, duration: float | None) -> None:
-    """The optional ROS 2 path (``MSCTL_TRANSPORT=rclpy``): the same cores as rclpy nodes."""
-    import signal
-
-    from components.executor.rclpy_executor import RclpyExecutor
-
-    try:
-        executor = RclpyExecutor()
-        for item in built:
-            # on_bound hooks (the health monitor's graph view) need the Zenoh data plane.
-            executor.add(item.core, item.spec, item.namespace, item.node_name)
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, lambda *_: executor.stop())
-        executor.run(duration)
-    finally:
-        for item in built:
-            item.close()
 
 
 if __name__ == "__main__":

@@ -115,16 +115,15 @@ class GraphFeed:
         self._post: Any = None
 
     def __call__(self, executor: Executor, component: Component) -> None:
-        """Start following the graph on ``executor``'s session (called once, before run)."""
-        from components.comm.graph import Graph
+        """Start following the graph of ``executor``'s data plane (called once, before run)."""
 
         def post(node: str, count: int) -> None:
             executor.call_soon(component, "on_component_instances", node, count)
 
         self._post = post
-        # history=True in Graph replays the nodes already up, so a component that started
-        # before the monitor is seen at once.
-        self.graph = Graph(executor.session, component.node.domain, on_change=self._on_change)
+        # The graph reports the nodes already up at once (Zenoh's liveliness history, rclpy's
+        # first read), so a component that started before the monitor is seen at once.
+        self.graph = executor.graph(on_change=self._on_change)
         self.built.resources.append(self.graph)
 
     def _on_change(self, entity: Entity, alive: bool) -> None:

@@ -18,6 +18,7 @@ from typing import Any
 from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionSettings, open_session
+from components.ros import rclpy_available
 from msctl.launcher import boot, state
 from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
 from msctl.launcher.plan import HostPlan
@@ -246,7 +247,14 @@ class Launch:
         if self._stop:
             return
         self.session = open_session(replace(self.settings, mode="peer"))
-        self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
+        if os.environ.get("MSCTL_TRANSPORT") == "rclpy" and rclpy_available():
+            # Components are rclpy nodes: judged from the ROS graph (their workers say it
+            # when rclpy is missing).
+            from components.ros.health_watch import RclpyHealthWatch
+
+            self.watch = RclpyHealthWatch(self.plan.components, self.settings.domain)
+        else:
+            self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
         if self._stop:
             return  # serving requests would first import the node machinery, for nothing
         if self.serve_control:
