@@ -71,7 +71,12 @@ def control_component(verb: str, component: str, only: bool = False) -> None:
             return
     siblings = answer.get("siblings", [])
     taken = ""
-    if siblings:
+    if component == answer["process"] and siblings:
+        # A process named: every one of its components goes, and none is a sibling of it.
+        taken = f", and with it every component it runs: {', '.join(siblings)}"
+        if verb == "restart" and len(siblings) > 1:
+            taken += "; `msctl restart --only COMPONENT` restarts one of them alone"
+    elif siblings:
         taken = f", and with it {', '.join(siblings)} (they share the process)"
         if verb == "restart":
             taken += f"; `msctl restart --only {component}` restarts it alone"
