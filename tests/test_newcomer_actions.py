@@ -7,13 +7,15 @@ the foreground ``msctl up`` (points 15 and 18) in ``test_newcomer_actions_up.py`
 
 from __future__ import annotations
 
+import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from conftest import free_port
+from conftest import free_port, wait_until
 
 pytestmark = pytest.mark.e2e
 
@@ -97,3 +99,40 @@ def test_assembling_while_an_up_is_still_starting_is_refused_and_the_lock_file_k
         run.release()
     assert msctl("assemble", "dragon", env=nowhere).returncode == 0
     assert lock_file.read_bytes() != before
+
+
+# ------------------------------------------------------------------------------ point 5
+def test_down_all_with_only_idle_agents_says_nothing_is_running(
+    tmp_path: Path, zenoh_env: dict[str, str]
+) -> None:
+    operator = {**zenoh_env, "MSCTL_HOME": str(tmp_path / "ground"), "MSCTL_HOST": "ground1"}
+    with (tmp_path / "agent.log").open("w") as log:
+        agent = subprocess.Popen(
+            [sys.executable, "-m", "msctl", "agent"],
+            env={
+                **os.environ,
+                **zenoh_env,
+                "MSCTL_HOME": str(tmp_path / "limb"),
+                "MSCTL_HOST": "hl-limb-01",
+            },
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=ROOT,
+        )
+    try:
+
+        def agent_answers() -> bool:
+            result = msctl("ps", "--json", env=operator)
+            return result.returncode == 0 and "hl-limb-01" in json.loads(result.stdout)["hosts"]
+
+        wait_until(agent_answers, 60.0, "the agent answering ps", interval=0.5)
+        result = msctl("down", "--all", env=operator)
+        assert result.returncode == 0, result.stderr
+        # Nothing was stopped: no "stopping" for an agent that ran nothing.
+        assert "stopping" not in result.stderr, result.stderr
+        assert one_line(result) == "nothing is running: the agents of hl-limb-01 run nothing"
+    finally:
+        agent.send_signal(signal.SIGTERM)
+        assert agent.wait(timeout=30) == 0, (tmp_path / "agent.log").read_text()

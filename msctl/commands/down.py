@@ -105,9 +105,14 @@ def _down_every_host(local_runs: bool) -> None:
         err.print(f"nothing is running ({exc.message}, and no supervisor runs here)")
         return
     failed = []
+    idle = []  # agents that ran nothing: nothing of theirs was stopped
     for namespace, answer in answers.items():
-        if "error" not in answer:
-            err.print(f"{namespace}: stopping", highlight=False)
+        if "error" not in answer and answer.get("stopped") == [] and not answer.get("template"):
+            idle.append(answer.get("host") or namespace)
+        elif "error" not in answer:
+            # An agent answers once its run is gone; a supervisor, as it begins to stop.
+            what = f"stopped {answer['template']}" if answer.get("template") else "stopping"
+            err.print(f"{namespace}: {what}", highlight=False)
         elif namespace in there:
             err.print(f"{namespace}: {answer['error']}", highlight=False)
             failed.append(namespace)
@@ -125,6 +130,13 @@ def _down_every_host(local_runs: bool) -> None:
             # empty answer proves nothing runs only to an operator.
             raise MsctlError("no agent or supervisor answered, so nothing was stopped", hint=hint)
         err.print("nothing is running: no agent or supervisor answered")
+    elif idle and len(idle) == len(answers) and not local_runs:
+        err.print(
+            f"nothing is running: the agents of {', '.join(sorted(idle))} run nothing",
+            highlight=False,
+        )
+    elif idle:
+        err.print(f"idle, nothing to stop: {', '.join(sorted(idle))}", highlight=False)
 
 
 def _still_there(node: Any, namespaces: list[str], settle: float = 2.0) -> set[str]:
