@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -82,7 +82,8 @@ def find_type(node: Any, name: str, kind: str, timeout: float = 2.0) -> str:
     """The type of a topic (``kind="topic"``) or service seen on the graph.
 
     Raises:
-        NotFoundError: If nothing with that name appears within ``timeout``.
+        NotFoundError: If nothing with that name appears within ``timeout`` (naming the
+            nearest names the graph shows).
         InputError: If the graph shows several types for it.
     """
     from components.comm.graph import snapshot
@@ -91,8 +92,11 @@ def find_type(node: Any, name: str, kind: str, timeout: float = 2.0) -> str:
     qualified = qualify(name, "/")
     deadline = time.monotonic() + timeout
     while True:
-        graph = snapshot(node.session, node.domain, timeout=0.5)
+        graph = snapshot(node.session, node.domain, timeout=2.0)
         table = graph.topics() if kind == "topic" else graph.services()
+        if kind == "service":
+            # A service with clients only has nothing to answer: not one to suggest.
+            table = {k: v for k, v in table.items() if v.servers or k == qualified}
         info = table.get(qualified)
         if info is not None and info.types:
             if len(info.types) > 1:
@@ -102,12 +106,27 @@ def find_type(node: Any, name: str, kind: str, timeout: float = 2.0) -> str:
                 )
             return next(iter(info.types))
         if time.monotonic() > deadline:
-            known = ", ".join(list(table)[:10]) or "none"
             raise NotFoundError(
-                f"no {kind} named {qualified} on the network (seen: {known})",
-                hint=f"check the name with `msctl {kind} list`",
+                f"no {kind} named {qualified} on the network",
+                hint=unknown_name_hint(qualified, table, kind),
             )
         time.sleep(0.1)
+
+
+def unknown_name_hint(name: str, known: Iterable[str], kind: str) -> str:
+    """What an error about an unknown topic or service name says to do: the nearest names
+    the graph shows, or a few of them, and the listing command."""
+    from msctl.errors import did_you_mean
+
+    names = sorted(known)
+    listing = f"`msctl {kind} list` shows them all"
+    near = did_you_mean(name, names)
+    if near:
+        return f"{near} ({listing})"
+    if not names:
+        return f"the graph shows no {kind} at all: is anything running (`msctl ps`)?"
+    more = ", ..." if len(names) > 8 else ""
+    return f"the graph shows {', '.join(names[:8])}{more}; {listing}"
 
 
 def topic_types(

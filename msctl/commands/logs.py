@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from msctl.errors import InputError, NetworkError, NotFoundError
+from msctl.errors import InputError, NetworkError, NotFoundError, did_you_mean
 
 COMMAND_SETTINGS = {"help": "Show (or follow) a component's log."}
 
@@ -44,19 +44,31 @@ def _log_file(component: str | None) -> list[Path]:
 
 def _unknown(component: str, document: dict | None) -> NotFoundError:
     """The one wording of "no such log", with or without ``--follow``."""
-    from msctl.errors import did_you_mean
-
-    known = [c["name"] for c in (document or {}).get("components", [])]
-    known += [p["name"] for p in (document or {}).get("processes", [])]
+    known = _local_names(document)
     near = did_you_mean(component, known)
-    return NotFoundError(
-        f"no log for {component!r} on this computer",
-        hint=f"{near + ' ' if near else ''}known: {', '.join(known) or 'none (nothing ran here)'}"
-        "; `msctl ps` shows where each runs",
-    )
+    if near:
+        hint = f"{near} (`msctl ps` shows what runs where)"
+    elif known:
+        hint = f"known here: {', '.join(known)}; `msctl ps` shows where each runs"
+    else:
+        hint = "nothing ran on this computer; `msctl ps` shows where each runs"
+    return NotFoundError(f"no log for {component!r} on this computer", hint=hint)
 
 
-def _remote_lines(component: str, lines: int) -> list[str]:
+def _local_names(document: dict | None) -> list[str]:
+    """The components and processes this computer's last run knew."""
+    known = [c["name"] for c in (document or {}).get("components", [])]
+    return known + [p["name"] for p in (document or {}).get("processes", [])]
+
+
+def _remote_lines(component: str, lines: int, follow: bool) -> list[str]:
+    """The last lines of ``component``'s log from the supervisor (agent) of its host.
+
+    Raises:
+        NotFoundError: If no running supervisor knows it.
+        InputError: With ``follow``: it runs on another computer (followed there only).
+        NetworkError: If no other computer can be asked, or its supervisor does not answer.
+    """
     from components.comm.services import ServiceTimeout
     from msctl.launcher.control import RequestError, call_supervisor
     from msctl.launcher.remote import host_of
@@ -64,6 +76,11 @@ def _remote_lines(component: str, lines: int) -> list[str]:
 
     with connected("logs") as node:
         host = host_of(component, node)
+        if follow:
+            raise InputError(
+                f"{component} runs on {host}: `msctl logs -f` follows this computer's logs",
+                hint=f"run it on {host}, or `msctl logs {component}` from here for its last lines",
+            )
         try:
             answer = call_supervisor(node, host, "logs", {"component": component, "lines": lines})
         except (ServiceTimeout, RequestError) as exc:
@@ -79,6 +96,7 @@ def command(
 ) -> None:
     """Print a component's log (its whole process's output)."""
     from msctl.console import out
+    from msctl.launcher import state
 
     cutoff = None
     if since:
@@ -86,13 +104,18 @@ def command(
     try:
         files = _log_file(component)
     except NotFoundError as local:
-        if component is None or follow:
+        if component is None:
             raise
-        # Not on this computer: ask the supervisor (agent) of the host that runs it.
+        if did_you_mean(component, _local_names(state.read_state())):
+            raise  # a slip of the keyboard on a name from here: no other computer to ask
+        # Not on this computer: ask the supervisor (agent) of the host that runs it. The
+        # same with --follow, so that an unknown name reads the same either way.
         try:
-            remote = _remote_lines(component, lines)
-        except NotFoundError:
-            raise local from None  # nobody anywhere knows it: the same words as with -f
+            remote = _remote_lines(component, lines, follow)
+        except NotFoundError as nowhere:
+            # Nobody anywhere knows it: the nearest name another computer runs, if any.
+            near = (nowhere.hint or "").startswith("did you mean")
+            raise (nowhere if near else local) from None
         except NetworkError as exc:
             raise NetworkError(
                 f"{local.message}, and no other computer can be asked: {exc.message}",

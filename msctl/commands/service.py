@@ -50,6 +50,20 @@ def _check_type_on_graph(node: object, service: str, type_name: str) -> None:
         )
 
 
+def _servers_near(node: object, service: str) -> str | None:
+    """For a call nobody answered: the served names nearest the one called, if any."""
+    from components.comm.graph import snapshot
+    from components.comm.names import qualify
+    from msctl.errors import did_you_mean
+
+    qualified = qualify(service, "/")
+    services = snapshot(node.session, node.domain).services()  # type: ignore[attr-defined]
+    info = services.get(qualified)
+    if info is not None and info.servers:
+        return None  # it is served: the server itself did not answer in time
+    return did_you_mean(qualified, [name for name, s in services.items() if s.servers]) or None
+
+
 def _known_service_type(type_name: str) -> None:
     from components.comm.types import registry
     from msctl.errors import did_you_mean
@@ -99,7 +113,7 @@ def call(
         try:
             response = client.call(request, timeout=timeout)
         except ServiceTimeout as exc:
-            raise OperationTimeout(str(exc)) from exc
+            raise OperationTimeout(str(exc), hint=_servers_near(node, service)) from exc
         except ServiceError as exc:
             raise NetworkError(str(exc)) from exc
     if json_output:

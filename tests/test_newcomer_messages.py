@@ -1,0 +1,130 @@
+"""What a newcomer reads on the README's walk (issue 18, points 1-3, 7, 8, 13, 14, 16, 19, 20).
+
+End to end: real ``msctl`` subprocesses against one running simulated Dragon shared by the
+module (``msctl up dragon --detach``, its own router on a free loopback port), so the graph
+the commands read is the real one: the liveliness tokens of its components. Each test names
+the point it keeps fixed.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import free_port
+from running import ROOT, Up
+
+from components.comm import Node
+from components.comm.session import open_session
+
+pytestmark = pytest.mark.e2e
+
+JOINTS = "sensor_msgs/msg/JointState"
+STRING = "std_msgs/msg/String"
+TRIGGER = "std_srvs/srv/Trigger"
+#: Where Hypothesis keeps its examples (conftest points it at a temporary directory).
+HYPOTHESIS_ENV = "HYPOTHESIS_STORAGE_DIRECTORY"
+
+
+@pytest.fixture(scope="module")
+def dragon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Up]:
+    """One simulated Dragon for the whole module (starting one costs 10-50 s)."""
+    running = Up(tmp_path_factory.mktemp("newcomer") / "home", "dragon")
+    try:
+        yield running
+    finally:
+        running.down()
+
+
+@pytest.fixture
+def probe(dragon: Up) -> Iterator[Node]:
+    """A node of this process, ``/newcomer/probe``, on the Dragon's router."""
+    session = open_session(dragon.settings())
+    node = Node(session, "probe", "/newcomer")
+    try:
+        yield node
+    finally:
+        node.close()
+        session.close()
+
+
+def error_line(stderr: str) -> str:
+    """The one line an error prints (failing the test if it printed more)."""
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("error: "), stderr
+    return lines[0]
+
+
+def no_router_env(tmp_path: Path) -> dict[str, str]:
+    """An environment whose endpoint no router listens on."""
+    return {
+        **os.environ,
+        "MSCTL_HOME": str(tmp_path / "home"),
+        "MSCTL_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}",
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+        "PYTHONPATH": str(ROOT),
+    }
+
+
+def msctl(*args: str, env: dict[str, str], timeout: float = 120.0) -> subprocess.CompletedProcess:
+    """One ``msctl`` command in a subprocess."""
+    return subprocess.run(
+        [sys.executable, "-m", "msctl", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        check=False,
+    )
+
+
+# --------------------------------------------------------------------------- 7: nearest names
+def test_a_mistyped_topic_or_service_gets_the_nearest_names(dragon: Up) -> None:
+    """Point 7, the graph's names: a topic or service name with a typo."""
+    echo = dragon.msctl("topic", "echo", "/limb1/joint_reed", "--once")
+    assert echo.returncode == 4, echo.stderr
+    assert "did you mean '/limb1/joint_read'?" in error_line(echo.stderr)
+    call = dragon.msctl("service", "call", "/limb1/hatl")
+    assert call.returncode == 4, call.stderr
+    assert "did you mean '/limb1/halt'?" in error_line(call.stderr)
+    typed_call = dragon.msctl("service", "call", "/limb1/hatl", TRIGGER)
+    assert typed_call.returncode == 5, typed_call.stderr
+    assert "did you mean '/limb1/halt'?" in error_line(typed_call.stderr)
+
+
+def test_logs_and_logs_follow_word_a_mistyped_component_the_same(
+    dragon: Up, tmp_path: Path
+) -> None:
+    """Point 7: ``logs`` and ``logs -f`` say the same, with a router or without one."""
+    with_router = [dragon.msctl("logs", *f, "limb1/joint_managr") for f in ((), ("-f",))]
+    # The same computer's last run, its router gone (after `msctl down`, say).
+    alone = {**no_router_env(tmp_path), "MSCTL_HOME": str(dragon.home)}
+    without = [msctl("logs", *f, "limb1/joint_managr", env=alone) for f in ((), ("-f",))]
+    lines = set()
+    for result in (*with_router, *without):
+        assert result.returncode == 4, result.stderr
+        lines.add(error_line(result.stderr))
+    assert len(lines) == 1, lines
+    (line,) = lines
+    assert "no log for 'limb1/joint_managr' on this computer" in line
+    assert "did you mean 'limb1/joint_manager'?" in line
+
+
+def test_a_mistyped_template_unit_or_slot_gets_the_nearest_names(tmp_path: Path) -> None:
+    """Point 7, the assembler's names, from the command line."""
+    env = no_router_env(tmp_path)
+    for args, near in (
+        (("assemble", "dragn"), "did you mean 'dragon'?"),
+        (("assemble", "dragon", "--use", "limb1=hlv1-limb-3"), "did you mean 'hlv1-limb-03'?"),
+        (("assemble", "dragon", "--use", "limb=hlv1-limb-03"), "did you mean 'limb1' or 'limb2'?"),
+    ):
+        result = msctl(*args, env=env)
+        assert result.returncode in (2, 4), result.stderr
+        assert near in error_line(result.stderr), args
