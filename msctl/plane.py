@@ -129,8 +129,47 @@ def unknown_name_hint(name: str, known: Iterable[str], kind: str) -> str:
     return f"the graph shows {', '.join(names[:8])}{more}; {listing}"
 
 
+@dataclasses.dataclass(frozen=True)
+class TopicUsers:
+    """Who uses a topic, by type, from one graph snapshot.
+
+    Attributes:
+        publishers: Each type published on the topic -> the nodes publishing it.
+        subscribers: Each type subscribed to -> the nodes subscribing.
+    """
+
+    publishers: dict[str, set[str]]
+    subscribers: dict[str, set[str]]
+
+
+def topic_users(node: Any, name: str, timeout: float = 3.0) -> TopicUsers:
+    """The publishers and subscribers of topic ``name`` by type (one graph snapshot).
+
+    Args:
+        node: The CLI's node (its own entities are left out).
+        name: Topic name.
+        timeout: Seconds the graph's answers may take at most. The query ends as soon as
+            the router has answered (milliseconds); a short bound cut the answer of a busy
+            router short, and a publisher that was there went unseen.
+    """
+    from components.comm.graph import snapshot
+    from components.comm.liveliness import EntityKind
+
+    qualified = qualify_topic(name)
+    publishers: dict[str, set[str]] = {}
+    subscribers: dict[str, set[str]] = {}
+    for entity in snapshot(node.session, node.domain, timeout=timeout).entities():
+        if entity.topic != qualified or not entity.type_name or entity.node_fqn == node.fqn:
+            continue
+        if entity.kind is EntityKind.PUBLISHER:
+            publishers.setdefault(entity.type_name, set()).add(entity.node_fqn)
+        elif entity.kind is EntityKind.SUBSCRIPTION:
+            subscribers.setdefault(entity.type_name, set()).add(entity.node_fqn)
+    return TopicUsers(publishers, subscribers)
+
+
 def topic_types(
-    node: Any, name: str, publishers_only: bool = False, timeout: float = 0.5
+    node: Any, name: str, publishers_only: bool = False, timeout: float = 3.0
 ) -> dict[str, set[str]]:
     """Each type seen on topic ``name`` -> the nodes using it with that type.
 
@@ -142,19 +181,11 @@ def topic_types(
         publishers_only: Only publishers (what a subscriber would receive).
         timeout: Seconds to wait for the graph's answers.
     """
-    from components.comm.graph import snapshot
-    from components.comm.liveliness import EntityKind
-
-    qualified = qualify_topic(name)
-    kinds = (
-        (EntityKind.PUBLISHER,)
-        if publishers_only
-        else (EntityKind.PUBLISHER, EntityKind.SUBSCRIPTION)
-    )
-    found: dict[str, set[str]] = {}
-    for entity in snapshot(node.session, node.domain, timeout=timeout).entities():
-        if entity.kind in kinds and entity.topic == qualified and entity.type_name:
-            found.setdefault(entity.type_name, set()).add(entity.node_fqn)
+    users = topic_users(node, name, timeout)
+    found = {t: set(nodes) for t, nodes in users.publishers.items()}
+    if not publishers_only:
+        for type_name, nodes in users.subscribers.items():
+            found.setdefault(type_name, set()).update(nodes)
     return found
 
 

@@ -85,6 +85,19 @@ def msctl(*args: str, env: dict[str, str], timeout: float = 120.0) -> subprocess
     )
 
 
+# --------------------------------------------------------------------------- 1, 2, 3: types
+def test_a_mistyped_type_is_called_a_typo_next_to_the_type_the_topic_carries(
+    dragon: Up,
+) -> None:
+    """Point 1: not "a type msctl does not know — register its .msg definition"."""
+    result = dragon.msctl("topic", "echo", "/limb1/joint_read", "std_msgs/msg/Strin", "--once")
+    assert result.returncode == 4, result.stderr
+    line = error_line(result.stderr)
+    assert f"topic /limb1/joint_read carries {JOINTS} (/limb1/joint_manager)" in line
+    assert "did you mean 'std_msgs/msg/String'?" in line
+    assert "register its .msg definition" not in line
+
+
 # --------------------------------------------------------------------------- 7: nearest names
 def test_a_mistyped_topic_or_service_gets_the_nearest_names(dragon: Up) -> None:
     """Point 7, the graph's names: a topic or service name with a typo."""
