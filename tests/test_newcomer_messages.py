@@ -15,10 +15,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import free_port
+from conftest import free_port, wait_until
 from running import ROOT, Up
 
 from components.comm import Node
+from components.comm.graph import snapshot
+from components.comm.liveliness import EntityKind
 from components.comm.session import open_session
 
 pytestmark = pytest.mark.e2e
@@ -98,12 +100,65 @@ def test_a_mistyped_type_is_called_a_typo_next_to_the_type_the_topic_carries(
     assert "register its .msg definition" not in line
 
 
+def test_echo_of_another_type_names_the_type_its_publisher_carries(dragon: Up) -> None:
+    """Point 2: one line naming the publisher's type, no dropped-sample line, no timeout."""
+    result = dragon.msctl("topic", "echo", "/limb1/joint_read", STRING, "--timeout", "3")
+    assert result.returncode == 2, result.stderr
+    line = error_line(result.stderr)
+    assert f"carries {JOINTS} (/limb1/joint_manager), not {STRING}" in line
+    assert "no message on" not in line
+
+
+def test_echo_waiting_when_a_publisher_of_another_type_starts_says_its_type(
+    dragon: Up, probe: Node
+) -> None:
+    """Point 2, the other order: the echo listens first (nothing on the topic to check
+    against), then a JointState publisher starts. It said a dropped sample with two type
+    hashes, then 'no message within 60 s'."""
+    echo = subprocess.Popen(
+        [sys.executable, "-m", "msctl", "topic", "echo", "/newcomer/late", STRING],
+        env=dragon.env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+
+        def echo_listens() -> bool:
+            return any(
+                e.kind is EntityKind.SUBSCRIPTION
+                and e.topic == "/newcomer/late"
+                and e.node_name.startswith("msctl_echo_")
+                for e in snapshot(probe.session, probe.domain, timeout=0.5).entities()
+            )
+
+        wait_until(
+            lambda: echo.poll() is not None or echo_listens(), 120.0, "the echo's subscription"
+        )
+        assert echo.poll() is None, echo.communicate()
+        probe.publisher("/newcomer/late", JOINTS)
+        _, stderr = echo.communicate(timeout=120.0)
+    finally:
+        if echo.poll() is None:
+            echo.kill()
+            echo.communicate()
+    assert echo.returncode == 2, stderr
+    line = error_line(stderr)
+    assert f"topic /newcomer/late carries {JOINTS} (/newcomer/probe), not {STRING}" in line
+    assert "RIHS01_" not in stderr and "dropped sample" not in stderr
+
+
 # --------------------------------------------------------------------------- 7: nearest names
 def test_a_mistyped_topic_or_service_gets_the_nearest_names(dragon: Up) -> None:
     """Point 7, the graph's names: a topic or service name with a typo."""
     echo = dragon.msctl("topic", "echo", "/limb1/joint_reed", "--once")
     assert echo.returncode == 4, echo.stderr
     assert "did you mean '/limb1/joint_read'?" in error_line(echo.stderr)
+    typed = dragon.msctl("topic", "echo", "/limb1/joint_reed", JOINTS, "--timeout", "1")
+    assert typed.returncode == 5, typed.stderr
+    line = error_line(typed.stderr)
+    assert "nothing publishes it" in line and "did you mean '/limb1/joint_read'?" in line
     call = dragon.msctl("service", "call", "/limb1/hatl")
     assert call.returncode == 4, call.stderr
     assert "did you mean '/limb1/halt'?" in error_line(call.stderr)

@@ -108,6 +108,7 @@ class Node:
         raw: bool = False,
         senders: Iterable[str] | None = None,
         guarded: bool = False,
+        on_other_type: Callable[[Entity], None] | None = None,
     ) -> Subscription:
         """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``).
 
@@ -116,10 +117,14 @@ class Node:
                 :class:`Subscription`): fully qualified (``/limb1/joint_manager``) or
                 relative to this node's namespace (``joint_manager``). ``None``: anyone.
             guarded: The senders may change while it runs (:meth:`Subscription.allow`).
+            on_other_type: Called (on a Zenoh thread) with each publisher on the topic of
+                another type, or another version of the type, instead of logging it.
         """
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
         return self._own(
-            Subscription(self, topic, msg_type, callback, qos, raw, qualified, guarded)
+            Subscription(
+                self, topic, msg_type, callback, qos, raw, qualified, guarded, on_other_type
+            )
         )
 
     def qualify_node(self, name: str) -> str:

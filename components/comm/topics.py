@@ -148,7 +148,8 @@ class Subscription:
     The callback runs on a Zenoh thread with the decoded message. Samples whose payload or
     attachment do not decode are dropped and counted in :data:`components.comm.stats.drops`
     under the topic name; a publisher of another type (or another version of the type) on
-    the topic is counted there once, from its liveliness token, naming its node. An
+    the topic is counted there once, from its liveliness token, naming its node (or, with
+    ``on_other_type``, handed to that function as its graph entity instead of logged). An
     exception in the callback is logged and counted, and never reaches Zenoh.
 
     With ``senders`` (fully qualified node names), only samples published by those nodes
@@ -188,6 +189,7 @@ class Subscription:
         raw: bool = False,
         senders: Collection[str] | None = None,
         guarded: bool = False,
+        on_other_type: Callable[[Entity], None] | None = None,
     ) -> None:
         import zenoh.ext
 
@@ -234,6 +236,7 @@ class Subscription:
         # which also names the node at fault.
         session = node.session
         self._mismatched: set[str] = set()
+        self._on_other_type = on_other_type
         # Tokens before samples: with senders, the allowed set should be filled (from the
         # liveliness history) before the first sample is judged.
         self._publishers = session.liveliness().declare_subscriber(
@@ -279,6 +282,11 @@ class Subscription:
             return
         self._mismatched.add(key)
         # Its samples never reach this subscription (another key): count the publisher once.
+        if self._on_other_type is not None:
+            # The owner says it in its own words (a CLI names the type, without the hashes).
+            drops.drop(self.topic, "wrong_type", quiet=True)
+            self._on_other_type(entity)
+            return
         drops.drop(
             self.topic,
             "wrong_type",

@@ -14,7 +14,7 @@ from typing import Any
 
 import typer
 
-from msctl.errors import InputError, OperationTimeout
+from msctl.errors import InputError, MsctlError, OperationTimeout
 
 app = typer.Typer(help="Topics: list, echo, publish, measure rate.", no_args_is_help=True)
 
@@ -79,20 +79,22 @@ def _resolve_type(node: Any, topic: str, msg_type: str | None, timeout: float) -
     """The type to use on ``topic``: the one given (checked against the graph), or the graph's.
 
     Raises:
-        NotFoundError: A type msctl does not know (with the nearest known names).
-        InputError: A known type, but not the one the topic carries.
+        NotFoundError: A type msctl does not know (with the nearest known names), or no type
+            given and no topic of that name (with the nearest topic names).
+        InputError: A known type, but not the one the topic's publishers carry.
     """
     from msctl.plane import find_type
 
     if not msg_type:
         return _known(find_type(node, topic, "topic", timeout), node, topic)
     type_name = _known(msg_type, node, topic)
-    _check_against_graph(node, topic, type_name, "leave the type out to use the topic's own")
+    _check_publishers(node, topic, type_name)
     return type_name
 
 
 def _known(msg_type: str, node: Any, topic: str) -> str:
-    """``msg_type`` normalized, if msctl knows it; else a NotFoundError naming what is near."""
+    """``msg_type`` normalized, if msctl knows it; else a NotFoundError naming what is near
+    and, when the graph shows it, the type the topic really carries."""
     from components.comm.types import UnknownTypeError, normalize_type_name, registry
     from msctl.errors import NotFoundError, did_you_mean
     from msctl.plane import describe_types, topic_types
@@ -126,6 +128,82 @@ def _check_against_graph(
         )
 
 
+def _check_publishers(node: Any, topic: str, type_name: str) -> None:
+    """Refuse to listen for a type the topic's publishers do not carry: say which they do."""
+    from msctl.plane import topic_users
+
+    published = topic_users(node, topic).publishers
+    if published and type_name not in published:
+        raise _other_type(topic, published, type_name)
+
+
+def _other_type(topic: str, published: dict[str, set[str]], type_name: str) -> InputError:
+    from msctl.plane import describe_types, qualify_topic
+
+    return InputError(
+        f"topic {qualify_topic(topic)} carries {describe_types(published)}, not {type_name}",
+        hint="leave the type out to use the topic's own",
+    )
+
+
+class _OtherTypes:
+    """Publishers of another type that show up on a topic after the command subscribed
+    (the graph check before subscribing cannot see a publisher that starts later)."""
+
+    def __init__(self, type_name: str) -> None:
+        self.type_name = type_name
+        self._found: dict[str, set[str]] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, entity: Any) -> None:
+        """Note a publisher of another type (a Zenoh thread calls this)."""
+        shown = entity.type_name or "an unnamed type"
+        if entity.type_name == self.type_name:
+            shown = f"another version of {entity.type_name} ({entity.type_hash})"
+        with self._lock:
+            self._found.setdefault(shown, set()).add(entity.node_fqn)
+
+    def check(self, node: Any, topic: str) -> None:
+        """Raise if only publishers of another type are there (none of ours, on the graph)."""
+        from msctl.plane import topic_users
+
+        with self._lock:
+            found = {t: set(n) for t, n in self._found.items()}
+        if not found:
+            return
+        published = topic_users(node, topic).publishers
+        if self.type_name in published:
+            with self._lock:
+                self._found.clear()  # ours publish too: their messages come
+            return
+        for type_name, nodes in published.items():
+            found.setdefault(type_name, set()).update(nodes)
+        raise _other_type(topic, found, self.type_name)
+
+
+def _no_message(node: Any, topic: str, type_name: str, timeout: float) -> MsctlError:
+    """What ``--timeout`` says when nothing came: who publishes the topic, if anyone."""
+    from components.comm.graph import snapshot
+    from msctl.plane import describe_types, qualify_topic, topic_users, unknown_name_hint
+
+    qualified = qualify_topic(topic)
+    published = topic_users(node, topic).publishers
+    if type_name in published:
+        return OperationTimeout(
+            f"no message on {qualified} within {timeout:g} s, though "
+            f"{describe_types({type_name: published[type_name]})} publishes it",
+            hint="it publishes only on change, or is stuck: see `msctl ps` and `msctl logs`",
+        )
+    if published:
+        return _other_type(topic, published, type_name)
+    topics = snapshot(node.session, node.domain, timeout=3.0).topics()
+    with_publishers = [name for name, info in topics.items() if info.publishers]
+    return OperationTimeout(
+        f"no message on {qualified} within {timeout:g} s: nothing publishes it",
+        hint=unknown_name_hint(qualified, with_publishers, "topic"),
+    )
+
+
 @app.command("echo")
 def echo(
     topic: str = typer.Argument(..., help="Topic name, e.g. /limb1/joint_read."),
@@ -147,18 +225,20 @@ def echo(
     inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
     with connected("echo") as node, _Stopper() as stop:
         type_name = _resolve_type(node, topic, msg_type, timeout or 3.0)
-        node.subscription(topic, type_name, inbox.put, LATCHED if latched else QoS())
+        others = _OtherTypes(type_name)
+        node.subscription(
+            topic, type_name, inbox.put, LATCHED if latched else QoS(), on_other_type=others
+        )
         printed = 0
         started = time.monotonic()
         while not stop.is_set():
             try:
                 message = inbox.get(timeout=0.1)
             except queue.Empty:
-                if timeout and printed == 0 and time.monotonic() - started > timeout:
-                    raise OperationTimeout(
-                        f"no message on {topic} within {timeout:g} s",
-                        hint=f"check a publisher exists: `msctl topic list -v | grep {topic}`",
-                    ) from None
+                if printed == 0:
+                    others.check(node, topic)
+                    if timeout and time.monotonic() - started > timeout:
+                        raise _no_message(node, topic, type_name, timeout) from None
                 continue
             if json_output:
                 out.file.write(json.dumps(to_plain(message)) + "\n")
@@ -260,13 +340,18 @@ def hz(
     reports: list[dict[str, Any]] = []
     with connected("hz") as node, _Stopper() as stop:
         type_name = _resolve_type(node, topic, msg_type, 3.0)
-        node.subscription(topic, type_name, on_sample, raw=True)
+        others = _OtherTypes(type_name)
+        node.subscription(topic, type_name, on_sample, raw=True, on_other_type=others)
         ends = None if not duration else time.monotonic() + duration
         while not stop.is_set() and (ends is None or time.monotonic() < ends):
             stop.wait(1.0 if ends is None else max(0.0, min(1.0, ends - time.monotonic())))
             with lock:
                 periods = [b - a for a, b in itertools.pairwise(stamps)]
             if not periods:
+                with lock:
+                    heard = bool(stamps)
+                if not heard:
+                    others.check(node, topic)
                 if not json_output:
                     out.print(f"no new messages on {topic}", highlight=False)
                 continue
