@@ -149,6 +149,21 @@ def test_echo_waiting_when_a_publisher_of_another_type_starts_says_its_type(
     assert "RIHS01_" not in stderr and "dropped sample" not in stderr
 
 
+def test_pub_onto_a_joint_state_topic_is_refused_naming_its_publisher_unless_forced(
+    dragon: Up,
+) -> None:
+    """Point 3: refused, naming the publishers' type (not the subscribers'); --force does."""
+    args = ("topic", "pub", "/limb1/joint_read", STRING, "{data: x}", "--once")
+    refused = dragon.msctl(*args)
+    assert refused.returncode == 2, refused.stderr
+    line = error_line(refused.stderr)
+    assert f"is published as {JOINTS} (/limb1/joint_manager), not {STRING}" in line
+    assert "--force" in line and "publishing" not in refused.stderr
+    forced = dragon.msctl(*args, "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert "publishing #1 on /limb1/joint_read" in forced.stderr
+
+
 # --------------------------------------------------------------------------- 7: nearest names
 def test_a_mistyped_topic_or_service_gets_the_nearest_names(dragon: Up) -> None:
     """Point 7, the graph's names: a topic or service name with a typo."""

@@ -114,20 +114,6 @@ def _known(msg_type: str, node: Any, topic: str) -> str:
     )
 
 
-def _check_against_graph(
-    node: Any, topic: str, type_name: str, hint: str, publishers_only: bool = True
-) -> None:
-    """Refuse a type other than the one(s) the topic already carries."""
-    from msctl.plane import describe_types, topic_types
-
-    carried = topic_types(node, topic, publishers_only)
-    if carried and type_name not in carried:
-        raise InputError(
-            f"topic {topic} carries {describe_types(carried)}, not {type_name}",
-            hint=hint,
-        )
-
-
 def _check_publishers(node: Any, topic: str, type_name: str) -> None:
     """Refuse to listen for a type the topic's publishers do not carry: say which they do."""
     from msctl.plane import topic_users
@@ -283,13 +269,7 @@ def pub(
     qualified = qualify(topic, "/")
     with connected("pub") as node, _Stopper() as stop:
         if not force:
-            _check_against_graph(
-                node,
-                topic,
-                type_name,
-                "give the topic's type, or --force to publish anyway",
-                publishers_only=False,
-            )
+            _refuse_another_type(node, topic, type_name)
         publisher = node.publisher(topic, type_name, LATCHED if latched else QoS())
         deadline = time.monotonic() + wait_matching
         while time.monotonic() < deadline and not stop.is_set():
@@ -311,6 +291,28 @@ def pub(
             stop.wait(max(0.0, next_time - time.monotonic()))
         if latched and total:
             stop.wait(0.5)  # a latched sample must outlive this process a moment to be fetched
+
+
+def _refuse_another_type(node: Any, topic: str, type_name: str) -> None:
+    """Refuse to publish a type the topic's publishers (or, with none, its subscribers) do
+    not use: their readers would never get it, or would get it as the wrong thing."""
+    from msctl.plane import describe_types, qualify_topic, topic_users
+
+    users = topic_users(node, topic)
+    hint = "give the topic's type, or --force to publish anyway"
+    qualified = qualify_topic(topic)
+    if users.publishers and type_name not in users.publishers:
+        raise InputError(
+            f"topic {qualified} is published as {describe_types(users.publishers)}, "
+            f"not {type_name}",
+            hint=hint,
+        )
+    if not users.publishers and users.subscribers and type_name not in users.subscribers:
+        raise InputError(
+            f"topic {qualified} has no publisher, and its subscribers take "
+            f"{describe_types(users.subscribers)}, not {type_name}",
+            hint=hint,
+        )
 
 
 @app.command("hz")
