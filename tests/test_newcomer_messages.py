@@ -9,6 +9,7 @@ the point it keeps fixed.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -211,3 +212,57 @@ def test_a_mistyped_template_unit_or_slot_gets_the_nearest_names(tmp_path: Path)
         result = msctl(*args, env=env)
         assert result.returncode in (2, 4), result.stderr
         assert near in error_line(result.stderr), args
+
+
+# --------------------------------------------------------------------------- 8: help
+_HELP_OF_EVERY_COMMAND = """
+import contextlib, io, sys
+from msctl.app import command
+
+def walk(cmd, path):
+    yield path
+    for name, sub in sorted(getattr(cmd, "commands", {}).items()):
+        yield from walk(sub, [*path, name])
+
+for path in walk(command(None), []):
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        try:
+            command(path).main([*path, "--help"], prog_name="msctl", standalone_mode=False)
+        except SystemExit:
+            pass
+    print("@@@ msctl " + " ".join(path))
+    print(buffer.getvalue())
+"""
+
+#: A Python type where a value's word belongs (typer's ``<bool>``, ``<list[str]>``...).
+_PYTHON_METAVAR = re.compile(r"<(?:bool|str|int|float|path|list\[[^\]]*\]|[a-z_]+\[[^\]]*\])>")
+
+
+def test_every_help_uses_plain_words_and_fits_80_columns() -> None:
+    """Point 8: every command's help, as typer renders it (the same code path as ``msctl X
+    --help``), in one subprocess."""
+    result = subprocess.run(
+        [sys.executable, "-c", _HELP_OF_EVERY_COMMAND],
+        env={**os.environ, "COLUMNS": "80", "TERM": "dumb", "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    helps = dict(part.split("\n", 1) for part in result.stdout.split("@@@ ")[1:] if "\n" in part)
+    assert {"msctl ", "msctl topic pub", "msctl assemble", "msctl logs"} <= set(helps)
+    for name, text in helps.items():
+        assert "Usage:" in text, name
+        assert not _PYTHON_METAVAR.findall(text), (name, _PYTHON_METAVAR.findall(text), text)
+        assert all(len(line) <= 80 for line in text.splitlines()), (name, text)
+    # The examples of `msctl assemble --help`: each command whole on its line, its
+    # description on the next (they wrapped mid-command).
+    assemble = helps["msctl assemble"]
+    for example in (
+        "msctl assemble dragon --use limb1=hlv1-limb-04",
+        "msctl assemble urdf -o /tmp/dragon.urdf",
+    ):
+        assert f"\n {example} " in assemble, assemble
