@@ -266,3 +266,13 @@ def test_every_help_uses_plain_words_and_fits_80_columns() -> None:
         "msctl assemble urdf -o /tmp/dragon.urdf",
     ):
         assert f"\n {example} " in assemble, assemble
+
+
+# --------------------------------------------------------------------------- 13, 14: services
+def test_service_call_reads_its_input_before_it_looks_for_a_router(tmp_path: Path) -> None:
+    """Point 13: bad VALUES is exit 2 naming the YAML, even with no router at all (it went to
+    the network first: exit 3 after the router wait)."""
+    result = msctl("service", "call", "/x", TRIGGER, "{x", env=no_router_env(tmp_path))
+    assert result.returncode == 2, result.stderr
+    line = error_line(result.stderr)
+    assert "VALUES is not valid YAML" in line and "router" not in line
