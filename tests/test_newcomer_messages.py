@@ -12,6 +12,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -276,3 +277,17 @@ def test_service_call_reads_its_input_before_it_looks_for_a_router(tmp_path: Pat
     assert result.returncode == 2, result.stderr
     line = error_line(result.stderr)
     assert "VALUES is not valid YAML" in line and "router" not in line
+
+
+def test_service_call_with_no_server_says_what_happened(dragon: Up) -> None:
+    """Point 14: it claimed a 3 s wait when the query had ended at once."""
+    started = time.monotonic()
+    result = dragon.msctl("service", "call", "/nope", TRIGGER)
+    elapsed = time.monotonic() - started
+    assert result.returncode == 5, result.stderr
+    line = error_line(result.stderr)
+    assert "/nope" in line
+    if "within 3 s" in line:
+        assert elapsed >= 3.0, line  # a claim of waiting 3 s must be true
+    else:
+        assert "no server of /nope" in line and "ended after" in line, line
