@@ -291,3 +291,13 @@ def test_service_call_with_no_server_says_what_happened(dragon: Up) -> None:
         assert elapsed >= 3.0, line  # a claim of waiting 3 s must be true
     else:
         assert "no server of /nope" in line and "ended after" in line, line
+
+
+# --------------------------------------------------------------------------- 16: example runs
+def test_an_example_run_prints_no_resync_noise(dragon: Up) -> None:
+    """Point 16: every motion's start printed 'last command and measurement differ by more
+    than delta=0.1; resynchronized from the measurement' as a warning."""
+    result = dragon.msctl("run", "examples/limb_wave.py", "limb1", "1", timeout=300.0)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "done waving" in result.stdout
+    assert "resynchronized" not in result.stderr, result.stderr

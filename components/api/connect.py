@@ -343,9 +343,14 @@ async def connect(
         if resolved is not None:
             order = {s: i for i, s in enumerate(resolved.units)}
             found.sort(key=lambda s: order.get(s, len(order)))
+        # The whole timeout for each module's joint list: a busy computer's joint manager
+        # answered later than 3 s (a module with no server still fails at once).
         handlers = list(
             await asyncio.gather(
-                *(JointHandler.create(node, slot, _controls(resolved, slot)) for slot in found)
+                *(
+                    JointHandler.create(node, slot, _controls(resolved, slot), timeout)
+                    for slot in found
+                )
             )
         )
         deadline = time.monotonic() + timeout
