@@ -301,3 +301,15 @@ def test_an_example_run_prints_no_resync_noise(dragon: Up) -> None:
     assert result.returncode == 0, result.stdout + result.stderr
     assert "done waving" in result.stdout
     assert "resynchronized" not in result.stderr, result.stderr
+
+
+# --------------------------------------------------------------------------- 19: logs
+def test_a_process_log_marks_its_run_and_stamps_every_line(dragon: Up) -> None:
+    """Point 19, end to end: the run's first line and every line after it have a time."""
+    result = dragon.msctl("logs", "limb1/joint_manager", "-n", "1000")
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stdout.splitlines() if line.strip()]
+    marks = [line for line in lines if "===== msctl up dragon on test-laptop started" in line]
+    assert len(marks) == 1, lines
+    stamped = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d[.,]\d{3} ")
+    assert all(stamped.match(line) for line in lines), lines
