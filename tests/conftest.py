@@ -45,16 +45,27 @@ def codec_cache_dir() -> Path:
 #: run fills it and later ones reuse it (Python checks each source's size and time).
 BYTECODE_ENV = "PYTHONPYCACHEPREFIX"
 
+#: Where Hypothesis keeps its example database and caches. By default it is ``./.hypothesis``
+#: in whatever directory the tests run from (the checkout). Per user under the system's
+#: temporary directory instead, so failing examples are still replayed run after run.
+HYPOTHESIS_ENV = "HYPOTHESIS_STORAGE_DIRECTORY"
+
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Point cydr at :func:`codec_cache_dir` before any test module imports it, and let the
-    tests' subprocesses keep their bytecode (see :data:`BYTECODE_ENV`).
+    """Point cydr at :func:`codec_cache_dir` before any test module imports it, Hypothesis
+    at a temporary directory (:data:`HYPOTHESIS_ENV`), and let the tests' subprocesses keep
+    their bytecode (see :data:`BYTECODE_ENV`): a test run writes nothing where it runs.
 
     cydr reads ``CYDR_CACHE_DIR`` once, when it is imported (at collection, by the test
-    modules that import ``pyzeros``), and creates ``./.cydr_cache`` otherwise.
+    modules that import ``pyzeros``), and creates ``./.cydr_cache`` otherwise. Hypothesis
+    reads its variable the first time it needs its directory (a test's first example).
     """
+    user = os.getuid() if hasattr(os, "getuid") else getpass.getuser()
+    if not os.environ.get(HYPOTHESIS_ENV):
+        os.environ[HYPOTHESIS_ENV] = str(
+            Path(tempfile.gettempdir()) / f"msctl-test-hypothesis-{user}"
+        )
     if os.environ.get("PYTHONDONTWRITEBYTECODE") and not os.environ.get(BYTECODE_ENV):
-        user = os.getuid() if hasattr(os, "getuid") else getpass.getuser()
         os.environ[BYTECODE_ENV] = str(Path(tempfile.gettempdir()) / f"msctl-test-pyc-{user}")
         del os.environ["PYTHONDONTWRITEBYTECODE"]
     cache = codec_cache_dir()
