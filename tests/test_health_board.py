@@ -90,13 +90,7 @@ def test_the_board_watches_every_module_and_station_of_the_assembly(dragon) -> N
 
 
 # ---------------------------------------------------------------------------- levels
-def test_modules_wait_stale_then_turn_ok_with_their_health(
-    dragon, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    import components.data_monitor.plan as plan
-
-    # A kind with no code yet is listed as planned, never expected on the graph.
-    monkeypatch.setattr(plan, "buildable", lambda kind: kind != "human_operator")
+def test_modules_wait_stale_then_turn_ok_with_their_health(dragon) -> None:
     board = board_for(dragon)
     first = board.evaluate(0.0)
     assert first.level is STALE
@@ -263,7 +257,13 @@ def test_no_supervisor_means_a_vanished_node_is_an_error(dragon) -> None:
     assert row.level is ERROR and "left the graph 0.5 s ago" in row.message
 
 
-def test_nodes_not_seen_yet_wait_through_the_grace_then_are_errors(dragon) -> None:
+def test_nodes_not_seen_yet_wait_through_the_grace_then_are_errors(
+    dragon, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import components.data_monitor.plan as plan
+
+    # A kind with no code yet is listed as planned, never expected on the graph.
+    monkeypatch.setattr(plan, "buildable", lambda kind: kind != "human_operator")
     board = board_for(dragon)
     board.watch_graph(0.0)
     all_healthy(board, 0.0)

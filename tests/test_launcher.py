@@ -366,7 +366,15 @@ def test_off_robot_runs_everything_with_the_simulator_and_no_motor_interface(dra
     assert plan.off_robot and plan.simulated
     names = [p.name for p in plan.processes]
     assert names[0] == "sim"
-    assert set(names) == {"sim", "limb1", "limb2", "wheel1", "wheel2", "gc1_data_monitor"}
+    assert set(names) == {
+        "sim",
+        "limb1",
+        "limb2",
+        "wheel1",
+        "wheel2",
+        "gc1_human_operator",
+        "gc1_data_monitor",
+    }
     kinds = {c.kind for c in plan.components}
     assert "motor_interface" not in kinds
     assert [c.name for c in plan.processes[0].components] == [SIMULATOR_COMPONENT]
@@ -481,14 +489,11 @@ def test_host_namespace_is_a_ros_name() -> None:
     assert host_namespace("1robot.local") == "/msctl/h_1robot_local"
 
 
-def test_ground_station_components_run_one_process_per_role(monkeypatch) -> None:
-    """Ground-control kinds are not built yet; made buildable for the plan alone, a station's
-    components group one process per role, the modules one per module."""
-    import msctl.launcher.plan as plan_module
-
+def test_ground_station_components_run_one_process_per_role() -> None:
+    """A station's components group one process per role (kind), except a kind that asks
+    for a process each (an autonomous operator); the modules one per module."""
     two = from_document(resolve("two_dragons").document)
     station_kinds = {k.name for k in kinds.placed(kinds.Placement.STATION)}
-    monkeypatch.setattr(plan_module, "buildable", lambda kind: True)
     plan = plan_host(two, "a-laptop")
     ground = [p for p in plan.processes if {c.kind for c in p.components} <= station_kinds]
     assert ground, "two_dragons has ground stations"
@@ -496,7 +501,12 @@ def test_ground_station_components_run_one_process_per_role(monkeypatch) -> None
         roles = {c.kind for c in process.components}
         stations = {c.name.split("/")[0] for c in process.components}
         assert len(roles) == 1 and len(stations) == 1, process
-        assert process.name == f"{stations.pop()}_{roles.pop()}"
+        role = roles.pop()
+        if kinds.get(role).own_process:
+            (component,) = process.components
+            assert process.name == component.name.replace("/", "_")
+        else:
+            assert process.name == f"{stations.pop()}_{role}"
     modules = {c.module for c in two.components if c.module}
     assert {p.name for p in plan.processes} >= modules
 
