@@ -217,6 +217,25 @@ def test_states_at_100_hz_and_more_and_real_time_factor_reported(assembly) -> No
     assert {s.name for s in module.status} >= {"limb1/bus", "limb1_joint1"}
 
 
+def test_clock_carries_the_simulated_time_even_when_it_falls_behind(assembly) -> None:
+    """``/clock`` (rosgraph_msgs/Clock) says the world's own time, every pose period: what
+    a test times the world by when the machine is too busy for real time."""
+    from components.messages import from_time
+
+    core = make(assembly("minimal"))
+    now = run(core, 0.0, 1.0)
+    clocks = [from_time(m.clock) for m in core.outbox.on("/clock")]
+    assert len(clocks) >= 90 and clocks == sorted(clocks)
+    assert clocks[-1] == pytest.approx(core.world.time, abs=0.011)
+    now += 5.0  # a 5 s stall: the world catches up only max_catch_up of it
+    core.tick(now)
+    run(core, now, 0.05)
+    assert from_time(core.outbox.on("/clock")[-1].clock) == pytest.approx(
+        core.world.time, abs=0.011
+    )
+    assert core.world.time < 1.0 + 0.1 + 0.05 + 0.01
+
+
 def test_speed_factor_and_capped_catch_up(assembly) -> None:
     a = assembly("minimal")
     core = make(a, speed=4.0)

@@ -47,6 +47,7 @@ from components.messages import (
     header,
     joint_samples,
     msg,
+    to_time,
     trigger_response,
 )
 from components.motors.base import RawLimits, check_command, refused_whole
@@ -54,6 +55,9 @@ from components.simulator.world import EFFORT, SimWorld
 
 #: Namespace of what belongs to the simulator itself (pose ground truth, diagnostics).
 SIM_NAMESPACE = "/sim"
+#: The simulated time, ``rosgraph_msgs/msg/Clock`` on ``/clock`` (ROS's name), every pose.
+CLOCK = "rosgraph_msgs/msg/Clock"
+CLOCK_TOPIC = "/clock"
 
 #: Counters of the simulator's command checks: ``refused_oversize`` and
 #: ``refused_malformed`` count messages (refused whole), ``duplicates`` entries superseded
@@ -482,6 +486,9 @@ class SimulatorCore(Core):
             self._window_states += 1
         if force or now >= self._next_pose:
             self._next_pose = now + cfg.pose_period
+            # The simulated clock, as ROS simulators give it (use_sim_time): what a test or
+            # a tool times the world by when it runs behind the wall clock.
+            self.publish(CLOCK_TOPIC, msg(CLOCK, clock=to_time(self.world.time)))
             for root, topic in self._pose_topics:
                 self.publish(topic, self.pose(root, stamp))
         if force or now >= self._next_diagnostics:

@@ -14,6 +14,8 @@ from components.comm.qos import SENSOR
 from components.executor.interface import Every, InterfaceSpec, Publish, Serve, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, POSE_STAMPED, TRIGGER
 from components.simulator.core import (
+    CLOCK,
+    CLOCK_TOPIC,
     SIM_NAMESPACE,
     SimulatorConfig,
     commands_handler,
@@ -43,7 +45,7 @@ def simulator_interface(
     only, as its motor interface); publishes ``joint_states``
     (sensor QoS) and ``diagnostics``; serves ``motors/halt`` and ``motors/recover``. Its own:
     ``/sim/base_pose`` (and ``/sim/<root link>/pose`` with several robots) and
-    ``/sim/diagnostics``. One timer drives the physics.
+    ``/sim/diagnostics``, and the simulated time on ``/clock``. One timer drives the physics.
     """
     from components.joint_manager.build import commanding_node
 
@@ -65,6 +67,7 @@ def simulator_interface(
         serve.append(Serve(f"/{slot}/motors/recover", TRIGGER, recover_handler(slot)))
     for _, topic in pose_topics(tuple(assembly.root_links)):
         publish.append(Publish(topic, POSE_STAMPED, SENSOR))
+    publish.append(Publish(CLOCK_TOPIC, CLOCK, SENSOR))
     publish.append(Publish(f"{SIM_NAMESPACE}/diagnostics", DIAGNOSTIC_ARRAY))
     return InterfaceSpec(
         subscribe=tuple(subscribe),
