@@ -181,6 +181,7 @@ class ModulePlan:
         chains: Kinematic chains (limbs).
         interesting_links: Links location publishers and UIs care about (assembly names).
         health: Health monitor thresholds (module data, then unit data).
+        safety: Safety limits (module data, then unit data; see :mod:`components.safety`).
         root_link: The module's root link (assembly name).
         connectors: Connector name -> connector link (assembly name).
         calibration_file: The unit's calibration file (where a runtime re-zero saves).
@@ -199,6 +200,7 @@ class ModulePlan:
     chains: tuple[ChainPlan, ...] = ()
     interesting_links: tuple[str, ...] = ()
     health: dict[str, Any] = field(default_factory=dict)
+    safety: dict[str, Any] = field(default_factory=dict)
     root_link: str = ""
     connectors: dict[str, str] = field(default_factory=dict)
     calibration_file: str = ""

@@ -49,6 +49,9 @@ class BuiltComponent:
             built components calls it: :func:`components.executor.runner.run_built` does.
         extension_defaults: Extension name -> parameters the builder knows better than the
             data (the unit file a re-zero saves to), given to the extension unless set.
+        failed: Why the component cannot go on (an operator's script raised), set by the
+            component itself before it stops its executor; the process then exits with a
+            failure (1), and its supervisor starts it again (``""``: it has not failed).
     """
 
     core: Core
@@ -58,6 +61,7 @@ class BuiltComponent:
     resources: list[Any] = field(default_factory=list)
     on_bound: Callable[[Executor, Component], None] | None = None
     extension_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    failed: str = ""
 
     def close(self) -> None:
         """Release the resources (idempotent where they are)."""

@@ -35,7 +35,7 @@ BUILTIN: tuple[str, ...] = (
     "components.data_monitor.kind",
     "components.data_archiver.kind",
     "components.human_operator.kind",
-    "components.stations",
+    "components.autonomous_operator.kind",
 )
 #: Entry-point group through which other packages add kinds.
 ENTRY_POINT_GROUP = "msctl.component_kinds"

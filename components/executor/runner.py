@@ -34,6 +34,11 @@ class RebuildFailed(RuntimeError):
     """A component could not be rebuilt in place: its process must restart whole."""
 
 
+class ComponentFailed(RuntimeError):
+    """A component could not go on (its ``failed``, an operator's script raised) and
+    stopped its executor: its process must restart."""
+
+
 def run_built(
     built: Sequence[BuiltComponent],
     settings: SessionSettings | None = None,
@@ -60,6 +65,8 @@ def run_built(
 
     Raises:
         RebuildFailed: If a rebuild order failed: the process stopped, to be restarted.
+        ComponentFailed: If a component failed (:attr:`BuiltComponent.failed`): the process
+            stopped, to be restarted.
         RclpyUnavailable: If ``transport`` is ``rclpy`` and rclpy cannot be imported.
         Exception: Whatever adding a component or an ``on_bound`` hook raised; what was
             opened is closed first.
@@ -109,6 +116,9 @@ def run_built(
             session.close()
     if failed:
         raise RebuildFailed(failed[0])
+    gave_up = [item.failed for item in live if item.failed]
+    if gave_up:
+        raise ComponentFailed("; ".join(gave_up))
 
 
 def _rebuild(

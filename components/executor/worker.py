@@ -12,7 +12,8 @@ loop beats a heartbeat pipe the supervisor hands down (``MSCTL_HEARTBEAT_FD``,
 (``MSCTL_ORDERS_FD``, :mod:`components.executor.orders`: rebuild one component alone).
 
 Exit codes: 0 after a clean stop (SIGINT/SIGTERM), 3 when a component cannot be built (the
-reason is the last line of stderr, which the launcher shows), 2 for bad arguments.
+reason is the last line of stderr, which the launcher shows), 2 for bad arguments, 1 when a
+component failed while running (an operator's script raised: restarted, with backoff).
 """
 
 from __future__ import annotations
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
                 item.close()
             print(f"error: MSCTL_TRANSPORT={transport!r}: use zenoh or rclpy", file=sys.stderr)
             return 2
-        from components.executor.runner import RebuildFailed, run_built
+        from components.executor.runner import ComponentFailed, RebuildFailed, run_built
 
         try:
             run_built(
@@ -124,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
         except RebuildFailed as exc:
             # Not a final exit: restarted whole, the process builds everything afresh.
             print(f"error: {exc}; restarting the whole process", file=sys.stderr)
+            return 1
+        except ComponentFailed as exc:
+            # A crash like any other (an operator's script raised): started again.
+            print(f"error: {exc}", file=sys.stderr)
             return 1
     except (SessionConfigError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -278,6 +278,8 @@ class ModuleType:
     interesting_links: tuple[str, ...]
     injections: tuple[dict[str, Any], ...]
     overrides: tuple[dict[str, Any], ...]
+    #: The ``[safety]`` table (:mod:`components.safety`): limits beyond which it is halted.
+    safety: dict[str, Any] = field(default_factory=dict)
 
     def has_link(self, link: str) -> bool:
         """Whether ``link`` names a URDF link or a connector link (``connector_<name>``)."""
@@ -453,6 +455,7 @@ def _parse_module_type(path: Path) -> ModuleType:
         shares_computer=f.get("shares_computer", bool, False),
         bus={k: v for k, v in bus.table.items()},
         health=dict(f.get("health", dict, {})),
+        safety=dict(f.get("safety", dict, {})),
         connectors=connectors,
         chains=chains,
         joints=joints,
@@ -498,6 +501,7 @@ def _parse_module_type(path: Path) -> ModuleType:
             )
     module = _replace(module, components=tuple(components))
     _check_health(module, module.health, f"{path}: field health")
+    _check_safety(module.safety, f"{path}: field safety")
     _check_extensions(module, module.injections, module.overrides, str(path))
     return module
 
@@ -507,6 +511,16 @@ def _check_health(module: ModuleType, health: dict[str, Any], where: str) -> Non
     for kind in {c.kind for c in module.components}:
         if "thresholds" in kinds.get(kind).module_facts:
             _check_kind_params(kind, {"thresholds": health}, where)
+
+
+def _check_safety(safety: dict[str, Any], where: str) -> None:
+    """The ``[safety]`` table (:class:`components.safety.SafetyLimits`)."""
+    from components.safety import SafetyLimits
+
+    try:
+        SafetyLimits.from_mapping(safety, "[safety]")
+    except ValueError as exc:
+        raise InputError(f"{where}: {exc}", hint="see components/safety.py") from None
 
 
 def _confined(folder: Path, relative: str, where: str) -> Path:
@@ -1014,6 +1028,7 @@ class Unit:
     injections: tuple[dict[str, Any], ...]
     overrides: tuple[dict[str, Any], ...]
     health: dict[str, Any]
+    safety: dict[str, Any] = field(default_factory=dict)
 
 
 def _host(fields: _Fields, key: str) -> str:
@@ -1101,6 +1116,7 @@ def _parse_unit(path: Path) -> Unit:
         injections=tuple(f.entries("injections", "injection")),
         overrides=tuple(f.entries("overrides", "override")),
         health=dict(f.get("health", dict, {})),
+        safety=dict(f.get("safety", dict, {})),
     )
 
 
@@ -1167,4 +1183,5 @@ def check_unit(unit: Unit, module: ModuleType) -> None:
     merged = {**module.bus, **unit.bus, "options": bus.options}
     _check_bus_options(backend, merged, f"{unit.path}: field bus.options")
     _check_health(module, {**module.health, **unit.health}, f"{unit.path}: field health")
+    _check_safety({**module.safety, **unit.safety}, f"{unit.path}: field safety")
     _check_extensions(module, unit.injections, unit.overrides, str(unit.path))

@@ -360,6 +360,7 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
                 ),
                 interesting_links=tuple(p + link for link in module.interesting_links),
                 health=health,
+                safety={**module.safety, **unit.safety},
                 root_link=p + module.urdf.root_link,
                 connectors={c: connector_link(slot, c) for c in module.connectors},
                 calibration_file=str(unit.path),

@@ -3,8 +3,9 @@
 Off-robot (this computer is none of the assembly's robot computers) the whole assembly runs
 here and every motor interface is replaced by one MuJoCo simulator; on a robot computer only
 its own part runs. Components are grouped into executor processes: one per module, one for
-the simulator, one per ground-control station, so start-up is a handful of interpreters, not
-sixty.
+the simulator, one per ground-control station's role (kind), and one for each component of a
+kind that asks for its own (an autonomous operator), so start-up is a handful of
+interpreters, not sixty.
 
 Simulating on robot computers (``msctl up --all --sim``), the assembly still gets one world,
 not one per computer: the computer of the first module runs the simulator (it serves every
@@ -118,8 +119,11 @@ def plan_host(
         if not buildable(component.kind):
             plan.not_built.append((component.name, component.kind))
             continue
-        # One process per module; a ground station's components, one per role (kind).
+        # One process per module; a ground station's components, one per role (kind), or
+        # one each for a kind that asks for it (an operator's script fails alone).
         group = component.module or f"{component.name.split('/')[0]}_{component.kind}"
+        if kinds.get(component.kind).own_process:
+            group = component.name.replace("/", "_")
         groups.setdefault(group, []).append(
             _run(component.name, component.kind, component.namespace)
         )
