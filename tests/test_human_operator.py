@@ -319,3 +319,53 @@ def test_a_second_screen_is_refused_then_takes_over_and_a_crashed_screen_lets_go
             node.close()
         for session in (first_session, second_session, watcher):
             session.close()
+
+
+def test_teleop_on_the_station_attaches_to_its_human_operator_and_elsewhere_runs_alone(
+    dragon, running, session_settings
+) -> None:
+    """``msctl teleop``'s link: on the station's computer its claims are the human
+    operator's and its commands go through the relay (to real joint managers over emulated
+    motors); on another computer it claims and commands for itself."""
+    from teleop_rig import ModulesRig
+
+    from msctl.teleop.link import Link
+
+    rig = ModulesRig(dragon, ["wheel1"], session_settings)
+    session = open_session(session_settings)
+    watcher = open_session(session_settings)
+    node = Node(session, "teleop", "/ground1")
+    claims = Claims(watcher, 0)
+    link = None
+    try:
+        link = Link.open(node, dragon, ["wheel1"], health=False, timeout=30.0, station="ground1")
+        assert link.through == OPERATOR
+        wait_until(lambda: claims.holder("wheel1") is not None, 10.0, "the claim")
+        assert claims.holder("wheel1").node == OPERATOR
+        handler = link.handlers["wheel1"]
+        assert handler.relay == f"{OPERATOR}/relay/wheel1/joint_set"
+        motors = rig.motors["wheel1"]
+
+        def spun() -> bool:
+            handler.send([JointSample("wheel1_wheel_left", None, 0.5, None)])
+            return any(c.velocity for c in list(motors.commands))
+
+        wait_until(spun, 30.0, "a relayed command reaching the motors")
+        link.close()
+        link = None
+        wait_until(lambda: claims.holder("wheel1") is None, 10.0, "the claim released")
+        alone = Link.open(node, dragon, ["wheel1"], health=False, timeout=30.0, station="ground9")
+        try:
+            assert alone.through is None and not isinstance(alone.handlers["wheel1"], type(handler))
+            wait_until(lambda: claims.holder("wheel1") is not None, 10.0, "its own claim")
+            assert claims.holder("wheel1").node == node.fqn
+        finally:
+            alone.close()
+    finally:
+        if link is not None:
+            link.close()
+        claims.close()
+        node.close()
+        session.close()
+        watcher.close()
+        rig.close()

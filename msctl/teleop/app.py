@@ -284,7 +284,9 @@ class TeleopApp(App[None]):
             else:
                 text.append(f"{module}", style="bold green")
             text.append(" ")
-        text.append(f"(held by {next(iter(held.values())).info.holder})", style="dim")
+        text.append(f"(held by {next(iter(held.values())).info.holder}", style="dim")
+        through = getattr(self.link, "through", None)
+        text.append(f" through {through})" if through else ")", style="dim")
         return text
 
     def _deadman(self, view: TeleopView) -> Text:
@@ -393,12 +395,21 @@ def run_app(
         MsctlError: If another operator holds a module's claim (and not ``take``).
     """
     from msctl.errors import InputError
+    from msctl.launcher.plan import this_host
     from msctl.plane import connected
     from msctl.teleop.core import TeleopCore
     from msctl.teleop.link import Link
 
     with connected("teleop") as node:
-        link = Link.open(node, assembly, modules, cmd_vel=cmd_vel, stamped=stamped, take=take)
+        link = Link.open(
+            node,
+            assembly,
+            modules,
+            cmd_vel=cmd_vel,
+            stamped=stamped,
+            take=take,
+            station=this_host(),
+        )
         try:
             why = link.unavailable.get(mode)
             if why:

@@ -24,6 +24,7 @@ from components.assembly import ResolvedAssembly
 from components.robots import cmd_vel_topic, robots_of, root_link
 from msctl.errors import MsctlError, NetworkError, NotFoundError, did_you_mean
 from msctl.teleop.keys import DRIVE, IK, JOINT
+from msctl.teleop.station import RelayedJointHandler
 from msctl.teleop.wire import JointJog, Output, TipJog, TwistDrive
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,8 @@ class Link:
         claims: The claims watcher (None: this link claims nothing).
         held: Slot -> this link's claim of the module (taken over ones stay, ``lost`` set).
         estop: Halt and recover of the commanded modules (:class:`components.estop.Estop`).
+        through: The station's human operator relaying this screen (its node), or None when
+            the screen runs on its own (see :mod:`msctl.teleop.station`).
     """
 
     node: Any
@@ -99,6 +102,7 @@ class Link:
     claims: Any = None
     held: dict[str, Any] = field(default_factory=dict)
     estop: Any = None
+    through: str | None = None
     _joints: JointJog | None = None
 
     # ------------------------------------------------------------------ opening
@@ -114,6 +118,7 @@ class Link:
         timeout: float = ANSWER_TIMEOUT,
         claim: bool = True,
         take: bool = False,
+        station: str | None = None,
     ) -> Link:
         """Connect to the commanded modules (default: every module), and claim them.
 
@@ -127,6 +132,9 @@ class Link:
             timeout: Seconds to wait for each joint manager.
             claim: Claim the modules before commanding them.
             take: Take the claims over from whoever holds them.
+            station: This computer, as the assembly names it: when it plans a human
+                operator here and it answers, the screen attaches to it (its claims and
+                relays, its second deadman); None: the screen runs on its own.
 
         Raises:
             NotFoundError: For a module the assembly does not have.
@@ -173,10 +181,19 @@ class Link:
         handlers: dict[str, Any] = {}
         link = cls(node, assembly, handlers)
         try:
+            relays: dict[str, str] = {}
+            if claim and station is not None and not stamped:
+                # The station's human operator claims and relays for this screen (a
+                # TwistStamped it does not relay: the screen then runs on its own).
+                relays = link._attach(slots, take, station)
             for slot in slots:
                 controls = {j.name: j.control for j in assembly.module(slot).joints}
                 joints = [replace(i, control=controls.get(i.name, i.control)) for i in infos[slot]]
-                handlers[slot] = JointHandler(node, slot, joints)
+                relay = relays.get(f"{assembly.module(slot).namespace}/joint_set")
+                if relay is not None:
+                    handlers[slot] = RelayedJointHandler(node, slot, joints, relay)
+                else:
+                    handlers[slot] = JointHandler(node, slot, joints)
             # The halt and recover clients are declared now: space must not wait for them.
             link.estop = Estop(node, {s: assembly.module(s).namespace for s in slots})
             link._joints = JointJog(handlers)
@@ -186,8 +203,10 @@ class Link:
             topic = cmd_vel or cmd_vel_topic(assembly, slots)
             if topic is not None:
                 frame = root_link(assembly, robots_of(assembly)[slots[0]]) if slots else ""
-                link.drive = TwistDrive(node, topic, stamped=stamped, frame_id=frame)
-            if claim:
+                relayed = relays.get(topic)
+                link.drive = TwistDrive(node, relayed or topic, stamped=stamped, frame_id=frame)
+                link.drive.topic = topic  # what the screen shows: where the Twists end up
+            if claim and link.through is None:
                 link._claim(take)
             if health:
                 from msctl.health.live import LiveHealth
@@ -197,6 +216,32 @@ class Link:
             link.close()
             raise
         return link
+
+    def _attach(self, slots: Sequence[str], take: bool, station: str) -> dict[str, str]:
+        """Attach to the station's human operator, if it runs; its relays (empty if not)."""
+        from components.human_operator.client import AttachRefused
+        from msctl.teleop.station import RelayedClaim, attach_to_station
+
+        try:
+            found = attach_to_station(self.node, self.assembly, list(slots), take, station)
+        except AttachRefused as exc:
+            raise MsctlError(
+                str(exc), hint="take it over with `msctl teleop --take`, or ask them"
+            ) from exc
+        if found is None:
+            return {}
+        operator, attached, claims = found
+        self.through, self.claims = operator, claims
+        for slot in attached.claimed:
+            info = attached.claims.get(slot)
+            if info is not None:
+                self.held[slot] = RelayedClaim(info)
+        claims.on_change(
+            lambda module, holder: (
+                self.held[module].changed(holder) if module in self.held else None
+            )
+        )
+        return dict(attached.relays)
 
     def _claim(self, take: bool) -> None:
         """Claim every commanded module for this node, all or none."""
@@ -299,6 +344,16 @@ class Link:
         if self.health is not None:
             self.health.close()
             self.health = None
+        if self.through is not None:
+            # After the last stop went out (the caller closed its operator first).
+            from components.comm.services import ServiceError
+            from components.human_operator.client import detach
+
+            try:
+                detach(self.node, self.through)
+            except ServiceError as exc:  # it lets go anyway once this node leaves
+                log.info("detaching from %s: %s", self.through, exc)
+            self.through = None
         if self.claims is not None:
             # After the last stop went out (the caller closed its operator first): the
             # claims go only once nothing more will be sent.
