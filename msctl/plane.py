@@ -94,7 +94,7 @@ def find_type(node: Any, name: str, kind: str, timeout: float = 2.0) -> str:
     while True:
         graph = snapshot(node.session, node.domain, timeout=2.0)
         table = graph.topics() if kind == "topic" else graph.services()
-        if kind == "service":
+        if kind != "topic":
             # A service with clients only has nothing to answer: not one to suggest.
             table = {k: v for k, v in table.items() if v.servers or k == qualified}
         info = table.get(qualified)
