@@ -34,6 +34,7 @@ BUILTIN: tuple[str, ...] = (
     "components.simulator.kind",
     "components.data_monitor.kind",
     "components.data_archiver.kind",
+    "components.bridge.kind",
     "components.human_operator.kind",
     "components.autonomous_operator.kind",
 )

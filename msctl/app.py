@@ -45,6 +45,7 @@ _COMMANDS: dict[str, str] = {
     "router": "msctl.commands.router",
     "run": "msctl.commands.run",
     "record": "msctl.commands.record",
+    "bridge": "msctl.commands.bridge",
     "health": "msctl.commands.health",
     "teleop": "msctl.commands.teleop",
     "claims": "msctl.commands.claims",

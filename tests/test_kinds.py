@@ -59,7 +59,13 @@ def test_the_lists_everyone_uses_are_derived_from_the_entries() -> None:
     assert [k.name for k in kinds.simulators()] == ["simulator"]
     assert [k.name for k in kinds.stand_ins("motor_interface")] == ["simulator"]
     stations = {k.name for k in kinds.placed(kinds.Placement.STATION)}
-    assert stations == {"human_operator", "autonomous_operator", "data_monitor", "data_archiver"}
+    assert stations == {
+        "human_operator",
+        "autonomous_operator",
+        "data_monitor",
+        "data_archiver",
+        "bridge",
+    }
     modules = {k.name for k in kinds.placed(kinds.Placement.MODULE)}
     assert "joint_manager" in modules and not modules & stations
     assert kinds.get("simulator").component_name == "sim/simulator"

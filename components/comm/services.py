@@ -148,7 +148,8 @@ class ServiceServer:
     """Answers one service. Create through :meth:`Node.service`.
 
     ``handler(request) -> response`` runs on the Zenoh thread unless ``deferred=True``, in
-    which case ``handler(pending)`` receives a :class:`PendingRequest` to answer later.
+    which case ``handler(pending)`` receives a :class:`PendingRequest` to answer later. With
+    ``raw=True``, requests and responses are CDR bytes, never decoded (a bridge's relay).
     """
 
     def __init__(
@@ -158,11 +159,15 @@ class ServiceServer:
         srv_type: str,
         handler: Callable[[Any], Any],
         deferred: bool = False,
+        raw: bool = False,
     ) -> None:
         _identify(self, node, EntityKind.SERVICE, service, srv_type)
         reg = registry()
-        self._deserialize = reg.deserializer(self.parts.request)
-        self._serialize = reg.serializer(self.parts.response)
+        self._deserialize: Callable[[bytes], Any] = bytes
+        self._serialize: Callable[[Any], bytes] = bytes
+        if not raw:
+            self._deserialize = reg.deserializer(self.parts.request)
+            self._serialize = reg.serializer(self.parts.response)
         self._handler = handler
         self._deferred = deferred
         # Callers by GID, from the client tokens of this service (with history, so clients
@@ -273,6 +278,23 @@ class ServiceClient:
             ServiceTimeout: If no server answered within ``timeout`` seconds.
             ServiceError: If the server answered with an error or an undecodable response.
         """
+        payload = self.call_raw(self._serialize(request), timeout)
+        try:
+            return self._deserialize(payload)
+        except Exception as exc:
+            drops.drop(self.service, "malformed", f"{type(exc).__name__}: {exc}")
+            raise ServiceError(
+                f"service {self.service} sent a response that is not a {self.parts.response}"
+            ) from exc
+
+    def call_raw(self, payload: bytes, timeout: float = 2.0) -> bytes:
+        """Send a serialized request (CDR with header), return the serialized response as it
+        came (a bridge relays both without decoding them).
+
+        Raises:
+            ServiceTimeout: If no server answered within ``timeout`` seconds.
+            ServiceError: If the server answered with an error.
+        """
         import zenoh
 
         seq = next(self._seq)
@@ -280,7 +302,7 @@ class ServiceClient:
         started = time.monotonic()
         replies = self._session.get(
             self.key,
-            payload=self._serialize(request),
+            payload=bytes(payload),
             attachment=attachment,
             target=zenoh.QueryTarget.ALL_COMPLETE,
             consolidation=zenoh.ConsolidationMode.NONE,
@@ -292,14 +314,7 @@ class ServiceClient:
             if reply.err is not None:
                 text = reply.err.payload.to_bytes().decode(errors="replace")
                 raise ServiceError(f"service {self.service} answered with an error: {text}")
-            sample = reply.ok
-            try:
-                return self._deserialize(sample.payload.to_bytes())
-            except Exception as exc:
-                drops.drop(self.service, "malformed", f"{type(exc).__name__}: {exc}")
-                raise ServiceError(
-                    f"service {self.service} sent a response that is not a {self.parts.response}"
-                ) from exc
+            return reply.ok.payload.to_bytes()
         waited = time.monotonic() - started
         if waited < 0.9 * timeout:
             # The query ended early: the network knows no server for this key at all.

@@ -90,6 +90,26 @@ def msctl_qos(profile: Any) -> QoS:
     )
 
 
+def failure_response(response_type: str, why: str) -> bytes:
+    """The CDR of a response saying a request failed, as DDS has no error answer:
+    ``success`` false and ``message`` saying why when the type has them, else its default.
+
+    Args:
+        response_type: The service's response message type (``std_srvs/srv/Trigger_Response``).
+        why: What went wrong.
+    """
+    from components.messages import msg
+
+    reg = registry()
+    fields = {name for name, _ in reg.fields(response_type)}
+    values: dict[str, Any] = {}
+    if "success" in fields:
+        values["success"] = False
+    if "message" in fields:
+        values["message"] = why
+    return reg.serializer(response_type)(msg(response_type, **values))
+
+
 class RclpyPlane:
     """An rclpy context, spun on a thread of its own. Close it when done.
 
@@ -552,17 +572,8 @@ class RclpyServer:
         return self._encode(response)
 
     def failure(self, why: str) -> bytes:
-        """The response that says the request failed: ``success`` false and ``message`` when
-        the type has them, the default response otherwise."""
-        from components.messages import msg
-
-        fields = {name for name, _ in registry().fields(self.parts.response)}
-        values: dict[str, Any] = {}
-        if "success" in fields:
-            values["success"] = False
-        if "message" in fields:
-            values["message"] = why
-        return self._encode(msg(self.parts.response, **values))
+        """The response that says the request failed (see :func:`failure_response`)."""
+        return failure_response(self.parts.response, why)
 
     def _on_request(self, request: Any, response: Any) -> Any:
         del response  # rclpy's empty one; ours is built by the handler
