@@ -432,12 +432,21 @@ def test_calibrated_target_reaches_the_motor(limb: Limb) -> None:
     cal = plan.calibration
     assert cal.zero_offset != 0.0  # a real unit calibration is in play
     target = 0.4
-    read = limb.move(name, target)
+    limb.move(name, target)
     raw = cal.to_raw(target)
     hw = limb.hardware
-    wait_until(lambda: abs(hw.position(name) - raw) < TOLERANCE, 3.0, f"motor at raw {raw}")
+    wait_until(lambda: abs(hw.position(name) - raw) < TOLERANCE, 30.0, f"motor at raw {raw}")
     assert hw.goal(name) == pytest.approx(raw, abs=TOLERANCE)
-    assert read == pytest.approx(cal.to_calibrated(hw.position(name)), abs=TOLERANCE)
+    # joint_read reports the motor's position in calibrated space once the motor settled (the
+    # read that first came within tolerance of the target may be from a moment before: a
+    # busy machine showed the motor 4.5 mrad further on).
+    wait_until(
+        lambda: (
+            abs(limb.operator.position(name) - cal.to_calibrated(hw.position(name))) < TOLERANCE
+        ),
+        30.0,
+        "joint_read agreeing with the motor",
+    )
     # The joint manager sent raw (motor) space, not the calibrated target.
     sent = [c.position for c in limb.operator.commands if c.name == name]
     assert sent and sent[-1] == pytest.approx(raw, abs=1e-9)
@@ -457,7 +466,7 @@ def test_finger_target_in_metres_reaches_the_motor(limb: Limb) -> None:
     limb.move(name, target, tolerance=1e-4)
     raw = plan.calibration.to_raw(target)
     hw = limb.hardware
-    wait_until(lambda: abs(hw.position(name) - raw) < 1e-4, 3.0, f"finger at raw {raw} m")
+    wait_until(lambda: abs(hw.position(name) - raw) < 1e-4, 30.0, f"finger at raw {raw} m")
     assert hw.goal(name) == pytest.approx(raw, abs=1e-4)
 
 

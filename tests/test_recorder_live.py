@@ -263,12 +263,17 @@ def test_gaps_in_sequence_numbers_are_counted_as_lost_upstream(
         next(chatter._seq), next(chatter._seq)  # two samples "lost on the way"
         chatter.publish(msg(STRING, data="after the gap"))
         wait_until(lambda: recorder.status().lost == 2)
-        entities = snapshot(talker.session, timeout=0.5).entities()
-        mine = [
-            e
-            for e in entities
-            if e.kind is EntityKind.SUBSCRIPTION and e.node_name.startswith("msctl_record")
-        ]
+
+        def recorders() -> list[Any]:
+            # A loaded router can answer the graph query after its first bound: ask again.
+            entities = snapshot(talker.session, timeout=3.0).entities()
+            return [
+                e
+                for e in entities
+                if e.kind is EntityKind.SUBSCRIPTION and e.node_name.startswith("msctl_record")
+            ]
+
+        mine = wait_until(recorders, 30.0, "the recorder's subscription on the graph")
         assert [e.topic for e in mine] == ["/robot/chatter"]
         assert mine[0].qos.split(":")[0] == "2"  # best effort, as the publisher offers
 
