@@ -268,9 +268,12 @@ def test_an_agent_on_loopback_updates_and_builds_its_own_workspace(
 
 #: An ssh that reaches no server: it says it started, then waits for ever (a radio link that
 #: went silent), so the update using it is still running when its agent is killed.
+#: An ssh that connects and then says nothing: its stdout (git's pipe) stays open, so git
+#: waits (``cat > /dev/null`` closed it, and git failed at once: the job ended before the
+#: ground station could see it under way, on a loaded machine).
 _SILENT_SSH = """#!/bin/sh
 : > "$SILENT_SSH_MARK"
-exec cat > /dev/null
+exec sleep 600
 """
 
 
@@ -329,14 +332,21 @@ def test_unreachable_agents_are_named_before_and_during_a_job(tmp_path: Path, ro
         reader.start()
         try:
             # The ground station has seen src/far under way, and the clone is in its ssh.
-            wait_until(
-                lambda: (
-                    progress_rows(b"".join(shown).decode(errors="replace")).get("gl-pi-01")
-                    == "0/1 src/far"
-                ),
-                timeout=120,
-                what="the ground station showing src/far under way",
-            )
+            try:
+                wait_until(
+                    lambda: (
+                        progress_rows(b"".join(shown).decode(errors="replace")).get("gl-pi-01")
+                        == "0/1 src/far"
+                    ),
+                    timeout=120,
+                    what="the ground station showing src/far under way",
+                )
+            except AssertionError as exc:
+                screen = b"".join(shown).decode(errors="replace")
+                raise AssertionError(
+                    f"{exc}; rows {progress_rows(screen)}, exit {running.poll()}, "
+                    f"screen ends {screen[-1500:]!r}"
+                ) from None
             wait_until(mark.exists, timeout=120, what="the agent's clone reaching its ssh")
             os.killpg(agent.pid, signal.SIGKILL)
             out = running.stdout.read()
