@@ -76,6 +76,22 @@ def pytest_configure(config: pytest.Config) -> None:
         runtime.CYDR_CACHE_DIR = cache
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Run the modules with the most end-to-end tests first, each module's tests in order.
+
+    xdist's ``loadscope`` hands whole modules to the workers in collection order: a long
+    module collected last ran alone at the end while the other workers sat idle (the
+    suite's tail). Longest-first is the classic fix; the count of ``e2e`` tests in a module
+    stands in for its length.
+    """
+    del config
+    weight: dict[str, int] = {}
+    for item in items:
+        module = item.nodeid.split("::", 1)[0]
+        weight[module] = weight.get(module, 0) + (item.get_closest_marker("e2e") is not None)
+    items.sort(key=lambda item: -weight[item.nodeid.split("::", 1)[0]])
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Compile the codecs the selected tests use, once, before the first test runs.
 
