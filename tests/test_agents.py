@@ -31,7 +31,8 @@ from msctl.launcher.control import AGENT_SRV, RequestError, host_namespace
 from msctl.launcher.plan import plan_host
 from msctl.launcher.state import process_group_alive
 
-pytestmark = pytest.mark.e2e
+# A whole fleet on one loaded machine: each msctl command takes seconds to start there.
+pytestmark = [pytest.mark.e2e, pytest.mark.timeout(600)]
 
 USES = ["--use", "limb1=gl-limb-01", "--use", "limb2=gl-limb-02"]
 GROUND = "ground1"

@@ -338,11 +338,14 @@ def test_the_human_operator_relays_a_screen_to_the_steering_and_stops_a_frozen_s
         relay = screen.publisher(attached.relays["/cmd_vel"], TWIST)
         start = plane.at_rest()
         began = plane.clock
+        frozen = time.monotonic()
         while plane.clock - began < 2.0:
+            # Taken before each Twist goes: a loaded machine may wake this thread after the
+            # deadman's stop already came, which must still count as after the last Twist.
+            frozen = time.monotonic()
             relay.publish(twist(0.2))
             time.sleep(0.05)
         # The screen freezes: no stop of its own. The human operator's deadman sends one.
-        frozen = time.monotonic()
         wait_until(lambda: any(x == 0.0 and t > frozen for t, x in seen), 30.0, "the stop")
         time.sleep(1.0)
         after = [x for t, x in seen if t > frozen]

@@ -14,7 +14,7 @@ def supervisors(node: Any) -> dict[str, str]:
     from components.comm.graph import snapshot
 
     found = {}
-    for name, info in snapshot(node.session, node.domain).services().items():
+    for name, info in snapshot(node.session, node.domain, timeout=3.0).services().items():
         if name.startswith("/msctl/") and name.endswith("/request") and AGENT_SRV in info.types:
             found[name[: -len("/request")]] = name
     return found

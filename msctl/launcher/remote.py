@@ -175,17 +175,20 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         return "error" not in d and all(c["state"] == "running" for c in d.get("components", []))
 
     with connected("up_all") as node:
-        # An agent the router's graph does not show is first asked a cheap `ps` with a short
-        # wait: with no agent anywhere, `up --all` says so in seconds, while an agent that is
-        # there (the graph may lag) still gets the full wait for its `up`.
+        # An agent the router's graph does not show is first asked a cheap `ps`: with no
+        # agent anywhere the query ends as soon as the router says it knows no server (in
+        # well under a second), so its generous bound only waits for an agent that is there
+        # but slow (a loaded computer: 2 s was too short, and a host that was there was
+        # named unreachable). The `up` itself gets longer still: an agent starts its
+        # processes before it answers, and one told "unreachable" must not be starting.
         present = set(supervisors(node))
         for host in hosts:
             err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
             try:
                 if host_namespace(host) not in present:
-                    call_supervisor(node, host, "ps", timeout=2.0)
+                    call_supervisor(node, host, "ps", timeout=10.0)
                 started[host] = call_supervisor(
-                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 10.0
+                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 30.0
                 )
             except ServiceTimeout:
                 unreachable.append((host, f"no agent serves {host_namespace(host)}/request"))
