@@ -89,6 +89,10 @@ class Plane:
         self.node.subscription(
             "/gc1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", self._on_status
         )
+        for wheel in ("wheel1", "wheel2"):
+            self.node.subscription(
+                f"/{wheel}/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", self._on_status
+            )
         self.cmd_vel = self.node.publisher("/cmd_vel", TWIST)
 
     def _on_clock(self, message: Any) -> None:
@@ -113,6 +117,17 @@ class Plane:
     def status(self, name: str) -> tuple[int, str, dict[str, str]]:
         with self.lock:
             return self.statuses.get(f"gc1/{name}", (-1, "", {}))
+
+    def watchdog_trips(self) -> int:
+        """The wheels' joint managers' watchdog trips so far: a sender starved past the
+        watchdog (a loaded machine) stops the wheels mid-drive, which a distance shows."""
+        with self.lock:
+            return sum(
+                int(
+                    self.statuses.get(f"{w}/joint_manager", (0, "", {}))[2].get("watchdog_trips", 0)
+                )
+                for w in ("wheel1", "wheel2")
+            )
 
     def pose(self) -> tuple[float, float, float, float]:
         with self.lock:
@@ -244,6 +259,7 @@ def plane(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Plane]:
 
 def test_steering_drives_0_2_m_s_for_3_s_of_simulated_time_0_6_m(plane: Plane) -> None:
     start = plane.at_rest()
+    trips = plane.watchdog_trips()
     began, stopped, wall = plane.drive(0.2, 0.0, 3.0, from_motion=True)
     end = plane.at_rest()
     forward, sideways = end[0] - start[0], end[1] - start[1]
@@ -257,6 +273,7 @@ def test_steering_drives_0_2_m_s_for_3_s_of_simulated_time_0_6_m(plane: Plane) -
     print(f"{stopped - began:.2f} sim s ({wall:.2f} s wall), moving {moved - began:.2f} s after")
     print(f"the first, slowing {slowed - stopped:.2f} s after the stop: driven {driven:.2f} s")
     print("speed by sim time:", plane.profile(began, slowed + 0.5))
+    print(f"wheel watchdog trips while driving: {plane.watchdog_trips() - trips}")
     assert moved - began < 10.0 and slowed - stopped < 10.0  # generous: it answers
     assert 2.9 <= driven <= 4.0, driven
     assert 0.9 * 0.2 * driven <= forward <= 1.1 * 0.2 * driven, forward  # 0.2 m/s +- 10 %
