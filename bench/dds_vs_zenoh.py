@@ -40,10 +40,11 @@ What is measured (every time is CLOCK_MONOTONIC, one clock for every namespace):
   * bytes on the bridge: the kernel's counters of the bridge's ports (what
     ``/sys/class/net/<port>/statistics`` shows, read through ``/proc/<pid>/net/dev`` of a
     process in the hub namespace). "Mb/s" is what the robots sent into the bridge, all
-    together; "busiest link" the most one robot's link carried, both ways. Startup: over the
-    startup window, with its peak over any 1 s. At rest: over ``--steady`` seconds once the
-    graph is whole, no data crossing on purpose (each stack's upkeep). "+1 stream": the same
-    once robot 1 subscribes to robot N's ``joint_states`` (100 Hz, best effort).
+    together, with its peak over any 1 s; "link" the most one robot's link carried, both
+    ways (the paper measured on one robot), on average and at its peak. Startup: over the
+    startup window. At rest: over ``--steady`` seconds once the graph is whole, no data
+    crossing on purpose (each stack's upkeep). "+1 stream": the same once robot 1
+    subscribes to robot N's ``joint_states`` (100 Hz, best effort).
   * recovery (N >= 2): robot N's bridge port is set down (``ip link set rN down``: its
     carrier goes off, as a radio out of range) until robot 1's graph loses robot N, or for
     ``--cut-max`` seconds, then up again. From up: until robot 1 receives robot N's
@@ -125,6 +126,15 @@ LOOK_PERIOD = 0.1
 DATA_GAP = 0.25
 #: Seconds the graph is left whole before the steady window starts.
 SETTLE = 1.0
+#: What a window of the bridge's counters gives (see :meth:`CounterLog.window`).
+WINDOW_KEYS = (
+    "seconds",
+    "bytes",
+    "mbps",
+    "peak_mbps",
+    "busiest_link_mbps",
+    "busiest_link_peak_mbps",
+)
 #: Namespaces of this benchmark: msb-<pid of the run>-<role>.
 NS_PREFIX = "msb"
 NS_RE = re.compile(rf"^{NS_PREFIX}-(\d+)-\S+")
@@ -332,20 +342,30 @@ class CounterLog:
             for p in last.ports
         ]
         inside = [s for s in samples if first.t <= s.t <= last.t]
-        peak = 0.0
-        j = 0
-        for i, later in enumerate(inside):  # the highest rate over any 1 s (or longer) span
-            while j < i and later.t - inside[j + 1].t >= 1.0:
-                j += 1
-            if later.t - inside[j].t >= 1.0:
-                peak = max(peak, (later.sent - inside[j].sent) * 8 / 1e6 / (later.t - inside[j].t))
+        link_peaks = [
+            _peak_mbps([(s.t, sum(s.ports.get(port, (0, 0)))) for s in inside])
+            for port in last.ports
+        ]
         return {
             "seconds": seconds,
             "bytes": sent,
             "mbps": sent * 8 / 1e6 / seconds,
+            "peak_mbps": _peak_mbps([(s.t, s.sent) for s in inside]),
             "busiest_link_mbps": max(links, default=0) * 8 / 1e6 / seconds,
-            "peak_mbps": peak,
+            "busiest_link_peak_mbps": max(link_peaks, default=0.0),
         }
+
+
+def _peak_mbps(series: Sequence[tuple[float, int]]) -> float:
+    """The highest rate of a byte counter over any span of 1 s or more (Mb/s)."""
+    peak = 0.0
+    j = 0
+    for i, (t, count) in enumerate(series):
+        while j < i and t - series[j + 1][0] >= 1.0:
+            j += 1
+        if t - series[j][0] >= 1.0:
+            peak = max(peak, (count - series[j][1]) * 8 / 1e6 / (t - series[j][0]))
+    return peak
 
 
 # ============================================================================ the fleet data
@@ -927,7 +947,7 @@ def _recovery(
 
 # ============================================================================ the tables
 def _fmt_s(value: float | None, bound: float) -> str:
-    return f"> {bound:g} s" if value is None else f"{value:.2f} s"
+    return f"> {bound:.3g} s" if value is None else f"{value:.2f} s"
 
 
 def max_stable(runs: Sequence[Run], stack: str) -> tuple[int, bool]:
@@ -956,12 +976,11 @@ def summary_table(runs: Sequence[Run]) -> dict[str, dict[str, Any]]:
             "text": _fmt_s(run.startup_s, run.bound)
             + ("" if run.discovery_s is None else f" ({run.discovery_s:.2f} s after ready)"),
         }
+        startup = {key: run.startup.get(key, float("nan")) for key in WINDOW_KEYS}
         table["startup_bandwidth"][stack] = {
-            "mbps": run.startup.get("mbps"),
-            "peak_mbps": run.startup.get("peak_mbps"),
-            "busiest_link_mbps": run.startup.get("busiest_link_mbps"),
-            "text": f"{run.startup.get('mbps', float('nan')):.2f} Mb/s "
-            f"(peak {run.startup.get('peak_mbps', float('nan')):.2f})",
+            **startup,
+            "text": f"{startup['mbps']:.2f} Mb/s, peak {startup['peak_mbps']:.2f} "
+            f"(one robot's link: peak {startup['busiest_link_peak_mbps']:.2f})",
         }
         if run.robots < 2:
             recovery = "n/a (one robot)"
@@ -1003,7 +1022,7 @@ def print_report(runs: Sequence[Run], table: dict[str, dict[str, Any]]) -> None:
                 f"{r.startup.get('bytes', 0) / 1e6:.2f}",
                 f"{r.startup.get('mbps', float('nan')):.2f}",
                 f"{r.startup.get('peak_mbps', float('nan')):.2f}",
-                f"{r.startup.get('busiest_link_mbps', float('nan')):.2f}",
+                f"{r.startup.get('busiest_link_peak_mbps', float('nan')):.2f}",
                 "-" if not r.steady else f"{r.steady['mbps']:.3f}",
                 "-" if not r.steady else f"{r.steady['busiest_link_mbps']:.3f}",
                 "-" if not r.steady_data else f"{r.steady_data['mbps']:.3f}",
@@ -1028,7 +1047,7 @@ def print_report(runs: Sequence[Run], table: dict[str, dict[str, Any]]) -> None:
             "startup MB",
             "startup Mb/s",
             "peak 1 s",
-            "busiest link",
+            "link peak",
             "at rest Mb/s",
             "at rest busiest",
             "+1 stream Mb/s",
@@ -1042,6 +1061,9 @@ def print_report(runs: Sequence[Run], table: dict[str, dict[str, Any]]) -> None:
         ],
         rows,
     )
+    for r in runs:
+        for problem in r.problems:
+            print(f"  {r.stack} N={r.robots}: {problem}")
     stacks = [s for s in ("dds", "zenoh") if any(r.stack == s for r in runs)]
     at = next(iter(table.values()))["robots"]
     print_table(
