@@ -10,7 +10,9 @@ loopback router port:
     its first output received); the launcher's own figure is shown too;
   * the floor: the same number of bare ``python -c "import zenoh"`` processes started at
     once and waited for, N = the processes msctl starts (router included) and N = the
-    assembly's components (one process per component, as in a ROS launch);
+    assembly's components (one process per component, as in a ROS launch); each measured
+    just before and just after that template's run and averaged, so load that drifts over
+    the run (a shared machine) weighs on both sides of the ratio alike;
   * router restart: the embedded router SIGKILLed; time until it listens again (the
     supervisor restarts it), then until data flows through it again (a fresh client
     subscriber, which only the router can feed, gets a simulator ``joint_states``), and for
@@ -18,8 +20,10 @@ loopback router port:
   * shutdown: Ctrl-C (SIGINT) to exit, every process group checked gone.
 
 Only components whose kind exists in the code are started; the count of the plan's total
-is printed (never a placeholder to make up the number). Targets on the 2-core machine:
-``two_dragons`` all-healthy under 3 s; data again under 1 s after the router restarts.
+is printed (never a placeholder to make up the number): a component counts as started when
+it runs itself, or when it is a motor interface and the simulator standing in for it runs.
+Targets on the 2-core machine: ``two_dragons`` all-healthy within 2.5x the floor of its
+components (issue 16); data again under 1 s after the router restarts.
 
 Run: ``python bench/launch.py [--templates dragon two_dragons]``.
 """
@@ -38,6 +42,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -55,6 +60,7 @@ class Result:
     template: str
     planned: int = 0
     started: int = 0
+    started_themselves: int = 0
     simulated_motors: int = 0
     not_built: list[tuple[str, str]] = field(default_factory=list)
     processes: int = 0
@@ -66,6 +72,14 @@ class Result:
     restarted_components: int = 0
     shutdown_s: float = float("nan")
     leftovers: int = 0
+    floor_processes_s: list[float] = field(default_factory=list)
+    floor_components_s: list[float] = field(default_factory=list)
+    router_problem: str = ""
+
+    @property
+    def ratio(self) -> float:
+        """``msctl up`` over the floor of one bare interpreter per planned component."""
+        return self.up_s / (sum(self.floor_components_s) / len(self.floor_components_s))
 
 
 def _env(home: Path, endpoint: str) -> dict[str, str]:
@@ -100,22 +114,46 @@ class _FirstSample:
 
         self.received = threading.Event()
         self.at = 0.0
+        self._after = float("-inf")
         settings = SessionSettings(mode="client", connect=(endpoint,), listen=())
         self.session = open_session(settings)
         self.node = Node(self.session, "bench_launch", "/bench")
         self.node.subscription(topic, JOINT_STATE, self._on, raw=True)
 
     def _on(self, _payload: object) -> None:
-        if not self.received.is_set():
-            self.at = time.monotonic()
+        now = time.monotonic()
+        if not self.received.is_set() and now >= self._after:
+            self.at = now
             self.received.set()
 
-    def rearm(self) -> None:
+    def rearm(self, after: float) -> None:
+        """Wait for a sample again, counting only those that arrive from ``after`` on (one
+        already on its way through the old router arrives late, and is not the new one's)."""
+        self._after = after
         self.received.clear()
 
     def close(self) -> None:
         self.node.close()
         self.session.close()
+
+
+class RouterProblem(RuntimeError):
+    """The router-restart part could not be measured (reported beside the start-up figures)."""
+
+
+#: Seconds the restarted router has to listen again (a heavily loaded machine took 12 s).
+ROUTER_BACK_WITHIN = 45.0
+
+
+def started_components(assembly: Any, plan: Any) -> tuple[int, int]:
+    """``(run as themselves, motor interfaces the simulator runs for)`` of a host plan.
+
+    A motor interface counts only when the plan starts the simulator standing in for it.
+    """
+    themselves = sum(not kinds.get(c.kind).stands_in_for for c in plan.components)
+    simulator = any(kinds.get(c.kind).stands_in_for for c in plan.components)
+    replaced = sum(kinds.replaced_in_simulation(c.kind) for c in assembly.components)
+    return themselves, replaced if simulator else 0
 
 
 def _router_restart(result: Result, home: Path, endpoint: str, topic: str) -> None:
@@ -127,17 +165,20 @@ def _router_restart(result: Result, home: Path, endpoint: str, topic: str) -> No
     existing = _FirstSample(endpoint, topic)
     try:
         if not existing.received.wait(5.0):
-            raise SystemExit(f"{result.template}: no {topic} through the router before the kill")
-        existing.rearm()
+            raise RouterProblem(f"no {topic} through the router before the kill")
+        existing.rearm(float("inf"))  # nothing counts until the router listens again
         os.killpg(router["pgid"], signal.SIGKILL)
         killed = time.monotonic()
         while _listening(port) and time.monotonic() - killed < 2.0:
             time.sleep(0.002)  # the old socket closes with the process
         while not _listening(port):
-            if time.monotonic() - killed > 15.0:
-                raise SystemExit(f"{result.template}: the router did not come back")
+            if time.monotonic() - killed > ROUTER_BACK_WITHIN:
+                raise RouterProblem(
+                    f"the router did not listen again within {ROUTER_BACK_WITHIN:g} s"
+                )
             time.sleep(0.005)
         listening = time.monotonic()
+        existing.rearm(listening)
         result.router_listen_s = listening - killed
         fresh = None
         while fresh is None and time.monotonic() - listening < 10.0:
@@ -146,7 +187,7 @@ def _router_restart(result: Result, home: Path, endpoint: str, topic: str) -> No
             except SessionOpenError:
                 time.sleep(0.01)
         if fresh is None:
-            raise SystemExit(f"{result.template}: cannot reach the restarted router")
+            raise RouterProblem("cannot reach the restarted router")
         try:
             if fresh.received.wait(10.0):
                 result.fresh_data_s = fresh.at - listening
@@ -163,6 +204,7 @@ def _router_restart(result: Result, home: Path, endpoint: str, topic: str) -> No
 
 
 def _run_template(template: str) -> Result:
+    """Resolve ``template``, measure the floors, ``msctl up`` it, measure the floors again."""
     from components.assembly import load_assembly
     from msctl.launcher.plan import plan_host
 
@@ -170,6 +212,35 @@ def _run_template(template: str) -> Result:
     home = Path(tempfile.mkdtemp(prefix=f"msctl_bench_{template}_"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     env = _env(home, endpoint)
+    # Resolved once first, for the floors' N (`up` below resolves it again, as typed).
+    subprocess.run(
+        [sys.executable, "-m", "msctl", "assemble", template],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        check=True,
+    )
+    assembly = load_assembly(home / "assembly")
+    plan = plan_host(assembly, HOST, sim=True)
+    result.planned = len(assembly.components)
+    result.started_themselves, result.simulated_motors = started_components(assembly, plan)
+    result.started = result.started_themselves + result.simulated_motors
+    result.not_built = list(plan.not_built)
+    result.processes = len(plan.processes) + 1  # the router included
+    result.floor_processes_s.append(floor(result.processes))
+    result.floor_components_s.append(floor(result.planned))
+    _run_up(result, home, env, endpoint)
+    result.floor_processes_s.append(floor(result.processes))
+    result.floor_components_s.append(floor(result.planned))
+    return result
+
+
+def _run_up(result: Result, home: Path, env: dict[str, str], endpoint: str) -> None:
+    """``msctl up``, the router restart and Ctrl-C, measured into ``result``."""
+    from components.assembly import load_assembly
+
+    template = result.template
     stderr_lines: list[str] = []
     up_line = threading.Event()
     started = time.monotonic()
@@ -200,18 +271,14 @@ def _run_template(template: str) -> Result:
             if up.poll() is not None or time.monotonic() - started > 90.0:
                 raise SystemExit(f"msctl up {template} failed:\n" + "".join(stderr_lines[-30:]))
         assembly = load_assembly(home / "assembly")
-        plan = plan_host(assembly, HOST, sim=True)
-        result.planned = len(assembly.components)
-        result.started = sum(not kinds.get(c.kind).stands_in_for for c in plan.components)
-        result.simulated_motors = sum(
-            kinds.replaced_in_simulation(c.kind) for c in assembly.components
-        )
-        result.not_built = list(plan.not_built)
         document = _state(home)
         pgids |= {p["pgid"] for p in document["processes"] if p["pgid"]}
         result.processes = len(document["processes"])  # the router included
         first_module = assembly.modules[0].namespace
-        _router_restart(result, home, endpoint, f"{first_module}/joint_states")
+        try:
+            _router_restart(result, home, endpoint, f"{first_module}/joint_states")
+        except RouterProblem as exc:
+            result.router_problem = str(exc)  # the start-up figures still stand
         pgids |= {p["pgid"] for p in _state(home)["processes"] if p["pgid"]}
         stopping = time.monotonic()
         os.killpg(up.pid, signal.SIGINT)  # Ctrl-C in its terminal
@@ -227,7 +294,6 @@ def _run_template(template: str) -> Result:
                 pass
         up.wait(timeout=5.0)
         reader.join(timeout=2.0)
-    return result
 
 
 def floor(count: int) -> float:
@@ -253,42 +319,45 @@ def main() -> None:
         kinds = sorted({k for _, k in r.not_built})
         print(
             f"{r.template}: started {r.started} of {r.planned} components "
-            f"(+ the simulator standing in for {r.simulated_motors} motor interfaces"
+            f"({r.started_themselves} run as themselves, {r.simulated_motors} motor interfaces "
+            "by the simulator standing in for them"
             + (f"; not built yet: {len(r.not_built)} ({', '.join(kinds)})" if kinds else "")
             + f") in {r.processes} processes, router included"
         )
 
-    rows = []
-    for r in results:
-        floor_processes = floor(r.processes)
-        floor_components = floor(r.planned)
-        rows.append(
-            [
-                r.template,
-                f"{r.started}/{r.planned}",
-                r.processes,
-                f"{r.up_s:.2f}",
-                f"{r.launcher_s:.2f}",
-                f"{floor_processes:.2f} (N={r.processes})",
-                f"{floor_components:.2f} (N={r.planned})",
-                f"{r.shutdown_s:.2f}",
-                r.leftovers,
-            ]
-        )
+    def floors(values: list[float]) -> str:
+        return f"{sum(values) / len(values):.2f} ({' / '.join(f'{v:.2f}' for v in values)})"
+
     print_table(
-        "msctl up -> all healthy (s), against N bare `python -c 'import zenoh'` at once",
+        "msctl up -> all healthy (s), against N bare `python -c 'import zenoh'` at once "
+        "(floors: mean (just before / just after the run))",
         [
             "template",
             "started",
             "processes",
             "msctl up (s)",
             "launcher (s)",
-            "floor: processes",
-            "floor: components",
+            "floor N=processes",
+            "floor N=components",
+            "up / floor N=components",
             "Ctrl-C exit (s)",
             "groups left",
         ],
-        rows,
+        [
+            [
+                r.template,
+                f"{r.started}/{r.planned}",
+                r.processes,
+                f"{r.up_s:.2f}",
+                f"{r.launcher_s:.2f}",
+                f"{floors(r.floor_processes_s)} N={r.processes}",
+                f"{floors(r.floor_components_s)} N={r.planned}",
+                f"{r.ratio:.2f}x",
+                f"{r.shutdown_s:.2f}",
+                r.leftovers,
+            ]
+            for r in results
+        ],
     )
     print_table(
         "Router SIGKILLed (supervisor restarts it), seconds",
@@ -312,11 +381,17 @@ def main() -> None:
             for r in results
         ],
     )
+    for r in results:
+        if r.router_problem:
+            print(f"{r.template}: router restart not measured: {r.router_problem}")
     two = next((r for r in results if r.template == "two_dragons"), None)
     print("\ntargets:")
     if two is not None:
-        verdict = "met" if two.up_s < 3.0 else "NOT met"
-        print(f"  two_dragons all-healthy < 3 s: {two.up_s:.2f} s, {verdict}")
+        verdict = "met" if two.ratio <= 2.5 and two.started == two.planned else "NOT met"
+        print(
+            f"  two_dragons all-healthy, {two.started} of {two.planned} components, within 2.5x "
+            f"the floor of {two.planned} bare interpreters: {two.ratio:.2f}x, {verdict}"
+        )
     worst = max(max(r.fresh_data_s, r.existing_data_s) for r in results)
     verdict = "met" if worst < 1.0 else "NOT met"
     print(f"  data again < 1 s after the router restarts: worst {worst:.2f} s, {verdict}")

@@ -21,7 +21,6 @@ ROS namespace is ``/<slot>``.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -32,6 +31,7 @@ from msgspec import Meta
 
 from components.joints import JointCalibration, JointSpec
 from components.motors.base import MotorSpec
+from components.paths import state_dir
 
 #: Lock file format version; bumped on incompatible changes.
 SCHEMA_VERSION = 2
@@ -47,18 +47,6 @@ Direction = Literal[1, -1]
 
 class AssemblyError(Exception):
     """No resolved assembly, or one that cannot be read; the message says what to run."""
-
-
-def state_dir() -> Path:
-    """msctl's state directory: ``$MSCTL_HOME``, else ``$XDG_STATE_HOME/msctl``,
-    else ``~/.local/state/msctl``."""
-    home = os.environ.get("MSCTL_HOME")
-    if home:
-        return Path(home).expanduser()
-    xdg = os.environ.get("XDG_STATE_HOME")
-    if xdg:
-        return Path(xdg).expanduser() / "msctl"
-    return Path.home() / ".local" / "state" / "msctl"
 
 
 def assembly_dir() -> Path:

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
     from components.assembly import ComponentPlan, ResolvedAssembly
     from components.executor.core import Core
     from components.executor.executor import Component, Executor
     from components.executor.interface import InterfaceSpec
+
+T = TypeVar("T")
 
 
 def node_name(component: str) -> str:
@@ -30,6 +32,22 @@ def node_name(component: str) -> str:
 
 class BuildError(ValueError):
     """A component that cannot be built from the assembly; the message says which and why."""
+
+
+def config_from_params(plan: ComponentPlan, config_type: type[T]) -> T:
+    """``config_type`` (a dataclass) from the plan's params that are its fields; the others
+    (a kind's structural params, injections, overrides) are left to the builder.
+
+    Raises:
+        BuildError: If a field is out of range or of the wrong type, naming the component.
+    """
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(config_type)}  # type: ignore[arg-type]
+    try:
+        return config_type(**{k: v for k, v in plan.params.items() if k in names})
+    except (TypeError, ValueError) as exc:
+        raise BuildError(f"{plan.name}: {exc}") from exc
 
 
 @dataclass

@@ -19,10 +19,14 @@ def main() -> None:
         from msctl.errors import MsctlError
 
         try:
-            from msctl.app import command
+            from msctl import quick
 
-            # Standalone mode: typer prints its own usage errors and exits with code 2.
-            command(sys.argv[1:])()
+            # `msctl ps` and `msctl topic list` as typed all day skip typer's import.
+            if not quick.run(sys.argv[1:]):
+                from msctl.app import command
+
+                # Standalone mode: typer prints its own usage errors and exits with code 2.
+                command(sys.argv[1:])()
         except MsctlError as exc:
             from rich.markup import escape
 

@@ -26,10 +26,16 @@ class Up:
         template: The template to bring up.
         extra: More ``msctl up`` arguments.
         env: More environment variables for every command (``MSCTL_TRANSPORT``...).
+        up_wait: Seconds ``msctl up --detach`` may take.
     """
 
     def __init__(
-        self, home: Path, template: str, *extra: str, env: dict[str, str] | None = None
+        self,
+        home: Path,
+        template: str,
+        *extra: str,
+        env: dict[str, str] | None = None,
+        up_wait: float = 120.0,
     ) -> None:
         self.home = home
         self.template = template
@@ -44,7 +50,15 @@ class Up:
             "PYTHONPATH": str(ROOT),
             **(env or {}),
         }
-        result = self.msctl("up", template, "--detach", "--speed", "1", *extra, timeout=120.0)
+        try:
+            result = self.msctl("up", template, "--detach", "--speed", "1", *extra, timeout=up_wait)
+        except subprocess.TimeoutExpired:
+            # The detached supervisor outlives the command: stop it, or a whole assembly
+            # runs on into every later test.
+            self.kill_leftovers()
+            raise
+        if result.returncode != 0:
+            self.kill_leftovers()
         assert result.returncode == 0, result.stdout + result.stderr
 
     def msctl(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:

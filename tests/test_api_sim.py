@@ -161,17 +161,21 @@ class Pace:
         jitter: How late a 100 Hz ground-truth pose arrived here, 99th percentile, s: the
             lateness of the simulator's tick, the transport and this process together.
         windows: How many 1 s real-time factor windows overlapped the stretch.
+        worst: The latest a pose arrived, s: one stall of that length at a leg's start or
+            stop is all it takes for one wheel module to run on alone.
     """
 
     rtf_min: float
     rtf_max: float
     jitter: float
     windows: int
+    worst: float = 0.0
 
     def __str__(self) -> str:
         return (
             f"real-time factor {self.rtf_min:.2f}..{self.rtf_max:.2f} over {self.windows} "
-            f"windows, pose arrival jitter p99 {self.jitter * 1000:.0f} ms"
+            f"windows, pose arrival jitter p99 {self.jitter * 1000:.0f} ms, "
+            f"worst {self.worst * 1000:.0f} ms"
         )
 
 
@@ -231,7 +235,8 @@ class SimClock:
         overlapping = [f for t, f in factors[: after + 1] if t > start]
         gaps = sorted(max(b - a - self.POSE_PERIOD, 0.0) for a, b in itertools.pairwise(poses))
         jitter = gaps[min(len(gaps) - 1, int(0.99 * len(gaps)))] if gaps else math.inf
-        return Pace(min(overlapping), max(overlapping), jitter, len(overlapping))
+        worst = gaps[-1] if gaps else math.inf
+        return Pace(min(overlapping), max(overlapping), jitter, len(overlapping), worst)
 
     def close(self) -> None:
         self.node.close()
@@ -292,8 +297,10 @@ def leg_bounds(side: float, pace: Pace, speed: float) -> tuple[float, float]:
 
 def yaw_slack(legs: int, pace: Pace, speed: float) -> float:
     """How far (rad) the body may turn in ``legs`` legs beyond the idle spread: at each end
-    of a leg one wheel module may start or stop a late run before the other."""
-    return legs * 2 * late_run(pace, speed) / DRAGON_WHEELBASE
+    of a leg one wheel module may start or stop a late run before the other, by as much as
+    the longest stall seen (a turn comes from a few such moments, not from the typical one;
+    a full run at load 10 turned the body 3.7 degrees against a p99-based 3.2)."""
+    return legs * 2 * speed * max(pace.jitter, pace.worst) / DRAGON_WHEELBASE
 
 
 def heading_bound(legs: int, pace: Pace, speed: float) -> float:
@@ -471,8 +478,16 @@ def test_ik_syncer_moves_the_tip_along_a_straight_line(minimal: Up, lock_of) -> 
 def test_connect_refuses_another_assembly(minimal: Up) -> None:
     from components.api import RobotNotFoundError
 
+    # minimal is on the graph first (a loaded machine may still be restarting a part of it):
+    # then asking for dragon is refused by name, not as "nothing runs".
+    async def present() -> None:
+        async with await connect("minimal", settings=minimal.settings(), timeout=120.0):
+            pass
+
+    run(present())
+
     with pytest.raises(RobotNotFoundError, match="'dragon' is not running; running: minimal"):
-        run(connect("dragon", settings=minimal.settings(), timeout=3.0))
+        run(connect("dragon", settings=minimal.settings(), timeout=15.0))
 
 
 class Latest:

@@ -199,3 +199,33 @@ def test_travel_drives_along_the_direction_and_ends_at_zero(steering: WheelSteer
     for message in sent:
         finals.update(message)
     assert finals and all(v == 0.0 for v in finals.values())  # a velocity is never left behind
+
+
+def test_a_wheel_module_s_flaps_are_no_wheels() -> None:
+    """The second Dragon of two_dragons rolls on H-line wheel V2 modules, whose position-
+    controlled flaps are joints of the module too: the steering took them for wheels and
+    failed ("its link has no cylinder or sphere radius"); only velocity joints are wheels."""
+    from types import SimpleNamespace
+
+    from components.api.wheels import wheel_joints
+    from components.assembly import from_document
+    from msctl.assembler import resolve
+
+    resolved = resolve("two_dragons", {})
+    assembly = from_document(resolved.document)
+    handlers = []
+    for slot in ("d2_wheel1", "d2_wheel2"):
+        module = assembly.module(slot)
+        assert any(j.control == "position" for j in module.joints)  # the flaps
+        infos = {
+            j.name: JointInfo(j.name, j.type, -math.inf, math.inf, 6.0, 30.0, control=j.control)
+            for j in module.joints
+        }
+        handlers.append(SimpleNamespace(slot=slot, joints=infos))
+    wheels = wheel_joints(handlers)
+    assert wheels == {
+        slot: (f"{slot}_wheel_left", f"{slot}_wheel_right") for slot in ("d2_wheel1", "d2_wheel2")
+    }
+    root = next(m.root_link for m in assembly.modules if m.slot == "d2_limb1")
+    geometry = WheelSteering(resolved.urdf, root, wheels).geometry({})
+    assert len(geometry.wheels) == 4 and all(w.radius > 0 for w in geometry.wheels)

@@ -5,7 +5,9 @@ simulated Dragon are ``test_operators_e2e``."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -37,7 +39,7 @@ from components.autonomous_operator.script import (
     shipped,
     validate,
 )
-from components.build import build_component
+from components.build import BuildError, build_component
 from components.executor.core import RecordingOutbox
 from components.human_operator.core import twist
 from components.messages import ERROR, OK, WARN, diagnostic_values
@@ -195,6 +197,31 @@ def test_an_operator_builds_over_its_robot_s_modules(two_dragons: ResolvedAssemb
         built.close()
 
 
+def test_the_script_is_imported_at_build_before_the_executor_beats(
+    two_dragons: ResolvedAssembly, tmp_path: Path
+) -> None:
+    """Importing a script (Pinocchio's C++ start holds the GIL) happens while the worker
+    builds, before its heartbeat is judged, not on the script's thread beside a running
+    executor, where a loaded machine made it look frozen; a script that fails to import is a
+    build error naming its line, which the supervisor does not retry."""
+    plan = two_dragons.component("gc_rear/d2_steering")
+    built = build_component(plan, two_dragons, {})
+    try:
+        main = built.on_bound.main
+        assert main.__name__ == "main" and main.__module__ == "_msctl_operator_gc_rear_d2_steering"
+    finally:
+        built.close()
+    script = tmp_path / "broken.py"
+    script.write_text(
+        "import math\n\nraise RuntimeError('no robot here')\n\n\ndef main(robot):\n    pass\n"
+    )
+    broken = dataclasses.replace(plan, params={"script": str(script), "robot": "d2_limb1"})
+    with pytest.raises(
+        BuildError, match=r"gc_rear/d2_steering: broken\.py:3 \(<module>\): RuntimeError: no robot"
+    ):
+        build_component(broken, two_dragons, {})
+
+
 # ---------------------------------------------------------------------------- the status
 def test_the_status_says_what_became_of_the_script_and_what_it_reported() -> None:
     stopped = []
@@ -242,6 +269,26 @@ def test_the_twist_gate_refuses_nan_and_inf_and_clamps_without_ever_raising() ->
     assert (gate.taken, gate.refused, gate.clamped, gate.ignored) == (3, 4, 1, 1)
     with pytest.raises(ValueError, match="max_speed must be a positive number"):
         TwistGate(max_speed=math.inf, max_turn=1.0)
+
+
+@pytest.mark.parametrize(
+    ("script", "params", "why"),
+    [
+        ("steering", {"timeout": 0.0}, "steering: timeout must be a positive number, not 0.0"),
+        ("steering", {"rate": math.nan}, "steering: rate must be a positive number, not nan"),
+        ("guardian", {"period": -1.0}, "guardian: period must be a positive number, not -1.0"),
+        ("guardian", {"stale_after": math.inf}, "stale_after must be a positive number, not inf"),
+    ],
+)
+def test_an_operator_refuses_a_parameter_that_is_not_a_positive_number(
+    script: str, params: dict[str, float], why: str
+) -> None:
+    import asyncio
+    import importlib
+
+    main = importlib.import_module(f"components.autonomous_operator.operators.{script}").main
+    with pytest.raises(ValueError, match=re.escape(why)):
+        asyncio.run(main(SimpleNamespace(), **params))  # refused before the robot is touched
 
 
 def test_the_ramp_moves_toward_the_target_at_bounded_accelerations() -> None:

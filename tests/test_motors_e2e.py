@@ -479,15 +479,19 @@ def test_silent_motor_is_an_error_naming_it_then_picked_up_again(limb: Limb) -> 
     assert names_motor(limb.plan(silent), message)
     assert limb.errors() == {c.name: 0 for c in limb.components}
 
-    # The other joints keep reporting, stay OK, and still obey commands.
+    # The other joints keep reporting, are OK, and still obey commands. Waited for, not
+    # sampled once: the emulated chain is a thread of this process, and on a loaded machine it
+    # can miss a reply window of a servo that is not the silent one (seen in a full run).
     limb.move(other, -0.3)
     now = time.monotonic()
-    time.sleep(0.3)
-    assert limb.operator.states_since(other, now) >= 5
+    wait_until(lambda: limb.operator.states_since(other, now) >= 5, 10.0, f"{other} reporting")
+    others = [name for name in limb.joints if name != silent]
+    wait_until(
+        lambda: all(limb.operator.level(name)[0] == OK for name in others),
+        10.0,
+        "every other joint OK",
+    )
     assert limb.operator.states_since(silent, now) == 0
-    for name in limb.joints:
-        if name != silent:
-            assert limb.operator.level(name)[0] == OK, (name, limb.operator.level(name))
 
     # Back: picked up without any call, OK again, and it moves when told.
     limb.hardware.resume(silent)

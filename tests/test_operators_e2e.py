@@ -315,13 +315,22 @@ def test_steering_takes_cmd_vel_only_from_the_holder_of_the_claims(plane: Plane)
     try:
         claim = claims.claim("wheel1", "ana@ground1", holder)
         not_holder = int(plane.status("steering")[2].get("not_holder", "0"))
+
+        def refused_more(than: int) -> bool:
+            return int(plane.status("steering")[2].get("not_holder", "0")) > than
+
+        # The claim reaches the steering process on its own path (a liveliness token), in
+        # no order with this node's samples: zero Twists (harmless if taken) until one is
+        # refused, so the drive below starts once the claim is known there.
+        def probe_refused() -> bool:
+            plane.cmd_vel.publish(twist())
+            return refused_more(not_holder)
+
+        wait_until(probe_refused, 30.0, "the steering to know the claim", interval=0.1)
+        not_holder = int(plane.status("steering")[2].get("not_holder", "0"))
         start = plane.at_rest()
         plane.drive(0.2, 0.0, 1.5)  # the test's own node holds nothing: refused
-        wait_until(
-            lambda: int(plane.status("steering")[2].get("not_holder", "0")) > not_holder,
-            30.0,
-            "the refused Twists counted",
-        )
+        wait_until(lambda: refused_more(not_holder), 30.0, "the refused Twists counted")
         still = plane.at_rest()
         assert math.hypot(still[0] - start[0], still[1] - start[1]) < 0.01
         ours = holder.publisher("/cmd_vel", TWIST)
@@ -355,18 +364,21 @@ def test_the_human_operator_relays_a_screen_to_the_steering_and_stops_a_frozen_s
         relay = screen.publisher(attached.relays["/cmd_vel"], TWIST)
         start = plane.at_rest()
         began = plane.clock
-        frozen = time.monotonic()
         while plane.clock - began < 2.0:
-            # Taken before each Twist goes: a loaded machine may wake this thread after the
-            # deadman's stop already came, which must still count as after the last Twist.
-            frozen = time.monotonic()
             relay.publish(twist(0.2))
             time.sleep(0.05)
-        # The screen freezes: no stop of its own. The human operator's deadman sends one.
-        wait_until(lambda: any(x == 0.0 and t > frozen for t, x in seen), 30.0, "the stop")
-        time.sleep(1.0)
-        after = [x for t, x in seen if t > frozen]
-        assert after.count(0.0) == 1 and after[-1] == 0.0, after
+
+        def after_the_last_twist() -> list[float] | None:
+            values = [x for _, x in seen]
+            moving = [i for i, x in enumerate(values) if x != 0.0]
+            return values[moving[-1] + 1 :] if moving else None
+
+        # The screen freezes: no stop of its own. The human operator's deadman sends one, and
+        # then nothing. (A loaded machine may starve this thread mid-stream past the deadman:
+        # that gap gets its own stop, as it should, so only the tail is exactly one stop.)
+        wait_until(lambda: after_the_last_twist() == [0.0], 30.0, "one stop after the stream")
+        time.sleep(1.0)  # a window in which nothing more may come
+        assert after_the_last_twist() == [0.0], [x for _, x in seen]
         end = plane.at_rest()
         assert end[0] - start[0] > 0.2  # the Dragon drove through the relay, and stopped
         values = plane.status("human_operator")[2]
@@ -448,31 +460,42 @@ def test_the_guardian_halts_the_dragon_when_a_limb_tilts_it_past_max_tilt(
 
     monkeypatch.setenv("MSCTL_HOME", str(plane.up.home))  # the API reads the lock there
 
-    async def lift() -> tuple[float, float]:
+    async def lift() -> tuple[float, float, float]:
         robot = await connect(settings=plane.up.settings(), timeout=60.0, slots=["limb2"])
         try:
             limb = robot.syncer("limb2", speed=0.2)
             motion = limb.lerp({"joint2": 0.9})  # lifts the body: the guardian stops it
+            # Halted once every module has acknowledged (the status names each one's time:
+            # on a loaded machine limb2's came 0.6 s after the ERROR, and the lift ran on).
             await asyncio.to_thread(
                 wait_until,
-                lambda: plane.status("guardian")[0] == 2,
+                lambda: (
+                    plane.status("guardian")[0] == 2
+                    and "acknowledged" in plane.status("guardian")[1]
+                ),
                 180.0,
                 "the guardian halting the Dragon",
             )
             at_halt = robot.positions()["limb2_joint2"]
             await asyncio.sleep(2.0)
             later = robot.positions()["limb2_joint2"]
+            await asyncio.sleep(1.0)
+            still = robot.positions()["limb2_joint2"]
             limb.cancel()
             del motion
-            return at_halt, later
+            return at_halt, later, still
         finally:
             await robot.close()
 
-    at_halt, later = asyncio.run(lift())
+    at_halt, later, still = asyncio.run(lift())
     message = plane.status("guardian")[1]
     print(f"\nguardian: {message}")
     assert "HALTED" in message and "max_tilt" in message and "0.26 rad" in message, message
-    assert later - at_halt < 0.02, (at_halt, later)  # halted: the lift went no further
+    # Halted: the lift stopped where it was, far short of its 0.9 rad, and stays. (What the
+    # test reads at the halt may be a sample or two old: a loaded run saw 0.021 rad more, 0.1 s
+    # of the lift's 0.2 rad/s; a lift that went on would reach 0.9.)
+    assert later - at_halt < 0.05 and later < 0.7, (at_halt, later)
+    assert abs(still - later) < 0.005, (at_halt, later, still)
     recovered = plane.up.msctl("recover")
     assert recovered.returncode == 0, recovered.stdout + recovered.stderr
 

@@ -219,16 +219,14 @@ class Robot:
         (default: every wheel module), geometry from the resolved assembly's URDF at the
         measured limb angles (again at the start of every motion), steering with the limbs
         (:class:`~components.api.wheels.WheelSteering`)."""
-        from components.api.wheels import WheelDrive, WheelSteering
+        from components.api.wheels import WheelDrive, WheelSteering, wheel_joints
 
         urdf = self._urdf("the wheel helper")
         wheels = slots or tuple(self.wheels)
         if not wheels:
             raise ApiError(f"{self.template or 'this robot'} has no wheel module")
         handlers = [self.handler(s) for s in wheels]
-        steering = WheelSteering(
-            urdf, self.assembly.root_links[0], {h.slot: tuple(h.joints) for h in handlers}
-        )
+        steering = WheelSteering(urdf, self.assembly.root_links[0], wheel_joints(handlers))
         geometry = steering.geometry(self.positions())
         return self._adopt(
             WheelDrive(handlers, geometry, steering=steering, positions=self.positions, **tuning)
@@ -374,6 +372,8 @@ NETWORK_WAIT = 2.0
 #: Seconds with neither a module nor a supervisor on a reachable network before saying
 #: nothing runs (an ``msctl up`` that is starting already serves its supervisor).
 NOTHING_RUNS_WAIT = 2.0
+#: Seconds one graph query may take.
+GRAPH_QUERY = 1.0
 
 
 def _failing_fast(settings: Any) -> Any:
@@ -435,7 +435,11 @@ async def _discover(
     deadline = started + timeout
     previous: list[str] | None = None
     while True:
-        graph = await asyncio.to_thread(snapshot, node.session, node.domain, 1.0)
+        asked = time.monotonic()
+        graph = await asyncio.to_thread(snapshot, node.session, node.domain, GRAPH_QUERY)
+        # A query that ended before its bound is the network's whole answer; one cut off by
+        # it (a loaded machine, a slow link) may have missed what runs, so it proves nothing.
+        whole = time.monotonic() - asked < 0.9 * GRAPH_QUERY
         services = graph.services()
         topics = graph.topics()
         found = []
@@ -451,7 +455,8 @@ async def _discover(
         ]
         if time.monotonic() > deadline:
             break
-        if not found and not supervisors and time.monotonic() - started > NOTHING_RUNS_WAIT:
+        nothing = not found and not supervisors and whole
+        if nothing and time.monotonic() - started > NOTHING_RUNS_WAIT:
             break  # a router, and nothing behind it
         if expected is not None and expected <= set(found):
             break

@@ -161,6 +161,19 @@ class WheelGeometry:
         return cls(tuple(wheels), root_link)
 
 
+def wheel_joints(handlers: Sequence[JointHandler]) -> dict[str, tuple[str, ...]]:
+    """Each wheel module's wheels: its velocity-controlled joints (an H-line wheel V2's
+    position-controlled flaps move the module but are no wheels: they have no radius).
+
+    Args:
+        handlers: The wheel modules' :class:`~components.api.joints.JointHandler`.
+    """
+    return {
+        h.slot: tuple(name for name, info in h.joints.items() if info.control == "velocity")
+        for h in handlers
+    }
+
+
 def _radius(link: ET.Element | None, joint: str) -> float:
     if link is not None:
         for tag in ("collision", "visual"):

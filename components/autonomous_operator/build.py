@@ -15,7 +15,7 @@ from typing import Any
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.autonomous_operator.core import AutonomousOperatorCore, OperatorConfig
 from components.autonomous_operator.interface import AUTONOMOUS_OPERATOR
-from components.autonomous_operator.runner import ScriptRunner
+from components.autonomous_operator.runner import ScriptRunner, load_main, where_it_failed
 from components.autonomous_operator.script import check_arguments, locate, read_main
 from components.build import BuildError, BuiltComponent, node_name
 from components.robots import modules_of, robot_names, root_link
@@ -47,12 +47,18 @@ def build(
         slots = slots or [m.slot for m in assembly.modules]
     except (TypeError, ValueError, KeyError) as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
+    try:
+        # Imported here, before the executor beats its heartbeat: see the runner's docstring.
+        main = load_main(path, plan.name.replace("/", "_"))
+    except Exception as exc:
+        raise BuildError(f"{plan.name}: {where_it_failed(path, exc)}") from exc
     core = AutonomousOperatorCore(plan.name, path.stem, config, hardware_id=plan.host)
     built = BuiltComponent(core, AUTONOMOUS_OPERATOR, plan.namespace, node_name(plan.name))
     runner = ScriptRunner(
         built,
         assembly,
         path,
+        main,
         params,
         slots,
         robot,

@@ -29,6 +29,10 @@ from components.api.connect import Robot
 from components.api.errors import ApiError
 from components.api.joints import JointHandler
 
+# At import, i.e. while the worker builds (see components.autonomous_operator.runner): Pinocchio's
+# start must not hold the GIL on the script's thread beside a beating executor.
+from components.api.wheels import WheelDrive, WheelSteering, wheel_joints
+
 
 class OperatorRobot(Robot):
     """The robot of one autonomous operator.
@@ -155,14 +159,12 @@ class OperatorRobot(Robot):
     def drive(self, *slots: str, **tuning: Any) -> Any:
         """A :class:`~components.api.wheels.WheelDrive` over wheel modules ``slots``
         (default: every wheel module of the robot), steering in the robot's root link."""
-        from components.api.wheels import WheelDrive, WheelSteering
-
         urdf = self._urdf("the wheel helper")
         wheels = slots or tuple(self.wheels)
         if not wheels:
             raise ApiError(f"robot {self.robot} has no wheel module")
         handlers = [self.handler(s) for s in wheels]
-        steering = WheelSteering(urdf, self.root_link, {h.slot: tuple(h.joints) for h in handlers})
+        steering = WheelSteering(urdf, self.root_link, wheel_joints(handlers))
         geometry = steering.geometry(self.positions())
         return self._adopt(
             WheelDrive(handlers, geometry, steering=steering, positions=self.positions, **tuning)

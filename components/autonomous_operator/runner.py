@@ -4,7 +4,10 @@
 loop, attaches the robot on the component's node
 (:func:`~components.autonomous_operator.robot.attach_robot`), loads the script and calls
 ``main(robot, **params)`` (a synchronous ``main`` runs on a thread of its own, with the
-blocking facade of ``msctl run``). Then:
+blocking facade of ``msctl run``). The script itself is imported by the builder, before the
+executor runs: its imports (Pinocchio's C++ initialisation holds the GIL for tens of
+milliseconds, seconds on a loaded machine) must not starve the executor's heartbeat, or the
+supervisor kills the process as frozen. Then:
 
 * ``main`` returns: the operator is *finished* (its status says so); the process stays, so
   the supervisor does not start the script again;
@@ -28,6 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from components.autonomous_operator.core import FAILED, FINISHED, RUNNING, STARTING
+from components.autonomous_operator.robot import attach_robot
 from components.messages import ERROR, OK, WARN
 
 if TYPE_CHECKING:
@@ -71,6 +75,7 @@ class ScriptRunner:
         built: The built component (marked ``failed`` when the script fails).
         assembly: The resolved assembly.
         path: The script.
+        main: Its ``main`` (:func:`load_main`).
         params: ``main``'s keyword arguments.
         slots: The modules of the operator's robot.
         robot: The robot's name (its root module).
@@ -84,6 +89,7 @@ class ScriptRunner:
         built: BuiltComponent,
         assembly: Any,
         path: Path,
+        main: Any,
         params: Mapping[str, Any],
         slots: list[str],
         robot: str,
@@ -94,6 +100,7 @@ class ScriptRunner:
         self.built = built
         self.assembly = assembly
         self.path = path
+        self.main = main
         self.params = dict(params)
         self.slots = slots
         self.robot_name = robot
@@ -161,8 +168,6 @@ class ScriptRunner:
             loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
 
     async def _main(self) -> None:
-        from components.autonomous_operator.robot import attach_robot
-
         assert self.component is not None and self.executor is not None
         robot = None
         name = self.component.name
@@ -180,7 +185,7 @@ class ScriptRunner:
                 guard=self.executor.claim_guard,
                 name=name,
             )
-            main = load_main(self.path, name.replace("/", "_"))
+            main = self.main
             self.state(RUNNING, OK, f"{self.path.name} running on {self.robot_name}")
             if inspect.iscoroutinefunction(main):
                 await main(robot, **self.params)

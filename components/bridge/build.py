@@ -8,7 +8,6 @@ They stop with the component's other resources.
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
@@ -16,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.bridge.core import BridgeConfig, BridgeCore, BridgeStatus
 from components.bridge.interface import BRIDGE
-from components.build import BuildError, BuiltComponent, node_name
+from components.build import BuiltComponent, config_from_params, node_name
 
 if TYPE_CHECKING:
     from components.executor.executor import Component, Executor
@@ -88,11 +87,7 @@ def build(
         BuildError: If a parameter is out of range or selects nothing.
     """
     del assembly, options
-    names = {f.name for f in dataclasses.fields(BridgeConfig)}
-    try:
-        config = BridgeConfig(**{k: v for k, v in plan.params.items() if k in names})
-    except (TypeError, ValueError) as exc:
-        raise BuildError(f"{plan.name}: {exc}") from exc
+    config = config_from_params(plan, BridgeConfig)
     bridging = Bridging(config)
     core = BridgeCore(plan.name, bridging.status, hardware_id=plan.host)
     built = BuiltComponent(core, BRIDGE, plan.namespace, node_name(plan.name))

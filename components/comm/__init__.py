@@ -11,13 +11,40 @@ Typical use::
         node.close()
 """
 
-from components.comm.node import Node
-from components.comm.qos import LATCHED, SENSOR, QoS
-from components.comm.services import ServiceClient, ServiceError, ServiceServer, ServiceTimeout
-from components.comm.session import SessionSettings, open_session, router_settings
-from components.comm.stats import drops
-from components.comm.topics import Publisher, Subscription
-from components.comm.types import registry
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+# Each name is imported from its module when first asked for: importing one light module
+# of the package (names, liveliness, graph) must not pull in every endpoint and codec.
+_EXPORTS: dict[str, str] = {
+    "Node": "components.comm.node",
+    "LATCHED": "components.comm.qos",
+    "SENSOR": "components.comm.qos",
+    "QoS": "components.comm.qos",
+    "ServiceClient": "components.comm.services",
+    "ServiceError": "components.comm.services",
+    "ServiceServer": "components.comm.services",
+    "ServiceTimeout": "components.comm.services",
+    "SessionSettings": "components.comm.session",
+    "open_session": "components.comm.session",
+    "router_settings": "components.comm.session",
+    "drops": "components.comm.stats",
+    "Publisher": "components.comm.topics",
+    "Subscription": "components.comm.topics",
+    "registry": "components.comm.types",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The package's public names, imported on first use."""
+    try:
+        module = _EXPORTS[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    return getattr(importlib.import_module(module), name)
+
 
 __all__ = [
     "LATCHED",
@@ -36,3 +63,7 @@ __all__ = [
     "registry",
     "router_settings",
 ]
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])

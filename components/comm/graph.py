@@ -123,10 +123,18 @@ def _parse(key: str) -> Entity | None:
         return None
 
 
-def snapshot(session: Any, domain: int = 0, timeout: float = 1.0) -> Snapshot:
-    """Ask the network for every live token of ``domain`` and return the graph."""
+def snapshot(session: Any, domain: int = 0, timeout: float = 1.0, tokens: str = "**") -> Snapshot:
+    """Ask the network for the live tokens of ``domain`` and return the graph.
+
+    Args:
+        session: An open Zenoh session.
+        domain: ROS domain id.
+        timeout: Seconds the answers may take at most (the query ends when they are in).
+        tokens: Which tokens, as a key expression below ``@ros2_lv/<domain>/`` (default all);
+            the router answers only those (e.g. one service type's servers).
+    """
     entities = []
-    for reply in session.liveliness().get(f"{PREFIX}/{domain}/**", timeout=timeout):
+    for reply in session.liveliness().get(f"{PREFIX}/{domain}/{tokens}", timeout=timeout):
         if reply.ok is None:
             continue
         entity = _parse(str(reply.ok.key_expr))

@@ -7,12 +7,24 @@ is dropped, counted per topic and reason, and logged at most once per interval p
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections import defaultdict
+from typing import Any
 
-log = logging.getLogger("msctl.comm")
+
+class _Logger:
+    """The ``msctl.comm`` logger, looked up on first use: importing ``logging`` (~10 ms) is
+    paid by the processes that log, not by every short CLI command that imports the plane."""
+
+    def __getattr__(self, name: str) -> Any:
+        import logging
+
+        return getattr(logging.getLogger("msctl.comm"), name)
+
+
+#: Where the plane's warnings go (the ``msctl.comm`` logger).
+log: Any = _Logger()
 
 #: Seconds between two log lines about the same topic and reason.
 LOG_INTERVAL = 5.0

@@ -11,7 +11,6 @@ relative to msctl's state directory (``$MSCTL_HOME``) unless absolute.
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 from collections.abc import Mapping
 from datetime import datetime
@@ -19,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly, state_dir
-from components.build import BuildError, BuiltComponent, node_name
+from components.build import BuiltComponent, config_from_params, node_name
 from components.data_archiver.core import (
     ArchiverConfig,
     DataArchiverCore,
@@ -119,11 +118,7 @@ def build(
         BuildError: If a parameter is out of range or a pattern does not compile.
     """
     del assembly, options
-    names = {f.name for f in dataclasses.fields(ArchiverConfig)}
-    try:
-        config = ArchiverConfig(**{k: v for k, v in plan.params.items() if k in names})
-    except (TypeError, ValueError) as exc:
-        raise BuildError(f"{plan.name}: {exc}") from exc
+    config = config_from_params(plan, ArchiverConfig)
     recording = Recording(config, bag_directory(config, plan, datetime.now()))
     core = DataArchiverCore(plan.name, recording.status, hardware_id=plan.host)
     built = BuiltComponent(core, DATA_ARCHIVER, plan.namespace, node_name(plan.name))

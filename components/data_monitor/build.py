@@ -7,12 +7,11 @@ thread with ``Executor.call_soon``. Both are closed with the component's other r
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import BuildError, BuiltComponent, node_name
+from components.build import BuiltComponent, config_from_params, node_name
 from components.data_monitor.core import DataMonitorConfig, DataMonitorCore
 from components.data_monitor.feeds import NodeFeed, SupervisorPoller
 from components.data_monitor.interface import data_monitor_interface
@@ -72,11 +71,7 @@ def build(
         BuildError: If a parameter is out of range or not a number.
     """
     del options
-    names = {f.name for f in dataclasses.fields(DataMonitorConfig)}
-    try:
-        config = DataMonitorConfig(**{k: v for k, v in plan.params.items() if k in names})
-    except (TypeError, ValueError) as exc:
-        raise BuildError(f"{plan.name}: {exc}") from exc
+    config = config_from_params(plan, DataMonitorConfig)
     board = board_for(assembly, stale_after=config.stale_after, max_items=config.max_items)
     feeds_holder: list[MonitorFeeds] = []
     core = DataMonitorCore(

@@ -8,12 +8,11 @@ component.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import BuildError, BuiltComponent, node_name
+from components.build import BuiltComponent, config_from_params, node_name
 from components.human_operator.core import HumanOperatorConfig, HumanOperatorCore
 from components.human_operator.desk import OperatorDesk
 from components.human_operator.interface import human_operator_interface
@@ -31,11 +30,7 @@ def build(
         BuildError: If a parameter is out of range or not a number.
     """
     del options
-    names = {f.name for f in dataclasses.fields(HumanOperatorConfig)}
-    try:
-        config = HumanOperatorConfig(**{k: v for k, v in plan.params.items() if k in names})
-    except (TypeError, ValueError) as exc:
-        raise BuildError(f"{plan.name}: {exc}") from exc
+    config = config_from_params(plan, HumanOperatorConfig)
     node = node_name(plan.name)
     routes = routes_of(assembly, f"{plan.namespace.rstrip('/')}/{node}")
     core = HumanOperatorCore(plan.name, routes, config, hardware_id=plan.host)

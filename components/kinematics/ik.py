@@ -18,6 +18,18 @@ How one solve goes (:meth:`IkSolver.solve`):
    inside a box of ``jump_bound`` around them, and return the closest pose found within the
    bound. An unreachable target therefore moves the limb toward it, never makes it jump.
 
+A chain of a known shape may be given a closed-form guess (:attr:`IkSolver.guess`, set by the
+``analytic_guess`` injection from module data; :mod:`components.kinematics.analytic`): it
+lists the target's solutions (sampling any redundant direction), those within the limits are
+unwrapped toward the current angles, and the nearest (smallest largest-joint jump) is polished
+by a descent (the next ones should it not converge). It replaces the random restarts of step 2
+when the warm start gives no converged solution within the jump bound, and it replaces the
+warm start itself for a target farther than ``far_target`` from the tip: the nearest of the
+listed solutions answers "is there a solution within the jump bound" far more often than a
+descent from the current angles, which has to cross the distance in capped steps and then
+often lands on a far solution anyway. When it lists no solution within the limits, steps 1
+to 4 run as above.
+
 Chains with fewer than 6 joints cannot hold an arbitrary orientation, so they solve for the
 tip position alone and ignore the target's orientation.
 """
@@ -31,9 +43,13 @@ import numpy as np
 import pinocchio as pin
 
 from components.config import require
+from components.kinematics.analytic import Guess
 from components.kinematics.model import ChainModel
 
 _TWO_PI = 2.0 * math.pi
+#: Closed-form solutions polished, nearest first, before falling back to random restarts
+#: (the first converges unless it sits at a singularity).
+_GUESS_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -63,6 +79,10 @@ class IkSettings:
             and each costs a descent), and take the one with the smallest jump.
         limit_margin: Distance kept from every joint limit (match the joint manager's
             ``position_margin`` so what IK proposes is what the joints do).
+        far_target: With a closed-form guess, a target farther than this from the tip
+            (m, orientation counted at ``orientation_weight``) is tried from the guess before
+            the warm start: reaching it from the current angles would take many capped steps,
+            and often ends at a far solution anyway.
     """
 
     position_tolerance: float = 1e-4
@@ -77,6 +97,7 @@ class IkSettings:
     jump_bound: float = 1.0
     far_solutions: int = 3
     limit_margin: float = 0.02
+    far_target: float = 0.2
 
     def __post_init__(self) -> None:
         require(
@@ -91,6 +112,7 @@ class IkSettings:
                 "iterations",
                 "budget",
                 "far_solutions",
+                "far_target",
             ),
             non_negative=("damping", "limit_margin", "orientation_weight"),
         )
@@ -131,6 +153,8 @@ class _Descent:
     converged: bool
     iterations: int
     cost: float
+    #: Stopped at the start because the target was farther than asked (see ``give_up_above``).
+    gave_up: bool = False
 
 
 class IkSolver:
@@ -140,10 +164,22 @@ class IkSolver:
         chain: The chain's model (its data is used as scratch: one solver per chain model).
         settings: Solver tuning.
         seed: Seed of the restart generator (restarts are reproducible).
+        guess: Closed-form solutions of the chain's shape, tried instead of random restarts
+            (see :mod:`components.kinematics.analytic`); None: random restarts only.
+
+    Attributes:
+        guess: As the argument; the ``analytic_guess`` injection sets it.
     """
 
-    def __init__(self, chain: ChainModel, settings: IkSettings | None = None, seed: int = 0):
+    def __init__(
+        self,
+        chain: ChainModel,
+        settings: IkSettings | None = None,
+        seed: int = 0,
+        guess: Guess | None = None,
+    ):
         self.chain = chain
+        self.guess = guess
         self.settings = settings or IkSettings()
         self.position_only = chain.nq < 6
         margin = self.settings.limit_margin
@@ -157,6 +193,11 @@ class IkSolver:
             ]
             raise ValueError(f"joints {bad}: range narrower than twice the limit margin {margin}")
         self._rng = np.random.default_rng(seed)
+        # Guessed angles lie in [-pi, pi]: whole turns matter only to a joint whose range
+        # reaches beyond that.
+        self._turns_matter = bool(
+            np.any(chain.revolute & ((self.lower < -math.pi) | (self.upper > math.pi)))
+        )
         self._identity = np.eye(3 if self.position_only else 6)
         self._least_regular = self.settings.damping * self._identity
         s = self.settings
@@ -198,13 +239,39 @@ class IkSolver:
         budget = s.budget if budget is None else budget
         current = np.asarray(current, dtype=float)
         start = self.clamp(current)
+        guess = self.guess
         attempts, spent = 1, 0
-        first = self._descend(start, target, self.lower, self.upper, min(s.iterations, budget))
+        first = self._descend(
+            start,
+            target,
+            self.lower,
+            self.upper,
+            min(s.iterations, budget),
+            give_up_above=math.inf if guess is None else s.far_target,
+        )
         spent += first.iterations
-        candidates = [first]
         jump = self._jump(first.q, current)
         if first.converged and jump <= s.jump_bound:
             return self._result(first, target, current, attempts, spent, jump)
+        if guess is not None and spent < budget:
+            guessed, tried, used = self._nearest_guess(target, current, budget - spent)
+            attempts += tried
+            spent += used
+            if guessed is not None:
+                if first.converged and jump < self._jump(guessed.q, current):
+                    return self._result(first, target, current, attempts, spent, jump)
+                return self._result(guessed, target, current, attempts, spent)
+            if first.gave_up and spent < budget:
+                # Out of the guess's reach (or of the limits): the warm start after all.
+                attempts += 1
+                first = self._descend(
+                    start, target, self.lower, self.upper, min(s.iterations, budget - spent)
+                )
+                spent += first.iterations
+                jump = self._jump(first.q, current)
+                if first.converged and jump <= s.jump_bound:
+                    return self._result(first, target, current, attempts, spent, jump)
+        candidates = [first]
         while spent < budget:
             attempts += 1
             seed = self._random_start(current)
@@ -235,7 +302,13 @@ class IkSolver:
 
     # ------------------------------------------------------------------ internals
     def _descend(
-        self, q: np.ndarray, target: pin.SE3, lo: np.ndarray, hi: np.ndarray, iterations: int
+        self,
+        q: np.ndarray,
+        target: pin.SE3,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        iterations: int,
+        give_up_above: float = math.inf,
     ) -> _Descent:
         """Damped least squares from ``q``, clamped to ``[lo, hi]`` every iteration.
 
@@ -243,6 +316,9 @@ class IkSolver:
         taken back and retried with more damping (near a singular configuration the
         linearisation lies, and an undamped step flings the joints); a step that helps lowers
         the damping again toward ``settings.damping``.
+
+        When the start is farther from the target than ``give_up_above`` (its cost), it stops
+        after that first look (``gave_up``): the caller has a better way to far targets.
         """
         (
             model, data, frame, position_only, pos_tol, rot_tol, max_step,
@@ -271,6 +347,8 @@ class IkSolver:
                 twist = pin.log6(gap).vector
                 rot_err = math.sqrt(twist[3:] @ twist[3:])
             cost = pos_err + weight * rot_err
+            if cost > give_up_above and done == 1:
+                return _Descent(q, tip.copy(), pos_err, rot_err, False, 1, cost, gave_up=True)
             if cost >= base_cost:
                 # Worse: back to the last good configuration, damp more, try a shorter step
                 # (its Jacobian and error, computed when it was kept, are still at hand).
@@ -331,6 +409,47 @@ class IkSolver:
         # base_tip is Pinocchio's frame placement, overwritten by later iterations: recompute.
         pose = self.chain.tip(base_q)
         return _Descent(base_q, pose, base_pos, base_rot, False, done, base_cost)
+
+    def _nearest_guess(
+        self, target: pin.SE3, current: np.ndarray, budget: int
+    ) -> tuple[_Descent | None, int, int]:
+        """The nearest closed-form solution within the limits, polished by a descent.
+
+        Returns:
+            The converged descent (None: no solution within the limits, or none of the
+            nearest few converged), descents run, iterations spent.
+        """
+        assert self.guess is not None
+        candidates = self.guess(target, current)
+        if not len(candidates):
+            return None, 0, 0
+        lower, upper = self.lower, self.upper
+        if self._turns_matter:
+            candidates = self._unwrap(candidates, current)
+            for turn in (_TWO_PI, -_TWO_PI):
+                # An angle outside the limits may be inside them a turn away (a joint whose
+                # range is not centred on zero).
+                turned = candidates + turn
+                fits = self.chain.revolute & ((candidates < lower) | (candidates > upper))
+                fits &= (turned >= lower) & (turned <= upper)
+                candidates = np.where(fits, turned, candidates)
+        inside = ((candidates >= lower) & (candidates <= upper)).all(axis=1)
+        candidates = candidates[inside]
+        jumps = np.abs(candidates - current).max(axis=1)
+        attempts = spent = 0
+        for i in np.argsort(jumps)[:_GUESS_TRIES]:
+            if spent >= budget:
+                break
+            attempts += 1
+            found = self._descend(
+                candidates[i], target, lower, upper, min(self.settings.iterations, budget - spent)
+            )
+            spent += found.iterations
+            if found.converged:
+                if self._turns_matter:
+                    found.q = self._unwrap(found.q, current)
+                return found, attempts, spent
+        return None, attempts, spent
 
     def _random_start(self, current: np.ndarray) -> np.ndarray:
         # Unbounded joints restart within half a turn of where they are.

@@ -14,4 +14,5 @@ KIND = ComponentKind(
     structural=("chain", "base_link", "tip_link", "joints"),
     # It takes ik_target only from the limb's claim holder and turns it into joint_set.
     claim_relay=True,
+    extensions=("components.kinematics.injections",),
 )

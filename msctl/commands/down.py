@@ -95,7 +95,10 @@ def _down_every_host(local_runs: bool) -> None:
 
     try:
         with connected("down") as node:
-            answers = ask_all(node, "down")
+            # An agent answers once its processes are gone: up to the shutdown policy's 3 s
+            # of grace each, more on a loaded computer. All are asked at once, and the bound
+            # costs nothing when they answer sooner.
+            answers = ask_all(node, "down", timeout=20.0)
             there = _still_there(node, [n for n, a in answers.items() if "error" in a])
     except NetworkError as exc:
         if local_runs:

@@ -47,32 +47,9 @@ def list_topics(
     json_output: bool = JSON_OPT,
 ) -> None:
     """List every topic on the network."""
-    from components.comm.graph import snapshot
-    from msctl.console import out, print_json
-    from msctl.plane import connected
+    from msctl.listings import show_topics
 
-    with connected("topic_list") as node:
-        topics = snapshot(node.session, node.domain).topics()
-    if json_output:
-        print_json(
-            [
-                {
-                    "name": t.name,
-                    "types": sorted(t.types),
-                    "publishers": t.publishers,
-                    "subscribers": t.subscribers,
-                }
-                for t in topics.values()
-            ]
-        )
-        return
-    for t in topics.values():
-        line = t.name
-        if show_types or verbose:
-            line += f" [{', '.join(sorted(t.types))}]"
-        if verbose:
-            line += f" {t.publishers} publisher(s), {t.subscribers} subscriber(s)"
-        out.print(line, highlight=False, markup=False)
+    show_topics(show_types=show_types, verbose=verbose, json_output=json_output)
 
 
 def _resolve_type(node: Any, topic: str, msg_type: str | None, timeout: float) -> str:

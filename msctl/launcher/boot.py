@@ -56,15 +56,27 @@ def held_sigint() -> Iterator[None]:
 def main() -> None:
     """Run the module named by the first argument as ``__main__``, with the rest as its argv."""
     # First of all, then unblocked: a SIGINT pending since the spawn ends the process here.
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _default_sigint()
     if len(sys.argv) < 2 or sys.argv[1].startswith("-"):
         print(USAGE, file=sys.stderr)
         sys.exit(2)
-    module = sys.argv[1]
+    run(sys.argv[1], sys.argv[2:])
+
+
+def run(module: str, args: list[str]) -> None:
+    """Run ``module`` as ``__main__`` with ``args``, SIGINT ending it at once until it sets its
+    own handling (also what a worker forked by :mod:`msctl.launcher.forkserver` does)."""
+    _default_sigint()
     # As `python -m MODULE ARG ...` would see it (runpy sets argv[0] to the module's file).
-    sys.argv = [sys.argv[0], *sys.argv[2:]]
+    sys.argv = [sys.argv[0], *args]
     runpy.run_module(module, run_name="__main__", alter_sys=True)
+
+
+def _default_sigint() -> None:
+    """SIGINT's default action, then unblocked: one pending since the spawn (or the fork)
+    ends the process here."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 if __name__ == "__main__":

@@ -12,9 +12,14 @@ from msctl.launcher.control import AGENT_SRV, encode_args
 def supervisors(node: Any) -> dict[str, str]:
     """``{host namespace: service name}`` of every supervisor on the graph."""
     from components.comm.graph import snapshot
+    from components.comm.types import dds_type_name
 
+    # Only the servers of AgentRequest (zid/node/entity/SS/enclave/namespace/node/service/
+    # type/hash/qos): not the whole graph's tokens, parsed to keep a few.
+    servers = f"*/*/*/SS/*/*/*/*/{dds_type_name(AGENT_SRV)}/*/*"
     found = {}
-    for name, info in snapshot(node.session, node.domain, timeout=3.0).services().items():
+    graph = snapshot(node.session, node.domain, timeout=3.0, tokens=servers)
+    for name, info in graph.services().items():
         if name.startswith("/msctl/") and name.endswith("/request") and AGENT_SRV in info.types:
             found[name[: -len("/request")]] = name
     return found
@@ -24,23 +29,40 @@ def ask_all(
     node: Any, verb: str, args: dict[str, Any] | None = None, timeout: float = 3.0
 ) -> dict[str, Any]:
     """Send one request to every supervisor; ``{namespace: payload or {"error": ...}}``."""
-    from components.comm.services import ServiceError
-    from components.comm.types import registry
+    import threading
 
+    from components.comm.services import ServiceError
+    from msctl.agent_wire import AgentClient
+
+    # Every supervisor is asked at once: one after another, a fleet of loaded computers took
+    # the sum of their answer times, and a slow one ate the time the others had. Plain
+    # threads: concurrent.futures imports logging, which `msctl ps` has no use for.
+    # Clients are made here, in this thread (the node numbers its entities).
+    clients = {ns: AgentClient(node, service) for ns, service in supervisors(node).items()}
     answers: dict[str, Any] = {}
-    for namespace, service in supervisors(node).items():
-        client = node.client(service, AGENT_SRV)
+
+    def ask(namespace: str, client: AgentClient) -> None:
         try:
-            request = registry().msg_class(client.parts.request)(verb=verb, args=encode_args(args))
-            response = client.call(request, timeout=timeout)
-            if response.success:
-                answers[namespace] = json.loads(response.payload) if response.payload else {}
-            else:
-                answers[namespace] = {"error": response.message}
+            response = client.ask(verb, encode_args(args), timeout=timeout)
         except ServiceError as exc:
             answers[namespace] = {"error": str(exc)}
-        finally:
+            return
+        if response.success:
+            answers[namespace] = json.loads(response.payload) if response.payload else {}
+        else:
+            answers[namespace] = {"error": response.message}
+
+    threads = [threading.Thread(target=ask, args=item, daemon=True) for item in clients.items()]
+    try:
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    finally:
+        for client in clients.values():
             client.close()
+    # In the graph's order, whatever order the answers came in.
+    return {ns: answers[ns] for ns in clients if ns in answers}
     return answers
 
 

@@ -137,12 +137,13 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
     """
     import json
     import time
+    from concurrent.futures import ThreadPoolExecutor
 
     from rich.markup import escape
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from components.comm.services import ServiceError, ServiceTimeout
+    from components.comm.services import ServiceError
     from msctl.console import err
     from msctl.errors import OperationTimeout
     from msctl.launcher.control import (
@@ -181,21 +182,40 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         # but slow (a loaded computer: 2 s was too short, and a host that was there was
         # named unreachable). The `up` itself gets longer still: an agent starts its
         # processes before it answers, and one told "unreachable" must not be starting.
+        # Every host is asked at once: an agent answers `up` once its processes are started,
+        # and asked one after another a fleet of loaded computers took the sum of their times.
         present = set(supervisors(node))
-        for host in hosts:
-            err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
+        # An agent answers `up` once its processes are started: on a loaded computer that took
+        # over 30 s (seen with four agents starting on one 2-core machine), so it gets as long
+        # as the user gave the whole start, never less than 30 s.
+        answer_bound = max(30.0, timeout)
+
+        def ask(host: str) -> tuple[str, Any]:
             try:
                 if host_namespace(host) not in present:
                     call_supervisor(node, host, "ps", timeout=10.0)
-                started[host] = call_supervisor(
-                    node, host, "up", {"assembly": document, "sim": sim, "speed": speed}, 30.0
+                answer = call_supervisor(
+                    node,
+                    host,
+                    "up",
+                    {"assembly": document, "sim": sim, "speed": speed},
+                    answer_bound,
                 )
-            except ServiceTimeout:
-                unreachable.append((host, f"no agent serves {host_namespace(host)}/request"))
-            except ServiceError as exc:
-                unreachable.append((host, str(exc)))
+            except ServiceError as exc:  # a timeout says how long it waited, and for what
+                return "unreachable", str(exc)
             except RequestError as exc:
-                refused.append((host, str(exc)))
+                return "refused", str(exc)
+            return "started", answer
+
+        for host in hosts:
+            err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
+        with ThreadPoolExecutor(max_workers=max(1, len(hosts))) as pool:
+            answers = list(pool.map(ask, hosts))
+        for host, (outcome, answer) in zip(hosts, answers, strict=True):
+            if outcome == "started":
+                started[host] = answer
+            else:
+                (unreachable if outcome == "unreachable" else refused).append((host, answer))
         total = sum(len(answer.get("components", [])) for answer in started.values())
         deadline = time.monotonic() + timeout
         with Progress(

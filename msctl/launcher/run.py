@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import queue
 import socket
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -19,9 +20,9 @@ from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionSettings, open_session
 from components.ros import rclpy_available
-from msctl.launcher import boot, state
+from msctl.launcher import boot, forkserver, state
 from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
-from msctl.launcher.plan import HostPlan
+from msctl.launcher.plan import HostPlan, ProcessPlan
 from msctl.launcher.supervisor import (
     LivenessPolicy,
     ManagedProcess,
@@ -38,6 +39,13 @@ ROUTER_PROCESS = "router"
 #: line (``error: cannot build limb1/joint_manager: ...``) as the reason. Any other exit (a
 #: crash, a signal) is restarted with backoff.
 WORKER_FINAL_EXITS = {2: "bad arguments", 3: "a component cannot be built or configured"}
+
+#: Seconds the loop rests between two turns when no request comes (one wakes it).
+LOOP_PAUSE = 0.05
+
+#: Seconds to wait for the fork server's imports before starting plain interpreters instead
+#: (a heavily loaded machine takes several).
+FORKSERVER_READY_WITHIN = 60.0
 
 
 def _tcp_refused(endpoint: str, timeout: float) -> bool:
@@ -210,6 +218,9 @@ class Launch:
         self.watch: HealthWatch | None = None
         self._node: Any = None
         self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        #: Set when a request arrives, so the loop answers it at once rather than after its
+        #: pause (up to 50 ms more on every `msctl ps`).
+        self._request_came = threading.Event()
         self._stop = False
         self._started = time.time()
         self._last_state_write = 0.0
@@ -218,6 +229,8 @@ class Launch:
         # Components rebuilt alone and not seen again yet: the process log's line count when
         # the order went (their worker says "rebuilt <name>" in it once done).
         self._rebuilding: dict[str, int] = {}
+        #: Forks the component workers (msctl.launcher.forkserver), on Zenoh only.
+        self.forkserver: forkserver.ForkServer | None = None
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
@@ -229,6 +242,9 @@ class Launch:
         launcher's own session (and so the health watch) opens once the router answers,
         still before any component has been built.
 
+        The component workers are forked from a fork server (:mod:`msctl.launcher.forkserver`)
+        started first: it imports what they need once, while the router starts.
+
         A :meth:`request_stop` meanwhile (a Ctrl-C) ends it early, before the session opens:
         what was started is stopped by :meth:`shutdown`, and nothing waits for what would
         only be closed again.
@@ -236,6 +252,7 @@ class Launch:
         router = None
         if self._stop:
             return
+        self._start_forkserver()
         if self.endpoint and not router_reachable(self.endpoint):
             router = start_router(self.supervisor, self.endpoint)
             self.started_router = True
@@ -263,20 +280,62 @@ class Launch:
             self._start_processes()
         self.write_state()
 
-    def _start_processes(self) -> None:
-        lock = self.assembly.lock_path
+    def _start_forkserver(self) -> None:
+        """Start the fork server, which imports while the router and the session start.
+
+        Not for the rclpy transport (each worker initialises its own rclpy context), nor with
+        ``MSCTL_FORKSERVER=0``: workers are then started as new interpreters, as they are
+        whenever the server does not work.
+        """
+        transport = os.environ.get("MSCTL_TRANSPORT", "zenoh")
+        if transport != "zenoh" or not forkserver.enabled() or not self.plan.processes:
+            return
+        room = max(len("\0".join(self._worker_argv(p))) for p in self.plan.processes)
+        try:
+            self.forkserver = forkserver.ForkServer.start(
+                (), state.log_dir() / "forkserver.log", tag=str(self.assembly.lock_path), room=room
+            )
+        except OSError as exc:
+            self.events.append(f"fork server: cannot start ({exc}); workers start as themselves")
+            return
+        # Each kind's modules imported just before its first worker is forked.
         for process in self.plan.processes:
-            argv = boot.argv("components.executor.worker", "--lock", str(lock))
-            for component in process.components:
-                argv += ["--component", component.name]
-            if any(kinds.get(c.kind).stands_in_for for c in process.components):
-                argv += ["--speed", repr(self.speed)]
+            self.forkserver.preloads[process.name] = forkserver.preload_for(
+                c.kind for c in process.components
+            )
+
+    def _forkserver_ready(self) -> forkserver.ForkServer | None:
+        """The fork server once it has imported (``None``: workers start as themselves)."""
+        server = self.forkserver
+        if server is None:
+            return None
+        if not server.wait_ready(FORKSERVER_READY_WITHIN, stopping=lambda: self._stop):
+            if not self._stop:
+                self.events.append(
+                    f"fork server: {server.failure}; workers start as new interpreters"
+                )
+            return None
+        return server
+
+    def _worker_argv(self, process: ProcessPlan) -> list[str]:
+        """The command line of a worker process of the plan."""
+        argv = boot.argv("components.executor.worker", "--lock", str(self.assembly.lock_path))
+        for component in process.components:
+            argv += ["--component", component.name]
+        if any(kinds.get(c.kind).stands_in_for for c in process.components):
+            argv += ["--speed", repr(self.speed)]
+        return argv
+
+    def _start_processes(self) -> None:
+        server = self._forkserver_ready()
+        for process in self.plan.processes:
             self.supervisor.add(
                 process.name,
-                argv,
+                self._worker_argv(process),
                 components=[c.name for c in process.components],
                 final_exits=WORKER_FINAL_EXITS,
                 heartbeat=True,
+                forkserver=server,
             )
             # A Ctrl-C on a run still starting ends a worker quietly, even one that has
             # not reached its first line yet (msctl.launcher.boot).
@@ -289,7 +348,7 @@ class Launch:
         self._node = Node(
             self.session, "supervisor", host_namespace(self.plan.host), self.settings.domain
         )
-        self._node.service("request", AGENT_SRV, self._requests.put, deferred=True)
+        self._node.service("request", AGENT_SRV, self._on_request, deferred=True)
 
     # ------------------------------------------------------------------ loop
     def step(self) -> None:
@@ -351,7 +410,13 @@ class Launch:
             self.step()
             if on_step is not None:
                 on_step(self)
-            time.sleep(0.05)
+            if self._request_came.wait(LOOP_PAUSE):
+                self._request_came.clear()  # what came is in the queue for the next step
+
+    def _on_request(self, pending: Any) -> None:
+        """Queue a request for the loop (a Zenoh thread calls this) and wake the loop."""
+        self._requests.put(pending)
+        self._request_came.set()
 
     def request_stop(self) -> None:
         """Ask :meth:`run` to return (signal-safe)."""
@@ -556,6 +621,8 @@ class Launch:
         if self._node is not None:
             self._node.close()
         self.supervisor.shutdown()
+        if self.forkserver is not None:
+            self.forkserver.close()  # after its children, whose exits it reported
         if router is not None:
             self.supervisor.processes[ROUTER_PROCESS] = router
             self.supervisor.shutdown()

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from components.assembly import state_dir
+from components.paths import state_dir
 from msctl.errors import MsctlError
 
 

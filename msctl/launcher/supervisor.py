@@ -13,6 +13,10 @@ A process started with a heartbeat (the component workers) gets the write end of
 :attr:`LivenessPolicy.unresponsive_after` makes it UNRESPONSIVE (a stopped or stuck process
 keeps its pid and its sockets, so nothing else would tell), and silence for
 :attr:`LivenessPolicy.kill_after` more gets it SIGKILLed and restarted as for a crash.
+
+A process given a fork server (:mod:`msctl.launcher.forkserver`: the launcher's component
+workers) is forked from it instead of started as a new interpreter, with the same process
+group, pipes and signals; while the server does not work, it is started as a new interpreter.
 """
 
 from __future__ import annotations
@@ -35,6 +39,10 @@ from typing import Any
 from components.executor.heartbeat import FD_ENV as HEARTBEAT_FD_ENV
 from components.executor.orders import FD_ENV as ORDERS_FD_ENV
 from components.executor.orders import REBUILD, encode
+from msctl.launcher.forkserver import ForkedProcess, ForkServer, ForkServerError
+
+#: A supervised process's handle: spawned, or forked from a fork server.
+Child = subprocess.Popen | ForkedProcess
 
 
 class ProcessState(StrEnum):
@@ -226,7 +234,7 @@ class ManagedProcess:
     components: tuple[str, ...] = ()
     final_exits: Mapping[int, str] = field(default_factory=dict)
     state: ProcessState = ProcessState.STOPPED
-    popen: subprocess.Popen | None = None
+    popen: Child | None = None
     started_at: float = 0.0
     restarts: int = 0
     last_error: str = ""
@@ -240,6 +248,7 @@ class ManagedProcess:
     orders_fd: int | None = None
     last_beat: float | None = None
     state_before_silence: ProcessState | None = None
+    forkserver: ForkServer | None = None
 
     @property
     def pid(self) -> int | None:
@@ -282,6 +291,7 @@ class Supervisor:
         components: Sequence[str] = (),
         final_exits: Mapping[int, str] | None = None,
         heartbeat: bool = False,
+        forkserver: ForkServer | None = None,
     ) -> ManagedProcess:
         """Register a process (not started yet).
 
@@ -293,6 +303,8 @@ class Supervisor:
             final_exits: Exit codes after which it is FAILED at once, never restarted, each
                 with what it means (see :class:`ManagedProcess`).
             heartbeat: Hand it a heartbeat pipe (``MSCTL_HEARTBEAT_FD``) and watch it.
+            forkserver: Fork it from this server (``argv`` a :func:`msctl.launcher.boot.argv`
+                line) rather than start a new interpreter, while the server works.
         """
         log = RotatingLog(self.log_dir / f"{name.replace('/', '_')}.log")
         # The file keeps earlier runs' lines: this one starts here.
@@ -305,6 +317,7 @@ class Supervisor:
             components=tuple(components),
             final_exits=dict(final_exits or {}),
             heartbeat=heartbeat,
+            forkserver=forkserver,
         )
         self.processes[name] = process
         return process
@@ -327,7 +340,7 @@ class Supervisor:
     def _spawn(self, process: ManagedProcess) -> None:
         process.log.write_line(f"--- msctl: starting {process.name}: {' '.join(process.argv)}")
         _close_heartbeat(process)
-        env, pass_fds, writer, reader = process.env, (), None, None
+        env, named, writer, reader = process.env, {}, None, None
         try:
             if process.heartbeat:
                 # Two pipes: its heartbeat up, our orders down (components.executor.orders).
@@ -336,18 +349,28 @@ class Supervisor:
                 reader, process.orders_fd = os.pipe()
                 os.set_blocking(process.orders_fd, False)
                 env = {**process.env, HEARTBEAT_FD_ENV: str(writer), ORDERS_FD_ENV: str(reader)}
-                pass_fds = (writer, reader)
-            popen = subprocess.Popen(
-                process.argv,
-                env=env,
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                text=True,
-                bufsize=1,
-                start_new_session=True,  # its own process group: nothing outlives a kill
-                pass_fds=pass_fds,
-            )
+                named = {HEARTBEAT_FD_ENV: writer, ORDERS_FD_ENV: reader}
+            popen: Child | None = None
+            server = process.forkserver
+            if server is not None and server.ready:
+                try:
+                    popen = server.spawn(process.argv, env, named, name=process.name)
+                except ForkServerError as exc:
+                    process.log.write_line(
+                        f"--- msctl: not forked ({exc}); starting a new interpreter"
+                    )
+            if popen is None:
+                popen = subprocess.Popen(
+                    process.argv,
+                    env=env,
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.STDOUT,
+                    text=True,
+                    bufsize=1,
+                    start_new_session=True,  # its own process group: nothing outlives a kill
+                    pass_fds=tuple(named.values()),
+                )
         except OSError as exc:
             _close_heartbeat(process)
             process.state = ProcessState.FAILED
@@ -367,7 +390,7 @@ class Supervisor:
         process.pump.start()
 
     @staticmethod
-    def _pump(process: ManagedProcess, popen: subprocess.Popen) -> None:
+    def _pump(process: ManagedProcess, popen: Child) -> None:
         assert popen.stdout is not None
         for line in popen.stdout:
             process.log.write_line(line)
@@ -430,9 +453,7 @@ class Supervisor:
             if p.log.fault
         ]
 
-    def _check_heartbeat(
-        self, process: ManagedProcess, popen: subprocess.Popen, now: float
-    ) -> str | None:
+    def _check_heartbeat(self, process: ManagedProcess, popen: Child, now: float) -> str | None:
         """Read the beats of a live process; mark it UNRESPONSIVE, or kill it, when silent.
 
         Returns:
@@ -661,7 +682,7 @@ def _close_heartbeat(process: ManagedProcess) -> None:
     process.last_beat = None
 
 
-def _signal_group(popen: subprocess.Popen, signum: int) -> None:
+def _signal_group(popen: Child, signum: int) -> None:
     with contextlib.suppress(ProcessLookupError, PermissionError):
         os.killpg(popen.pid, signum)
 

@@ -31,6 +31,7 @@ import logging
 import math
 from collections.abc import Mapping
 
+from components.config import positive_numbers
 from components.messages import joint_samples
 from components.safety import SafetyLimits, robot_limits
 
@@ -100,9 +101,7 @@ async def main(
     """
     if attitude_type not in (POSE_STAMPED, IMU):
         raise ValueError(f"guardian: attitude_type must be {POSE_STAMPED} or {IMU}")
-    for name, value in (("period", period), ("stale_after", stale_after)):
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"guardian: {name} must be a positive number, not {value}")
+    positive_numbers("guardian", period=period, stale_after=stale_after)
     limits = limits_for(
         robot,
         {

@@ -37,6 +37,7 @@ from components.autonomous_operator.drive import (
     aligned,
     crab_direction,
 )
+from components.config import positive_numbers
 from components.messages import JointSample
 from components.robots import robot_cmd_vel
 
@@ -74,16 +75,15 @@ async def main(
         crab: Steer the wheel modules for sideways Twists (when the limbs can).
         report_period: Seconds between status reports.
     """
-    for name, value in (
-        ("timeout", timeout),
-        ("rate", rate),
-        ("acceleration", acceleration),
-        ("angular_acceleration", angular_acceleration),
-        ("steer_tolerance", steer_tolerance),
-        ("report_period", report_period),
-    ):
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"steering: {name} must be a positive number, not {value}")
+    positive_numbers(
+        "steering",
+        timeout=timeout,
+        rate=rate,
+        acceleration=acceleration,
+        angular_acceleration=angular_acceleration,
+        steer_tolerance=steer_tolerance,
+        report_period=report_period,
+    )
     gate = TwistGate(max_speed, max_turn)
     ramp = Ramp(acceleration, angular_acceleration)
     topic = cmd_vel or robot_cmd_vel(robot.assembly, robot.robot)

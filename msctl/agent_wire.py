@@ -1,0 +1,123 @@
+"""Supervisor requests (``msctl_msgs/srv/AgentRequest``) on the wire, without the type registry.
+
+Every CLI command that asks the supervisors (``ps``, ``logs``, ``down`` ...) used a
+:class:`~components.comm.services.ServiceClient`, whose codec comes from the type registry:
+rosbags, numpy and every bundled definition, about 0.2 s of CPU, to write two strings and read
+a bool and two strings. Here the request is written and the response read directly as the CDR
+rmw_zenoh carries, and the service's type hash is a constant; the tests check both against
+the registry, so a change to ``AgentRequest.srv`` cannot go unnoticed.
+"""
+
+from __future__ import annotations
+
+import itertools
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+from components.comm.services import SERVICE_QOS, ServiceClient, ServiceError
+from components.comm.stats import drops
+from msctl.launcher.control import AGENT_SRV
+
+#: RIHS01 hash of ``msctl_msgs/srv/AgentRequest`` (REP 2011), as the registry computes it.
+AGENT_SRV_HASH = "RIHS01_f040da378ba4fa64a6b18717e7ead7c77c781135f7ece84dbd266048518b760e"
+#: CDR encapsulation headers: little- and big-endian plain CDR.
+_CDR_LE = b"\x00\x01\x00\x00"
+_CDR_BE = b"\x00\x00\x00\x00"
+
+
+@dataclass(frozen=True)
+class AgentResponse:
+    """A supervisor's answer."""
+
+    success: bool
+    message: str
+    payload: str
+
+
+def encode_request(verb: str, args: str) -> bytes:
+    """``AgentRequest_Request(verb, args)`` as little-endian CDR with its header."""
+    body = bytearray()
+    for text in (verb, args):
+        body += b"\x00" * (-len(body) % 4)  # a string's length is 4-aligned
+        data = text.encode() + b"\x00"
+        body += struct.pack("<I", len(data)) + data
+    return _CDR_LE + bytes(body)
+
+
+def decode_response(data: bytes) -> AgentResponse:
+    """Read an ``AgentRequest_Response`` (CDR with its header).
+
+    Raises:
+        ValueError: If ``data`` is not one.
+    """
+    header, body = bytes(data[:4]), memoryview(data)[4:]
+    if header not in (_CDR_LE, _CDR_BE):
+        raise ValueError(f"not plain CDR (header {header.hex()})")
+    order = "<" if header == _CDR_LE else ">"
+    if len(body) < 1 or body[0] > 1:
+        raise ValueError("no bool success")
+    success, offset = bool(body[0]), 1
+    texts = []
+    for _ in range(2):
+        offset += -offset % 4
+        if offset + 4 > len(body):
+            raise ValueError("truncated")
+        (size,) = struct.unpack_from(order + "I", body, offset)
+        start, offset = offset + 4, offset + 4 + size
+        if size < 1 or offset > len(body) or body[offset - 1] != 0:
+            raise ValueError("malformed string")
+        texts.append(bytes(body[start : offset - 1]).decode())
+    return AgentResponse(success, texts[0], texts[1])
+
+
+class AgentClient(ServiceClient):
+    """A client of one supervisor's request service: the same graph token, key, attachment
+    and errors as a :class:`ServiceClient` (whose :meth:`call_raw` it uses), with the request
+    and response coded here. Close it when done.
+
+    Args:
+        node: The CLI's node.
+        service: The supervisor's service (``/msctl/<host>/request``).
+    """
+
+    def __init__(self, node: Any, service: str) -> None:  # no registry: no super().__init__
+        from components.comm.attachment import gid_of
+        from components.comm.liveliness import EntityKind
+        from components.comm.names import key_name, qualify
+        from components.comm.types import dds_type_name
+
+        self.service = qualify(service, node.namespace, node.name)
+        self.srv_type = AGENT_SRV
+        self.key = f"{node.domain}/{key_name(self.service)}/{dds_type_name(AGENT_SRV)}/"
+        self.key += AGENT_SRV_HASH
+        self.entity = node.entity(
+            EntityKind.CLIENT, self.service, AGENT_SRV, AGENT_SRV_HASH, SERVICE_QOS
+        )
+        self.token_key = self.entity.token()
+        self.gid = gid_of(self.token_key)
+        self._session = node.session
+        self._seq = itertools.count(1)
+        self._token = node.session.liveliness().declare_token(self.token_key)
+        self._closed = False
+
+    def ask(self, verb: str, args: str, timeout: float) -> AgentResponse:
+        """Send one request and wait for the answer.
+
+        Raises:
+            ServiceTimeout: If no supervisor answered within ``timeout`` seconds.
+            ServiceError: If it answered with an error or something that is not a response.
+        """
+        payload = self.call_raw(encode_request(verb, args), timeout)
+        try:
+            return decode_response(payload)
+        except (ValueError, UnicodeDecodeError) as exc:
+            drops.drop(self.service, "malformed", f"{type(exc).__name__}: {exc}")
+            raise ServiceError(
+                f"service {self.service} sent a response that is not a {AGENT_SRV}_Response"
+            ) from exc
+
+    def call(self, request: Any, timeout: float = 2.0) -> AgentResponse:
+        """:meth:`ask` with a request that has ``verb`` and ``args`` (as a registry-made
+        ``AgentRequest_Request`` has)."""
+        return self.ask(request.verb, request.args, timeout)

@@ -1,0 +1,648 @@
+"""A fork server for the component workers: the heavy modules imported once, each worker forked.
+
+Every component worker imports the same modules before it builds anything (Zenoh, NumPy, the
+message types, the executor, its kinds' builders, Pinocchio for a limb, MuJoCo for the
+simulator): about a CPU-second each, most of ``msctl up``'s start-up on a small computer. The
+launcher starts one of these servers per run instead; it imports what every worker needs and
+makes the message types (:data:`COMMON`), says it is ready, then forks one child per worker the
+supervisor asks for, importing a worker's own kinds' modules first when no earlier worker
+needed them (so a heavy import runs while the workers forked before it start). A child is what
+``python -m msctl.launcher.boot MODULE ARGS`` would be, minus the imports:
+
+* its own session and process group (``setsid``), so the supervisor's signals to the group
+  reach it and whatever it starts, exactly as for a spawned worker;
+* SIGINT as :mod:`msctl.launcher.boot` leaves it: the server runs with SIGINT blocked (the
+  launcher starts it so) and the child sets the default action, then unblocks, so a SIGINT
+  sent since the fork ends it at once, quietly;
+* stdin on ``/dev/null``, stdout and stderr on the pipe the supervisor reads, its heartbeat and
+  orders pipes (their numbers in the child written into the environment it names), the
+  supervisor's environment and working directory, and no other descriptor of the server;
+* the module run as ``__main__`` with its arguments; the process exits as the interpreter
+  would after it (exit code, ``atexit``, an uncaught ``KeyboardInterrupt``).
+
+Nothing in the server opens a Zenoh session or starts a thread: a fork copies only the calling
+thread, so a thread's locks (Zenoh's runtime, an OpenBLAS pool) would be held forever in the
+child. The server checks it is single-threaded before every fork and refuses otherwise (its
+OpenBLAS runs single-threaded for that: ``OPENBLAS_NUM_THREADS=1``); sessions and threads are
+made by the children.
+
+The server is the children's parent, so it reaps them: each exit status goes back to the
+supervisor on that child's own status socket (:class:`ForkedProcess` is the supervisor's
+``subprocess.Popen`` for it). The supervisor ends the server after its children
+(:meth:`ForkServer.close`); if the server dies, its children are judged by their pids (a pidfd
+each, immune to pid reuse) and new workers are spawned as plain interpreters again.
+
+Protocol (one ``AF_UNIX`` ``SOCK_SEQPACKET`` control socket; a ``SOCK_STREAM`` pair per child):
+
+* server -> supervisor, once: ``ready`` (or ``error <why>``) after the first imports;
+* supervisor -> server: a JSON request (module, arguments, environment, working directory, the
+  environment variables that name passed pipes, modules to import first, a process name) with
+  the descriptors: the status socket's server end, the output pipe, then the named pipes;
+* child -> supervisor, on the status socket: ``pid <pid>`` once it is in its own session;
+* server -> supervisor, on the status socket: ``exit <code>`` (``subprocess`` style: minus the
+  signal's number when killed by one), or ``error <why>`` when it could not fork.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import importlib.util
+import json
+import os
+import re
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+from msctl.launcher import boot
+
+#: This module's name (``__name__`` is ``__main__`` when it runs).
+MODULE = "msctl.launcher.forkserver"
+#: ``MSCTL_FORKSERVER=0`` spawns every worker as a fresh interpreter (as before the server).
+ENABLE_ENV = "MSCTL_FORKSERVER"
+#: Imported by the server before it says ready: what every component worker imports.
+COMMON = (
+    "ctypes",
+    "numpy",
+    "zenoh",
+    "components.messages",
+    "components.assembly",
+    "components.build",
+    "components.executor.worker",
+    "components.executor.runner",
+    "components.executor.executor",
+    "components.comm.node",
+    "components.comm.liveliness",
+    "components.comm.graph",
+    "components.claims",
+    "rosbags.typesys",
+)
+#: Largest request (its environment is most of it).
+MAX_REQUEST = 1 << 20
+#: Descriptors per request: the status socket, the output pipe, and a few named pipes.
+MAX_FDS = 8
+
+
+class ForkServerError(RuntimeError):
+    """The fork server cannot start this worker (the caller spawns it as before)."""
+
+
+def enabled(environ: Mapping[str, str] = os.environ) -> bool:
+    """Whether the launcher forks its Zenoh workers from a server (``MSCTL_FORKSERVER``)."""
+    return environ.get(ENABLE_ENV, "1") != "0"
+
+
+def preload_for(kind_names: Iterable[str]) -> list[str]:
+    """The modules to import before forking the workers of these component kinds: each
+    kind's registered modules (builder, interface, config) and its package's other modules
+    (its core, and what the builder imports when it runs: a limb's Pinocchio model)."""
+    import pkgutil
+
+    from components import kinds
+
+    names: list[str] = []
+    for kind_name in dict.fromkeys(kind_names):
+        try:
+            kind = kinds.get(kind_name)
+        except kinds.KindError:
+            continue
+        paths = [kind.builder, kind.interface, kind.validate, *kind.config, *kind.checks.values()]
+        modules = [p.partition(":")[0] for p in paths if p]
+        for module in list(modules):
+            package = module.rpartition(".")[0]
+            if not package.startswith("components."):
+                continue
+            try:
+                found = importlib.util.find_spec(package)
+            except (ImportError, ValueError):
+                continue
+            if found is not None and found.submodule_search_locations:
+                modules += [
+                    f"{package}.{info.name}"
+                    for info in pkgutil.iter_modules(found.submodule_search_locations)
+                ]
+        names += [m for m in modules if m not in names]
+    return names
+
+
+# ---------------------------------------------------------------------------- supervisor side
+class ForkedProcess:
+    """A worker forked by the server, as the supervisor uses a :class:`subprocess.Popen`.
+
+    Attributes:
+        args: The command line it stands for (the boot one).
+        pid: Its pid, also its process group's id.
+        returncode: Its exit code once known (minus the signal's number when killed by one).
+        stdout: Its output (stdout and stderr), text, read by the supervisor's pump.
+    """
+
+    def __init__(self, args: Sequence[str], pid: int, status: socket.socket, stdout: IO[str]):
+        self.args = list(args)
+        self.pid = pid
+        self.returncode: int | None = None
+        self.stdout: IO[str] | None = stdout
+        self._status = status
+        self._pending = b""
+        try:
+            # Ours, opened while it lives: tells its end even if the server is gone, and is
+            # never another process that reused the pid.
+            self._pidfd: int | None = os.pidfd_open(pid)
+        except OSError:
+            self._pidfd = None  # already gone (and reaped): the server tells its code
+
+    def poll(self) -> int | None:
+        """Its exit code if it has ended, else ``None`` (never blocks)."""
+        if self.returncode is None:
+            self._read(0.0)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for it to end; its exit code.
+
+        Raises:
+            subprocess.TimeoutExpired: If it is still running after ``timeout`` seconds.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.returncode is None:
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+            self._read(left if left is None else max(0.0, left))
+        return self.returncode
+
+    def _read(self, timeout: float | None) -> None:
+        watched: list[Any] = [self._status]
+        if self._status.fileno() < 0 and self._pidfd is not None:
+            watched = [self._pidfd]  # the server is gone: its pidfd alone says it ended
+        if self._status.fileno() < 0 and self._pidfd is None:
+            self._finish(1)
+            return
+        ready, _, _ = select.select(watched, [], [], timeout)
+        if not ready:
+            return
+        if ready[0] is not self._status:
+            self._finish(1)  # ended while no server was there to reap it: code unknown
+            return
+        try:
+            data = self._status.recv(4096)
+        except OSError:
+            data = b""
+        if not data:
+            self._status.close()  # the server died before telling; the pidfd decides
+            if self._pidfd is not None and select.select([self._pidfd], [], [], 0)[0]:
+                self._finish(1)
+            return
+        self.take(data)
+
+    def take(self, data: bytes) -> None:
+        """Read status lines (``exit <code>``) from the server."""
+        self._pending += data
+        while b"\n" in self._pending:
+            line, self._pending = self._pending.split(b"\n", 1)
+            word, _, value = line.decode().partition(" ")
+            if word == "exit":
+                self._finish(int(value))
+
+    def _finish(self, code: int) -> None:
+        self.returncode = code
+        self._status.close()
+        if self._pidfd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._pidfd)
+            self._pidfd = None
+
+
+class ForkServer:
+    """The supervisor's handle on one fork server (started by :meth:`start`).
+
+    Not thread-safe: used from the launcher's loop only, like the supervisor.
+    """
+
+    def __init__(self, popen: subprocess.Popen, control: socket.socket) -> None:
+        self.popen = popen
+        self._control = control
+        self.ready = False
+        self.failure = ""
+        #: Process name -> modules the server imports before forking its worker (once: the
+        #: server keeps them), so that it is ready after :data:`COMMON` alone and a heavy
+        #: import (Pinocchio) runs while the workers forked before it start.
+        self.preloads: dict[str, Sequence[str]] = {}
+
+    @classmethod
+    def start(
+        cls, preload: Sequence[str], log_path: Path, tag: str = "", room: int = 0
+    ) -> ForkServer:
+        """Start a server that imports ``preload`` (after :data:`COMMON`) before saying ready.
+
+        Args:
+            preload: Further modules to import before forking.
+            log_path: Where its own output goes (an import that failed, a refused fork).
+            tag: Shown in its command line (a run's processes are found by it): the
+                assembly's lock file.
+            room: Bytes its command line spans at least: a child shows its own command line
+                in that space (the longest worker's; a longer one is cut).
+        """
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        argv = [sys.executable, "-m", MODULE, "--control", str(theirs.fileno())]
+        if tag:
+            argv += ["--tag", tag]
+        argv += [m for m in preload if m not in COMMON]
+        missing = room - len("\0".join(argv)) - len(" --room ")
+        if missing > 0:
+            argv += ["--room", " " * missing]
+        # One BLAS thread: a fork copies only the calling thread (see the module's doc).
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            with open(log_path, "ab") as log, boot.held_sigint():
+                popen = subprocess.Popen(
+                    argv,
+                    env=env,
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,  # no terminal's Ctrl-C; ended by close()
+                    pass_fds=(theirs.fileno(),),
+                )
+        finally:
+            theirs.close()
+        return cls(popen, ours)
+
+    def wait_ready(self, timeout: float, stopping: Callable[[], bool] | None = None) -> bool:
+        """Wait until it has imported :data:`COMMON` and says ready.
+
+        Returns:
+            Whether it is ready (``False``: it failed, timed out, or ``stopping`` said so;
+            :attr:`failure` says which, and the caller spawns plain workers).
+        """
+        deadline = time.monotonic() + timeout
+        while not self.ready and not self.failure:
+            if stopping is not None and stopping():
+                return False
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self.failure = f"not ready within {timeout:g} s"
+                break
+            ready, _, _ = select.select([self._control], [], [], min(left, 0.1))
+            if not ready:
+                continue
+            try:
+                message = self._control.recv(4096).decode()
+            except OSError as exc:
+                message = f"error {exc}"
+            if message == "ready":
+                self.ready = True
+            else:
+                self.failure = message.removeprefix("error ") or "it exited while importing"
+        return self.ready
+
+    def spawn(
+        self,
+        argv: Sequence[str],
+        env: Mapping[str, str],
+        pass_fds: Mapping[str, int],
+        name: str = "",
+        timeout: float = 120.0,
+    ) -> ForkedProcess:
+        """Fork a worker for ``argv`` (a :func:`msctl.launcher.boot.argv` command line).
+
+        Args:
+            argv: ``python -m msctl.launcher.boot MODULE ARGS``.
+            env: Its environment.
+            pass_fds: Environment variable -> descriptor of ours to pass; in the child the
+                variable holds the descriptor's number there.
+            name: Its process name (``/proc/PID/comm``: ``ps``, ``top``).
+            timeout: Seconds to wait for it to start (the server may still be importing).
+
+        Raises:
+            ForkServerError: If the server cannot start it (the caller spawns it as before).
+        """
+        if not self.ready:
+            raise ForkServerError(f"the fork server is not ready: {self.failure or 'starting'}")
+        if list(argv[1:3]) != ["-m", boot.MODULE] or len(argv) < 4:
+            raise ForkServerError(f"not a boot command line: {' '.join(argv)}")
+        request = {
+            "argv": list(argv),
+            "module": argv[3],
+            "args": list(argv[4:]),
+            "env": dict(env),
+            "cwd": os.getcwd(),
+            "fd_env": list(pass_fds),
+            "name": name,
+            "preload": list(self.preloads.get(name, ())),
+        }
+        status_ours, status_theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        output_read, output_write = os.pipe()
+        try:
+            fds = [status_theirs.fileno(), output_write, *pass_fds.values()]
+            try:
+                socket.send_fds(self._control, [json.dumps(request).encode()], fds)
+            except OSError as exc:
+                self._broken(f"cannot reach it: {exc}")
+                raise ForkServerError(self.failure) from exc
+        finally:
+            status_theirs.close()
+            os.close(output_write)  # the child's copy only: its end closes the pipe
+        try:
+            pid, rest = _first_pid(status_ours, timeout)
+        except ForkServerError as exc:
+            _abandon(status_ours)
+            os.close(output_read)
+            self._broken(str(exc))  # plain interpreters from now on
+            raise
+        # As Popen(text=True) reads it; closed by the supervisor's pump.
+        stdout = open(output_read, encoding=None, errors=None)  # noqa: SIM115
+        process = ForkedProcess(argv, pid, status_ours, stdout)
+        process.take(rest)  # its exit, when it came with the pid
+        return process
+
+    def _broken(self, why: str) -> None:
+        self.ready = False
+        self.failure = why
+
+    def close(self, timeout: float = 2.0) -> None:
+        """End the server (after its children: it reports their exits until they are gone);
+        killed after ``timeout`` seconds (idempotent)."""
+        self.ready = False
+        self._control.close()
+        try:
+            self.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.popen.pid, signal.SIGKILL)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.popen.wait(timeout=5.0)
+
+
+def _abandon(status: socket.socket) -> None:
+    """Give up on a worker that did not say its pid in time: from now on its own ``pid``
+    line fails and it exits at once; one that said it meanwhile is killed here."""
+    with contextlib.suppress(OSError):
+        status.shutdown(socket.SHUT_RD)  # its writes fail from here on (EPIPE)
+        status.setblocking(False)
+        late = status.recv(4096)
+        word, _, value = late.split(b"\n", 1)[0].decode().partition(" ")
+        if word == "pid" and value.isdigit() and int(value) > 0:
+            os.killpg(int(value), signal.SIGKILL)
+    status.close()
+
+
+def _first_pid(status: socket.socket, timeout: float) -> tuple[int, bytes]:
+    """The ``pid`` line the child sends once in its own session, and what came after it."""
+    deadline = time.monotonic() + timeout
+    pending = b""
+    while b"\n" not in pending:
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([status], [], [], left)[0]:
+            raise ForkServerError(f"no worker started within {timeout:g} s")
+        chunk = status.recv(4096)
+        if not chunk:
+            raise ForkServerError("the fork server ended before the worker started")
+        pending += chunk
+    line, rest = pending.split(b"\n", 1)
+    word, _, value = line.decode().partition(" ")
+    if word != "pid":
+        raise ForkServerError(f"the fork server could not start it: {value or line.decode()}")
+    return int(value), rest
+
+
+# ---------------------------------------------------------------------------- server side
+class _Child:
+    """What a forked child runs once it has left the server's loop."""
+
+    def __init__(self, request: dict[str, Any], fds: list[int]) -> None:
+        self.request = request
+        self.fds = fds
+
+    def run(self) -> None:
+        """Become the worker: session, descriptors, environment, then its module."""
+        status, output, *named = self.fds
+        os.setsid()
+        null = os.open(os.devnull, os.O_RDONLY)
+        os.dup2(null, 0)
+        os.dup2(output, 1)
+        os.dup2(output, 2)
+        keep = {0, 1, 2, *named}
+        env = dict(self.request["env"])
+        for variable, fd in zip(self.request["fd_env"], named, strict=True):
+            env[variable] = str(fd)
+        try:
+            # Told only now, in its own session: a signal to its group cannot miss it.
+            os.write(status, f"pid {os.getpid()}\n".encode())
+        except OSError:
+            os._exit(1)  # the supervisor gave up on it (or is gone): nobody would watch it
+        _close_all_but(keep)
+        os.environ.clear()
+        os.environ.update(env)
+        os.chdir(self.request["cwd"])
+        _set_name(self.request.get("name") or self.request["module"])
+        _set_command_line(self.request.get("argv") or [])
+        boot.run(self.request["module"], self.request["args"])
+
+
+def _close_all_but(keep: set[int]) -> None:
+    for entry in os.listdir("/proc/self/fd"):
+        fd = int(entry)
+        if fd not in keep:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _set_name(name: str) -> None:
+    """The process's name in ``ps``/``top`` (its command line stays the server's)."""
+    with contextlib.suppress(OSError):
+        Path("/proc/self/comm").write_text(name.replace("/", "_")[:15])
+
+
+def _set_command_line(argv: Sequence[str]) -> None:
+    """Show the worker's own command line in ``/proc/PID/cmdline`` (``ps``, ``pgrep -f``, the
+    launcher's check that a pid is one of msctl's), not the server's it was forked with.
+
+    Written over the server's argument strings (the interpreter copied them at its start and
+    never reads them again), within their length: :meth:`ForkServer.start` makes room.
+    """
+    import ctypes
+
+    if not argv:
+        return
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        start, end = int(fields[45]), int(fields[46])  # arg_start, arg_end (fields 48, 49)
+    except (OSError, IndexError, ValueError):
+        return
+    if end - start < 2:
+        return
+    data = "\0".join(argv).encode()[: end - start - 1]
+    ctypes.memmove(start, data + b"\0" * (end - start - len(data)), end - start)
+
+
+def _threads() -> int:
+    return len(os.listdir("/proc/self/task"))
+
+
+def _import_all(modules: Iterable[str]) -> None:
+    for module in modules:
+        if module in sys.modules:
+            continue
+        try:
+            importlib.import_module(module)
+        except Exception as exc:  # its worker will say the same, in its own log
+            print(f"forkserver: not preloaded {module}: {exc!r}", file=sys.stderr, flush=True)
+
+
+#: A ROS type name as msctl's modules spell them in constants (``sensor_msgs/msg/JointState``).
+_TYPE_NAME = re.compile(r"^[A-Za-z]\w*/(msg|srv)/[A-Za-z]\w*$")
+
+
+def _type_names() -> list[str]:
+    """The message and service types the imported component modules name: their interface
+    declarations and their module-level type-name constants."""
+    from components.executor.interface import InterfaceSpec
+
+    names: set[str] = set()
+    for module_name, module in list(sys.modules.items()):
+        if not module_name.startswith("components.") or module is None:
+            continue
+        for value in list(vars(module).values()):
+            if isinstance(value, str) and _TYPE_NAME.match(value):
+                names.add(value)
+            elif isinstance(value, InterfaceSpec):
+                names.update(entry.msg_type for entry in (*value.subscribe, *value.publish))
+                names.update(entry.srv_type for entry in value.serve)
+    return sorted(names)
+
+
+#: The types :func:`_warm_types` has made (or tried to).
+_warmed: set[str] = set()
+
+
+def _warm_types(names: Iterable[str]) -> None:
+    """Make each type's classes, codecs and hash in the shared type registry now, once: every
+    worker made them again on its first publisher, subscription and service (a few tenths of
+    a CPU-second each: parsing definitions, compiling the codecs)."""
+    from components.comm.types import registry
+
+    types = registry()
+    services = set(types.service_names())
+    for name in names:
+        if name in _warmed:
+            continue
+        _warmed.add(name)
+        try:
+            messages = [name]  # a service's request or response too (``pkg/srv/X_Response``)
+            if name in services:
+                parts = types.service(name)
+                messages = [parts.request, parts.response]
+            for message in messages:
+                types.serializer(message)
+                types.deserializer(message)
+            types.type_hash(name)
+        except Exception as exc:  # a worker using it says the same, in its own log
+            print(f"forkserver: type {name} not prepared: {exc!r}", file=sys.stderr, flush=True)
+
+
+def _serve(control: socket.socket) -> _Child | None:
+    """Fork a child per request and report their exits; returns in a child (to run it), or
+    ``None`` in the server once the supervisor has gone and every child has ended."""
+    children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, status socket)
+    open_control = True
+    while open_control or children:
+        watched = ([control.fileno()] if open_control else []) + list(children)
+        ready, _, _ = select.select(watched, [], [])
+        for fd in ready:
+            if fd in children:
+                pid, status = children.pop(fd)
+                _, wait_status = os.waitpid(pid, 0)
+                os.close(fd)
+                with contextlib.suppress(OSError):
+                    status.sendall(f"exit {os.waitstatus_to_exitcode(wait_status)}\n".encode())
+                status.close()
+                continue
+            try:
+                data, fds, _, _ = socket.recv_fds(control, MAX_REQUEST, MAX_FDS)
+            except OSError:
+                data, fds = b"", []
+            if not data:
+                open_control = False  # the supervisor is gone or done: reap, then exit
+                control.close()
+                continue
+            child = _fork(json.loads(data), fds, children, control)
+            if child is not None:
+                return child
+    return None
+
+
+def _fork(
+    request: dict[str, Any],
+    fds: list[int],
+    children: dict[int, tuple[int, socket.socket]],
+    control: socket.socket,
+) -> _Child | None:
+    status = socket.socket(fileno=fds[0])
+    new = [m for m in request.get("preload", ()) if m not in sys.modules]
+    if new:
+        _import_all(new)
+        _warm_types(_type_names())
+    threads = _threads()
+    if threads != 1:
+        why = f"the fork server runs {threads} threads: forking would copy one"
+        with contextlib.suppress(OSError):
+            status.sendall(f"error {why}\n".encode())
+        status.close()
+        for fd in fds[1:]:
+            os.close(fd)
+        return None
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        pid = os.fork()
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            status.sendall(f"error cannot fork: {exc}\n".encode())
+        status.close()
+        for fd in fds[1:]:
+            os.close(fd)
+        return None
+    if pid == 0:
+        control.detach()  # closed with every other descriptor by the child itself
+        status.detach()
+        return _Child(request, fds)
+    for fd in fds[1:]:
+        os.close(fd)  # the child's: our copies would keep its pipes open after it
+    children[os.pidfd_open(pid)] = (pid, status)
+    return None
+
+
+def main() -> None:
+    """Import, say ready, serve; in a forked child, run its module as ``__main__``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=f"python -m {MODULE}")
+    parser.add_argument("--control", type=int, required=True)
+    parser.add_argument("--tag", default="")
+    parser.add_argument("--room", default="", help="space for the children's command lines")
+    parser.add_argument("preload", nargs="*")
+    args = parser.parse_args()
+    control = socket.socket(fileno=args.control)
+    _import_all((*COMMON, *args.preload))
+    _warm_types(_type_names())
+    threads = _threads()
+    message = "ready" if threads == 1 else f"error {threads} threads after importing"
+    with contextlib.suppress(OSError):
+        control.send(message.encode())
+    if threads != 1:
+        return
+    child = _serve(control)
+    if child is not None:
+        child.run()
+
+
+if __name__ == "__main__":
+    main()
