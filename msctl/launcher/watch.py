@@ -4,11 +4,21 @@ their first output has arrived."""
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from typing import Any
 
-from components.comm.graph import Graph
+from components.comm.graph import Graph, snapshot
 from msctl.launcher.plan import ComponentRun
+
+#: Seconds a component may have published while its node is missing from the live graph
+#: before the network is asked for node tokens directly. Seen once in a loaded run of 60
+#: components: a guardian that ran and published stayed "starting" for minutes, its node's
+#: token on the router (a fresh query found it) but never delivered to the watch's
+#: subscriber. A component that publishes and has no node is rare enough to ask about.
+RECHECK_AFTER = 2.0
+#: Seconds one such query may take.
+RECHECK_QUERY = 1.0
 
 
 class HealthWatch:
@@ -20,10 +30,22 @@ class HealthWatch:
         domain: ROS domain id.
     """
 
-    def __init__(self, session: Any, components: Iterable[ComponentRun], domain: int = 0):
+    def __init__(
+        self,
+        session: Any,
+        components: Iterable[ComponentRun],
+        domain: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self._lock = threading.Lock()
+        self._session, self._domain, self._clock = session, domain, clock
         self.components = {c.name: c for c in components}
         self._output_seen: dict[str, bool] = dict.fromkeys(self.components, False)
+        self._output_at: dict[str, float] = {}
+        # Nodes a direct query found (see RECHECK_AFTER), until their process restarts.
+        self._queried: set[str] = set()
+        self._asked_at = -RECHECK_AFTER
+        self._asking: threading.Thread | None = None
         self._graph = Graph(session, domain)
         self._subscribers = []
         by_topic: dict[str, list[str]] = {}
@@ -38,22 +60,51 @@ class HealthWatch:
     def _saw(self, names: list[str]) -> None:
         with self._lock:
             for name in names:
-                self._output_seen[name] = True
+                if not self._output_seen[name]:
+                    self._output_seen[name] = True
+                    self._output_at[name] = self._clock()
 
     def forget(self, names: Iterable[str]) -> None:
         """A process restarted: its components must show themselves again."""
         with self._lock:
             for name in names:
                 self._output_seen[name] = False
+                self._output_at.pop(name, None)
+                self._queried.discard(self.components[name].node_fqn)
 
     def status(self) -> dict[str, tuple[bool, bool]]:
         """``{component: (node seen, output seen)}``."""
         nodes = self._graph.node_names()
+        now = self._clock()
         with self._lock:
-            return {
+            nodes |= self._queried
+            result = {
                 name: (c.node_fqn in nodes, self._output_seen[name])
                 for name, c in self.components.items()
             }
+            missing = {
+                self.components[name].node_fqn
+                for name, (node, output) in result.items()
+                if output and not node and now - self._output_at[name] >= RECHECK_AFTER
+            }
+            if missing and self._asking is None and now - self._asked_at >= RECHECK_AFTER:
+                self._asked_at = now
+                self._asking = threading.Thread(
+                    target=self._ask, args=(missing,), name="health-recheck", daemon=True
+                )
+                self._asking.start()
+        return result
+
+    def _ask(self, missing: set[str]) -> None:
+        """Ask the network for node tokens (off the caller's thread: it may take a second)."""
+        try:
+            found = snapshot(self._session, self._domain, RECHECK_QUERY, "*/*/*/NN/**")
+            seen = found.node_names() & missing
+        except Exception:  # a closing session: the next turn asks again, or nobody does
+            seen = set()
+        with self._lock:
+            self._queried |= seen
+            self._asking = None
 
     def healthy(self, name: str) -> bool:
         """Whether one component is seen and has published."""
