@@ -8,7 +8,9 @@ list``) does not pay.
 from __future__ import annotations
 
 import json
+import os
 import sys
+from collections.abc import Sequence
 from typing import Any
 
 _consoles: dict[str, Any] = {}
@@ -44,6 +46,45 @@ def print_line(text: str) -> None:
     """Print one line of data on stdout as it is (no markup, no highlighting, no wrapping):
     what ``out.print(text, markup=False, highlight=False)`` prints, without loading rich."""
     sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+#: ANSI colours :func:`print_table` may give a cell (the names rich uses).
+_ANSI = {"green": "32", "red": "31", "yellow": "33", "dim": "2"}
+
+
+def print_table(columns: Sequence[str], rows: Sequence[Sequence[tuple[str, str]]]) -> None:
+    """Print a table on stdout as aligned plain columns, without loading rich.
+
+    For the listings typed all day (``msctl ps``): importing rich and laying a table out
+    through it cost about 80 ms a run, twice the time of opening the Zenoh session. The
+    last column is not padded (a long error stays whole), colours appear only on a terminal
+    and never with ``NO_COLOR`` set.
+
+    Args:
+        columns: The header of each column.
+        rows: Each row's cells as ``(text, colour)``; colour is ``""`` or one of green, red,
+            yellow, dim.
+    """
+    colour = sys.stdout.isatty() and not os.environ.get("NO_COLOR")
+    widths = [len(c) for c in columns]
+    for row in rows:
+        for i, (text, _) in enumerate(row):
+            widths[i] = max(widths[i], len(text))
+
+    def line(cells: Sequence[tuple[str, str]]) -> str:
+        parts = []
+        for i, (text, style) in enumerate(cells):
+            padded = text if i == len(cells) - 1 else text.ljust(widths[i])
+            if colour and style in _ANSI:
+                padded = f"\x1b[{_ANSI[style]}m{text}\x1b[0m" + padded[len(text) :]
+            parts.append(padded)
+        return "  ".join(parts).rstrip()
+
+    header = line([(c, "") for c in columns])
+    text = [f"\x1b[1m{header}\x1b[0m" if colour else header]
+    text += [line(row) for row in rows]
+    sys.stdout.write("\n".join(text) + "\n")
     sys.stdout.flush()
 
 

@@ -8,6 +8,8 @@ JSON or plain lines, no message codec.
 
 from __future__ import annotations
 
+import sys
+
 
 def show_ps(json_output: bool = False, timeout: float = 5.0) -> None:
     """Print every component on every reachable host (and this computer's from its state
@@ -31,38 +33,33 @@ def show_ps(json_output: bool = False, timeout: float = 5.0) -> None:
     if json_output:
         print_json({"components": rows, "hosts": [d["host"] for d in documents], "notes": notes})
         return
-    from msctl.console import err
+    if notes:
+        from msctl.console import err
 
-    for note in notes:
-        err.print(f"[yellow]{note}[/]", highlight=False)
+        for note in notes:
+            err.print(f"[yellow]{note}[/]", highlight=False)
     if not rows:
-        err.print("nothing is running (start with `msctl up dragon`)")
+        sys.stderr.write("nothing is running (start with `msctl up dragon`)\n")
         return
-    from rich.table import Table
+    from msctl.console import print_table
 
-    from msctl.console import out
-
-    table = Table()
-    for column in ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"):
-        table.add_column(column, overflow="fold")
-    for r in rows:
-        style = {
-            "running": "green",
-            "failed": "red",
-            "unresponsive": "red",
-            "restarting": "yellow",
-        }.get(r["state"], "")
-        table.add_row(
-            r["name"],
-            r["kind"],
-            r["host"],
-            f"[{style}]{r['state']}[/]" if style else r["state"],
-            str(r["pid"] or "-"),
-            f"{r['uptime']:.0f}s",
-            str(r["restarts"]),
-            r["last_error"] or "",
-        )
-    out.print(table)
+    colours = {"running": "green", "failed": "red", "unresponsive": "red", "restarting": "yellow"}
+    print_table(
+        ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"),
+        [
+            [
+                (r["name"], ""),
+                (r["kind"], ""),
+                (r["host"], ""),
+                (r["state"], colours.get(r["state"], "")),
+                (str(r["pid"] or "-"), ""),
+                (f"{r['uptime']:.0f}s", ""),
+                (str(r["restarts"]), ""),
+                (r["last_error"] or "", ""),
+            ]
+            for r in rows
+        ],
+    )
 
 
 def show_topics(show_types: bool = False, verbose: bool = False, json_output: bool = False) -> None:

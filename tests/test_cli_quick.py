@@ -135,11 +135,11 @@ def test_listing_commands_import_nothing_heavy(
         } in json.loads(stdout)
 
 
-def test_ps_table_loads_rich_but_nothing_heavy(router_endpoint: str, tmp_path: Path) -> None:
-    """``msctl ps`` with nothing running says so (through rich, on stderr) and loads nothing
-    heavy."""
+def test_ps_table_loads_nothing_heavy_not_even_rich(router_endpoint: str, tmp_path: Path) -> None:
+    """``msctl ps`` with nothing running says so (on stderr) and loads nothing heavy: its
+    table is plain aligned columns (msctl.console.print_table)."""
     loaded, stdout = _loaded_by(["ps"], router_endpoint, tmp_path)
-    assert _heavy(loaded, HEAVY) == []
+    assert _heavy(loaded, HEAVY + RICH) == []
     assert stdout == ""
 
 
@@ -368,3 +368,108 @@ def test_supervisors_are_found_by_their_service_type_alone(open_sessions) -> Non
     finally:
         for node in (asking, other, second, first):
             node.close()
+
+
+def test_ps_table_shows_this_computers_run_in_aligned_columns(
+    router_endpoint: str, tmp_path: Path
+) -> None:
+    """A run whose supervisor is gone (its state file left): every component a row under
+    the header, columns aligned, the last error whole, no colour codes into a pipe."""
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    (tmp_path / "run").mkdir()
+    long_error = "unresponsive (no heartbeat for 6.1 s) " + "x" * 150
+    components = [
+        {
+            "name": "limb1/joint_manager",
+            "kind": "joint_manager",
+            "state": "running",
+            "pid": None,
+            "uptime": 12.4,
+            "restarts": 0,
+            "last_error": "",
+            "process": "limb1",
+        },
+        {
+            "name": "sim/simulator",
+            "kind": "simulator",
+            "state": "running",
+            "pid": None,
+            "uptime": 3.0,
+            "restarts": 2,
+            "last_error": long_error,
+            "process": "sim",
+        },
+    ]
+    (tmp_path / "run" / "state.json").write_text(
+        json.dumps(
+            {
+                "host": "test-laptop",
+                "template": "dragon",
+                "state": "running",
+                "supervisor_pid": int(dead.stdout),
+                "processes": [],
+                "components": components,
+            }
+        )
+    )
+    loaded, stdout = _loaded_by(["ps"], router_endpoint, tmp_path)
+    assert _heavy(loaded, HEAVY + RICH) == []
+    header, *rows = stdout.splitlines()
+    assert header.split() == [
+        "component",
+        "kind",
+        "host",
+        "state",
+        "pid",
+        "uptime",
+        "restarts",
+        "last",
+        "error",
+    ]
+    assert len(rows) == 2 and "\x1b" not in stdout
+    assert rows[0].split() == [
+        "limb1/joint_manager",
+        "joint_manager",
+        "test-laptop",
+        "stopped",
+        "-",
+        "0s",
+        "0",
+    ]
+    assert rows[1].endswith(long_error)
+    # Aligned: each column starts where its header does.
+    for column in ("kind", "host", "state", "restarts", "last error"):
+        at = header.index(column)
+        assert rows[1][at - 2 : at] == "  " and rows[1][at] != " ", column
+
+
+def test_print_table_colours_only_a_terminal_without_no_color(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from msctl.console import print_table
+
+    rows = [[("limb1", ""), ("failed", "red")], [("limb2/joint_manager", ""), ("running", "green")]]
+    print_table(("component", "state"), rows)
+    plain = capsys.readouterr().out
+    assert plain.splitlines() == [
+        "component            state",
+        "limb1                failed",
+        "limb2/joint_manager  running",
+    ]
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True)
+    monkeypatch.delenv("NO_COLOR", raising=False)
+    print_table(("component", "state"), rows)
+    coloured = capsys.readouterr().out
+    assert "\x1b[31mfailed\x1b[0m" in coloured and "\x1b[32mrunning\x1b[0m" in coloured
+    # Colour codes take no room: stripped, the lines are the plain ones.
+    import re
+
+    assert re.sub(r"\x1b\[[0-9;]*m", "", coloured) == plain
+    monkeypatch.setenv("NO_COLOR", "1")
+    print_table(("component", "state"), rows)
+    assert capsys.readouterr().out == plain

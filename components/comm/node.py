@@ -10,13 +10,15 @@ from __future__ import annotations
 import itertools
 import threading
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from components.comm.liveliness import Entity, EntityKind
 from components.comm.names import check_node_name, normalize_namespace, qualify
 from components.comm.qos import QoS
 from components.comm.services import ServiceClient, ServiceServer
-from components.comm.topics import Publisher, Subscription
+
+if TYPE_CHECKING:  # imported where used: a CLI node that only calls a service needs neither
+    from components.comm.topics import Publisher, Subscription
 
 # Entity ids are unique per session (rmw_zenoh: per context); several nodes share a session.
 _counters: dict[str, itertools.count] = {}
@@ -97,6 +99,8 @@ class Node:
 
     def publisher(self, topic: str, msg_type: str, qos: QoS | None = None) -> Publisher:
         """Declare a publisher (topic relative to the namespace unless absolute)."""
+        from components.comm.topics import Publisher
+
         return self._own(Publisher(self, topic, msg_type, qos))
 
     def subscription(
@@ -120,6 +124,8 @@ class Node:
             on_other_type: Called (on a Zenoh thread) with each publisher on the topic of
                 another type, or another version of the type, instead of logging it.
         """
+        from components.comm.topics import Subscription
+
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
         return self._own(
             Subscription(

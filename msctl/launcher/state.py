@@ -11,7 +11,6 @@ import errno
 import fcntl
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -218,6 +217,8 @@ def write_state(document: dict[str, Any]) -> None:
     """Replace the state file atomically (a reader never sees half a file)."""
     path = state_path()
     path.parent.mkdir(parents=True, exist_ok=True)
+    import tempfile  # 3 ms: only the supervisor writes state; `msctl ps` only reads it
+
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".state.", suffix=".json")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as handle:
