@@ -12,10 +12,12 @@ from components.comm.graph import Graph, snapshot
 from msctl.launcher.plan import ComponentRun
 
 #: Seconds a component may have published while its node is missing from the live graph
-#: before the network is asked for node tokens directly. Seen once in a loaded run of 60
-#: components: a guardian that ran and published stayed "starting" for minutes, its node's
-#: token on the router (a fresh query found it) but never delivered to the watch's
-#: subscriber. A component that publishes and has no node is rare enough to ask about.
+#: before the router is asked for node tokens directly. Seen in loaded runs of 60
+#: components: an operator that ran and published stayed "starting" for minutes, its node's
+#: token on the router (a fresh client session found it) but never delivered to the
+#: supervisor's peer session, whose direct link to that component's peer was missing. So the
+#: question goes through a client session (only the router answers a client, and the router
+#: has every token), opened the first time it is needed. Rare enough to ask about.
 RECHECK_AFTER = 2.0
 #: Seconds one such query may take.
 RECHECK_QUERY = 1.0
@@ -28,6 +30,9 @@ class HealthWatch:
         session: An open Zenoh session (the caller closes it after :meth:`close`).
         components: What to follow.
         domain: ROS domain id.
+        open_query_session: Opens the session the recheck asks through (a client of the
+            router; closed by :meth:`close`). ``None``: ask through ``session``.
+        clock: Monotonic time (tests pass a fake one).
     """
 
     def __init__(
@@ -35,10 +40,14 @@ class HealthWatch:
         session: Any,
         components: Iterable[ComponentRun],
         domain: int = 0,
+        open_query_session: Callable[[], Any] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ):
         self._lock = threading.Lock()
         self._session, self._domain, self._clock = session, domain, clock
+        self._open_query_session = open_query_session
+        self._query_session: Any = None
+        self._closed = False
         self.components = {c.name: c for c in components}
         self._output_seen: dict[str, bool] = dict.fromkeys(self.components, False)
         self._output_at: dict[str, float] = {}
@@ -96,15 +105,27 @@ class HealthWatch:
         return result
 
     def _ask(self, missing: set[str]) -> None:
-        """Ask the network for node tokens (off the caller's thread: it may take a second)."""
+        """Ask the router for node tokens (off the caller's thread: it may take a second)."""
+        seen: set[str] = set()
         try:
-            found = snapshot(self._session, self._domain, RECHECK_QUERY, "*/*/*/NN/**")
+            session = self._session
+            if self._open_query_session is not None:
+                if self._query_session is None:
+                    opened = self._open_query_session()
+                    with self._lock:
+                        if self._closed:  # closed while it opened: it is ours to close
+                            opened.close()
+                            return
+                        self._query_session = opened
+                session = self._query_session
+            found = snapshot(session, self._domain, RECHECK_QUERY, "*/*/*/NN/**")
             seen = found.node_names() & missing
-        except Exception:  # a closing session: the next turn asks again, or nobody does
-            seen = set()
-        with self._lock:
-            self._queried |= seen
-            self._asking = None
+        except Exception:  # no router now, or closing: the next turn asks again, or nobody
+            pass
+        finally:
+            with self._lock:
+                self._queried |= seen
+                self._asking = None
 
     def healthy(self, name: str) -> bool:
         """Whether one component is seen and has published."""
@@ -120,3 +141,11 @@ class HealthWatch:
                 pass
         self._subscribers.clear()
         self._graph.close()
+        with self._lock:
+            self._closed = True
+            asking, query_session, self._query_session = self._asking, self._query_session, None
+        if asking is not None:
+            # Never long: a query still running on a closed session just fails.
+            asking.join(timeout=RECHECK_QUERY)
+        if query_session is not None:
+            query_session.close()
