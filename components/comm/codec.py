@@ -114,8 +114,35 @@ class _Writer:
         self.lines.append("    " * indent + line)
 
 
+class _Run:
+    """What a decoder and an encoder share: where generated lines go, and the pending run of
+    fixed-size fields as one ``struct`` format, whose padding is folded in while the
+    position's alignment is known (``known``: what ``pos - 4`` is a multiple of; ``off``:
+    bytes since ``pos`` not yet added to it)."""
+
+    out: _Writer
+    indent: int
+    known: int
+    off: int
+    fmt: str
+
+    def emit(self, line: str) -> None:
+        self.out.emit(self.indent, line)
+
+    def pad_in_run(self, alignment: int) -> bool:
+        """Fold the padding to ``alignment`` into the run if its position is known there;
+        ``False`` when the caller must align in generated code."""
+        if alignment > self.known:
+            return False
+        pad = -self.off % alignment
+        if pad:
+            self.fmt += f"{pad}x"
+            self.off += pad
+        return True
+
+
 # ----------------------------------------------------------------------------- decoding
-class _Decoder:
+class _Decoder(_Run):
     """Writes the body of one decoding function: ``data``, ``n`` (its length) and ``pos``
     (the absolute position, 4 at the top: CDR aligns from the end of the header)."""
 
@@ -129,16 +156,9 @@ class _Decoder:
         self.after: list[str] = []  # lines that read fixed arrays of the pending run
         self.functions: dict[str, str] = {}  # element type -> its decoding function
 
-    def emit(self, line: str) -> None:
-        self.out.emit(self.indent, line)
-
     # position bookkeeping
     def align(self, alignment: int) -> None:
-        if alignment <= self.known:
-            pad = -self.off % alignment
-            if pad:
-                self.fmt += f"{pad}x"
-                self.off += pad
+        if self.pad_in_run(alignment):
             return
         self.flush()
         if alignment == 8:
@@ -366,7 +386,7 @@ def _compile(lines: list[str], consts: dict[str, Any], extra: dict[str, Any]) ->
 
 
 # ----------------------------------------------------------------------------- encoding
-class _Encoder:
+class _Encoder(_Run):
     """Writes the body of one encoding function: ``parts`` (the byte strings to join) and
     ``pos`` (the absolute position of the end of ``parts``, 4 after the header)."""
 
@@ -379,15 +399,8 @@ class _Encoder:
         self.values: list[str] = []
         self.functions: dict[str, str] = {}
 
-    def emit(self, line: str) -> None:
-        self.out.emit(self.indent, line)
-
     def align(self, alignment: int) -> None:
-        if alignment <= self.known:
-            pad = -self.off % alignment
-            if pad:
-                self.fmt += f"{pad}x"
-                self.off += pad
+        if self.pad_in_run(alignment):
             return
         self.flush_run()
         self.settle()
