@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,21 +16,13 @@ from pathlib import Path
 import pytest
 from conftest import wait_until
 
+from msctl.launcher.state import pid_alive
+
 pytestmark = pytest.mark.e2e
 
 ROOT = Path(__file__).resolve().parent.parent
 BENCH = ROOT / "bench" / "cli.py"
 ROWS = ("bare zenoh open+close", "msctl topic list", "msctl ps")
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def test_every_row_has_figures_and_the_assembly_is_brought_down() -> None:
@@ -60,7 +51,7 @@ def test_every_row_has_figures_and_the_assembly_is_brought_down() -> None:
     state = json.loads((Path(document["home"]) / "run" / "state.json").read_text())
     # `msctl down` returns once every component is stopped; the supervisor exits just after.
     wait_until(
-        lambda: not _pid_alive(state["supervisor_pid"]),
+        lambda: not pid_alive(state["supervisor_pid"]),
         timeout=30.0,
         what="the benchmark's supervisor to exit",
     )

@@ -6,7 +6,6 @@ import contextlib
 import os
 import signal
 import time
-from pathlib import Path
 from typing import Any
 
 import typer
@@ -15,19 +14,6 @@ from msctl.errors import MsctlError
 from msctl.launcher import state
 
 COMMAND_SETTINGS = {"help": "Stop every component (verified gone); --all for every host."}
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:  # a zombie waiting for its parent to reap it has exited
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return True
 
 
 def command(
@@ -71,9 +57,9 @@ def command(
     deadline = time.monotonic() + timeout
     # Until the supervisor itself has exited, not only marked its state stopped: "down"
     # promises nothing is left.
-    while time.monotonic() < deadline and _pid_alive(pid):
+    while time.monotonic() < deadline and state.pid_alive(pid):
         time.sleep(0.05)
-    if _pid_alive(pid):
+    if state.pid_alive(pid):
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
     _kill_leftovers(document.get("processes", []))

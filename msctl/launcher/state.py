@@ -282,6 +282,20 @@ def process_group_alive(pgid: int, ours_only: bool = False) -> bool:
     return False
 
 
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie waiting to be reaped has exited)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
 def group_alive(pgid: int) -> bool:
     """Whether any of msctl's processes of the process group ``pgid`` is left."""
     return process_group_alive(pgid, ours_only=True)
