@@ -135,3 +135,36 @@ def test_nothing_is_asked_while_the_live_graph_has_every_node(watched: Any, monk
     wait_until(published, 30.0, "node and output", interval=0.1)
     clock.now += 10 * RECHECK_AFTER
     assert watch.healthy(GUARDIAN.name)
+
+
+def test_the_shared_judgement_is_node_and_first_output_with_fake_time() -> None:
+    """ComponentWatch, the part both transports share: outputs shared by a namespace's
+    components, the age of the first output, a restart forgotten."""
+    from components.health.watch import ComponentWatch
+
+    posture = ComponentRun(
+        name="gc_rear/d2_posture",
+        kind="autonomous_operator",
+        namespace="/gc_rear",
+        node_fqn="/gc_rear/d2_posture",
+        first_output="/gc_rear/diagnostics",
+    )
+
+    class Fixed(ComponentWatch):
+        nodes: set[str] = set()
+
+        def node_names(self) -> set[str]:
+            return set(self.nodes)
+
+    clock = Clock()
+    watch = Fixed([GUARDIAN, posture], clock)
+    assert watch.outputs() == {"/gc_rear/diagnostics": [GUARDIAN.name, posture.name]}
+    assert watch.status() == {GUARDIAN.name: (False, False), posture.name: (False, False)}
+    watch.saw([GUARDIAN.name, posture.name])
+    clock.now += 1.5
+    watch.saw([GUARDIAN.name])  # a later sample does not make the first one younger
+    assert watch.output_age(GUARDIAN.name) == 1.5
+    Fixed.nodes = {GUARDIAN.node_fqn}
+    assert watch.healthy(GUARDIAN.name) and not watch.healthy(posture.name)
+    watch.forget([GUARDIAN.name])
+    assert watch.output_age(GUARDIAN.name) is None and not watch.healthy(GUARDIAN.name)

@@ -1,7 +1,8 @@
 """Judging components healthy from the ROS graph, for ``msctl up`` on the rclpy transport.
 
-The same judgement as :class:`msctl.launcher.watch.HealthWatch` makes on Zenoh: a component
-is healthy once its node is on the graph and its first output has arrived. Here both come
+The same judgement (:class:`components.health.watch.ComponentWatch`) as
+:class:`msctl.launcher.watch.HealthWatch` makes on Zenoh: a component is healthy once its
+node is on the graph and its first output has arrived. Here both come
 from rclpy: the node list of :class:`~components.ros.graph.RclpyGraph`, and a subscription to
 each first output, made once the topic (and so its type) appears on the graph; samples are
 taken as bytes and never decoded.
@@ -14,6 +15,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from components.comm.types import UnknownTypeError, normalize_type_name, registry
+from components.health.watch import ComponentWatch
 from components.ros.graph import RclpyGraph
 from components.ros.plane import RclpyPlane
 
@@ -21,7 +23,7 @@ from components.ros.plane import RclpyPlane
 TOPIC_POLL = 0.2
 
 
-class RclpyHealthWatch:
+class RclpyHealthWatch(ComponentWatch):
     """Follows the ROS graph and each component's first output topic. Close it when done.
 
     Args:
@@ -30,12 +32,8 @@ class RclpyHealthWatch:
     """
 
     def __init__(self, components: Iterable[Any], domain: int | None = None) -> None:
-        self._lock = threading.Lock()
-        self.components = {c.name: c for c in components}
-        self._output_seen: dict[str, bool] = dict.fromkeys(self.components, False)
-        self._by_topic: dict[str, list[str]] = {}
-        for component in self.components.values():
-            self._by_topic.setdefault(component.first_output, []).append(component.name)
+        super().__init__(components)
+        self._by_topic = self.outputs()
         self.plane = RclpyPlane(domain)
         self._node = self.plane.node(f"_msctl_health_{id(self):x}")
         self._graph = RclpyGraph(self.plane)
@@ -71,35 +69,14 @@ class RclpyHealthWatch:
         self._subscriptions[topic] = self._node.subscription(
             topic,
             type_name,
-            lambda _payload, names=names: self._saw(names),
+            lambda _payload, names=names: self.saw(names),
             QoS(reliability="best_effort", depth=1),
             raw=True,
         )
 
-    def _saw(self, names: list[str]) -> None:
-        with self._lock:
-            for name in names:
-                self._output_seen[name] = True
-
-    def forget(self, names: Iterable[str]) -> None:
-        """A process restarted: its components must show themselves again."""
-        with self._lock:
-            for name in names:
-                self._output_seen[name] = False
-
-    def status(self) -> dict[str, tuple[bool, bool]]:
-        """``{component: (node seen, output seen)}``."""
-        nodes = self._graph.node_names()
-        with self._lock:
-            return {
-                name: (c.node_fqn in nodes, self._output_seen[name])
-                for name, c in self.components.items()
-            }
-
-    def healthy(self, name: str) -> bool:
-        """Whether one component is seen and has published."""
-        node, output = self.status()[name]
-        return node and output
+    def node_names(self) -> set[str]:
+        """The nodes on the ROS graph now."""
+        return self._graph.node_names()
 
     def close(self) -> None:
         """Stop watching and shut the rclpy context down (idempotent)."""

@@ -1,5 +1,5 @@
-"""Judging components healthy from the data plane: their node's liveliness token is seen and
-their first output has arrived."""
+"""Judging components healthy from Zenoh's data plane: their node's liveliness token is seen
+and their first output has arrived (:class:`components.health.watch.ComponentWatch`)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from components.comm.graph import Graph, snapshot
+from components.health.watch import ComponentWatch
 from msctl.launcher.plan import ComponentRun
 
 #: Seconds a component may have published while its node is missing from the live graph
@@ -23,8 +24,8 @@ RECHECK_AFTER = 2.0
 RECHECK_QUERY = 1.0
 
 
-class HealthWatch:
-    """Follows the graph and each component's first output topic.
+class HealthWatch(ComponentWatch):
+    """Follows Zenoh's graph and each component's first output topic.
 
     Args:
         session: An open Zenoh session (the caller closes it after :meth:`close`).
@@ -43,59 +44,47 @@ class HealthWatch:
         open_query_session: Callable[[], Any] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ):
-        self._lock = threading.Lock()
-        self._session, self._domain, self._clock = session, domain, clock
+        super().__init__(components, clock)
+        self._session, self._domain = session, domain
         self._open_query_session = open_query_session
         self._query_session: Any = None
         self._closed = False
-        self.components = {c.name: c for c in components}
-        self._output_seen: dict[str, bool] = dict.fromkeys(self.components, False)
-        self._output_at: dict[str, float] = {}
         # Nodes a direct query found (see RECHECK_AFTER), until their process restarts.
         self._queried: set[str] = set()
         self._asked_at = -RECHECK_AFTER
         self._asking: threading.Thread | None = None
         self._graph = Graph(session, domain)
         self._subscribers = []
-        by_topic: dict[str, list[str]] = {}
-        for c in self.components.values():
-            by_topic.setdefault(c.first_output, []).append(c.name)
-        for topic, names in by_topic.items():
+        for topic, names in self.outputs().items():
             key = f"{domain}/{topic.strip('/')}/*/*"
             self._subscribers.append(
-                session.declare_subscriber(key, lambda _s, names=names: self._saw(names))
+                session.declare_subscriber(key, lambda _s, names=names: self.saw(names))
             )
-
-    def _saw(self, names: list[str]) -> None:
-        with self._lock:
-            for name in names:
-                if not self._output_seen[name]:
-                    self._output_seen[name] = True
-                    self._output_at[name] = self._clock()
 
     def forget(self, names: Iterable[str]) -> None:
         """A process restarted: its components must show themselves again."""
+        names = list(names)
+        super().forget(names)
         with self._lock:
             for name in names:
-                self._output_seen[name] = False
-                self._output_at.pop(name, None)
                 self._queried.discard(self.components[name].node_fqn)
 
-    def status(self) -> dict[str, tuple[bool, bool]]:
-        """``{component: (node seen, output seen)}``."""
+    def node_names(self) -> set[str]:
+        """The live graph's nodes, and those a recheck found."""
         nodes = self._graph.node_names()
+        with self._lock:
+            return nodes | self._queried
+
+    def status(self) -> dict[str, tuple[bool, bool]]:
+        """``{component: (node seen, output seen)}``; asks the router about a component
+        that has published for :data:`RECHECK_AFTER` with its node missing."""
+        result = super().status()
+        missing = set()
+        for name, (node, output) in result.items():
+            if output and not node and (self.output_age(name) or 0.0) >= RECHECK_AFTER:
+                missing.add(self.components[name].node_fqn)
         now = self._clock()
         with self._lock:
-            nodes |= self._queried
-            result = {
-                name: (c.node_fqn in nodes, self._output_seen[name])
-                for name, c in self.components.items()
-            }
-            missing = {
-                self.components[name].node_fqn
-                for name, (node, output) in result.items()
-                if output and not node and now - self._output_at[name] >= RECHECK_AFTER
-            }
             if missing and self._asking is None and now - self._asked_at >= RECHECK_AFTER:
                 self._asked_at = now
                 self._asking = threading.Thread(
@@ -126,11 +115,6 @@ class HealthWatch:
             with self._lock:
                 self._queried |= seen
                 self._asking = None
-
-    def healthy(self, name: str) -> bool:
-        """Whether one component is seen and has published."""
-        node, output = self.status()[name]
-        return node and output
 
     def close(self) -> None:
         """Stop watching (idempotent)."""
