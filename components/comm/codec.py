@@ -140,6 +140,37 @@ class _Run:
             self.off += pad
         return True
 
+    #: ``decode`` or ``encode``: the stem of the element functions' names.
+    ROLE = ""
+    #: Element type -> the name of its function, shared by every nested writer of a type.
+    functions: dict[str, str]
+
+    def nested(self) -> _Run:
+        """A writer of the same kind, on the same output."""
+        raise NotImplementedError
+
+    def element_body(self, type_name: str) -> tuple[str, str]:
+        """Write the body of one element's function here; its parameters and last line."""
+        raise NotImplementedError
+
+    def element_function(self, type_name: str) -> str:
+        """A module-level function for elements of that type (of a sequence or an array),
+        written once per type, before the main function."""
+        known = self.functions.get(type_name)
+        if known is not None:
+            return known
+        out = self.out
+        name = f"_{self.ROLE}_{len(self.functions)}_{type_name.replace('/', '_')}"
+        self.functions[type_name] = name
+        saved, out.lines = out.lines, []
+        inner = self.nested()
+        inner.known = 1  # an element may start anywhere
+        inner.functions = self.functions
+        parameters, last = inner.element_body(type_name)
+        out.defs += [f"def {name}{parameters}:", *out.lines, f"    {last}", ""]
+        out.lines = saved
+        return name
+
 
 # ----------------------------------------------------------------------------- decoding
 class _Decoder(_Run):
@@ -281,23 +312,16 @@ class _Decoder(_Run):
         self.emit(f"    item, pos = {function}(data, n, pos)")
         self.emit(f"    {target}.append(item)")
 
-    def element_function(self, type_name: str) -> str:
-        """A function ``(data, n, pos) -> (message, pos)`` for elements of that type."""
-        known = self.functions.get(type_name)
-        if known is not None:
-            return known
-        out = self.out
-        name = f"_decode_{len(self.functions)}_{type_name.replace('/', '_')}"
-        self.functions[type_name] = name
-        saved, out.lines = out.lines, []
-        inner = _Decoder(out, self.fields, self.classes)
-        inner.known = 1  # an element may start anywhere
-        inner.functions = self.functions
-        result = inner.message(type_name)
-        inner.flush()
-        out.defs += [f"def {name}(data, n, pos):", *out.lines, f"    return {result}, pos", ""]
-        out.lines = saved
-        return name
+    ROLE = "decode"
+
+    def nested(self) -> _Decoder:
+        return _Decoder(self.out, self.fields, self.classes)
+
+    def element_body(self, type_name: str) -> tuple[str, str]:
+        """Decode one element: ``(data, n, pos) -> (message, pos)``."""
+        result = self.message(type_name)
+        self.flush()
+        return "(data, n, pos)", f"return {result}, pos"
 
     def array(self, inner: Any, count: int) -> str:
         target = self.out.name("a")
@@ -534,23 +558,17 @@ class _Encoder(_Run):
         self.emit(f"parts.append({local}.tobytes())")
         self.off += count * size
 
-    def element_function(self, type_name: str) -> str:
-        known = self.functions.get(type_name)
-        if known is not None:
-            return known
-        out = self.out
-        name = f"_encode_{len(self.functions)}_{type_name.replace('/', '_')}"
-        self.functions[type_name] = name
-        saved, out.lines = out.lines, []
-        inner = _Encoder(out, self.fields)
-        inner.known = 1  # an element may start anywhere
-        inner.functions = self.functions
-        inner.message(type_name, "message")
-        inner.flush_run()
-        inner.settle()
-        out.defs += [f"def {name}(message, parts, pos):", *out.lines, "    return pos", ""]
-        out.lines = saved
-        return name
+    ROLE = "encode"
+
+    def nested(self) -> _Encoder:
+        return _Encoder(self.out, self.fields)
+
+    def element_body(self, type_name: str) -> tuple[str, str]:
+        """Encode one element: ``(message, parts, pos) -> pos``."""
+        self.message(type_name, "message")
+        self.flush_run()
+        self.settle()
+        return "(message, parts, pos)", "return pos"
 
 
 def encoder(type_name: str, fields: Definitions) -> Callable[[Any], bytes]:
