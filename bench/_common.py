@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import statistics
 from collections.abc import Sequence
+from pathlib import Path
+
+#: The checkout, put on the msctl processes' PYTHONPATH.
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def free_port() -> int:
@@ -12,6 +17,21 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+def msctl_env(home: Path, endpoint: str, host: str = "bench-laptop") -> dict[str, str]:
+    """The environment of an ``msctl`` run of a benchmark: its own MSCTL_HOME, a host that is
+    none of the assembly's computers (everything simulated), and only its own loopback
+    router (random port, no multicast)."""
+    return {
+        **os.environ,
+        "MSCTL_HOME": str(home),
+        "MSCTL_HOST": host,
+        "MSCTL_ZENOH_CONNECT": endpoint,
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+        "PYTHONPATH": str(ROOT),
+    }
 
 
 def percentile(values: Sequence[float], q: float) -> float:

@@ -39,7 +39,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench._common import free_port, percentile, print_table  # noqa: E402
+from bench._common import free_port, msctl_env, percentile, print_table  # noqa: E402
 
 HOST = "bench-laptop"  # none of the robots' computers: the whole assembly runs here, simulated
 #: The bare session: the same settings msctl's CLI opens its session with.
@@ -63,19 +63,12 @@ COMMANDS: dict[str, list[str]] = {
 
 
 def _env(home: Path, endpoint: str) -> dict[str, str]:
-    env = {name: value for name, value in os.environ.items() if name != "PYTHONDONTWRITEBYTECODE"}
-    return {
-        **env,
-        # Compiled modules cached as an installed msctl has them (PYTHONDONTWRITEBYTECODE
-        # made every run compile msctl's sources), kept out of the checkout.
-        "PYTHONPYCACHEPREFIX": str(home / "pycache"),
-        "MSCTL_HOME": str(home),
-        "MSCTL_HOST": HOST,
-        "MSCTL_ZENOH_CONNECT": endpoint,
-        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
-        "MSCTL_ZENOH_MULTICAST": "0",
-        "PYTHONPATH": str(ROOT),
-    }
+    env = msctl_env(home, endpoint, HOST)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    # Compiled modules cached as an installed msctl has them (PYTHONDONTWRITEBYTECODE made
+    # every run compile msctl's sources), kept out of the checkout.
+    env["PYTHONPYCACHEPREFIX"] = str(home / "pycache")
+    return env
 
 
 def _run(argv: list[str], env: dict[str, str], timeout: float) -> tuple[float, str]:

@@ -41,7 +41,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench._common import free_port, print_table
+from bench._common import free_port, msctl_env, print_table
 
 HOST = "bench-health-laptop"  # none of the assemblies' computers: everything simulated
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,15 +88,7 @@ class Timing:
 
 
 def _env(home: Path, endpoint: str) -> dict[str, str]:
-    return {
-        **os.environ,
-        "MSCTL_HOME": str(home),
-        "MSCTL_HOST": HOST,
-        "MSCTL_ZENOH_CONNECT": endpoint,
-        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
-        "MSCTL_ZENOH_MULTICAST": "0",
-        "PYTHONPATH": str(ROOT),
-    }
+    return msctl_env(home, endpoint, HOST)
 
 
 def _msctl(env: dict[str, str], *args: str, timeout: float = 300.0) -> subprocess.CompletedProcess:

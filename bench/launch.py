@@ -46,7 +46,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench._common import free_port, print_table
+from bench._common import free_port, msctl_env, print_table
 from components import kinds
 from msctl.launcher.state import process_group_alive
 
@@ -83,15 +83,7 @@ class Result:
 
 
 def _env(home: Path, endpoint: str) -> dict[str, str]:
-    return {
-        **os.environ,
-        "MSCTL_HOME": str(home),
-        "MSCTL_HOST": HOST,
-        "MSCTL_ZENOH_CONNECT": endpoint,
-        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
-        "MSCTL_ZENOH_MULTICAST": "0",
-        "PYTHONPATH": str(Path(__file__).resolve().parent.parent),
-    }
+    return msctl_env(home, endpoint, HOST)
 
 
 def _state(home: Path) -> dict:

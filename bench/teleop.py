@@ -54,7 +54,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # runnable as `python bench/teleop.py` from anywhere
     sys.path.insert(0, str(REPO))
 
-from bench._common import free_port, print_table, summary  # noqa: E402
+from bench._common import free_port, msctl_env, print_table, summary  # noqa: E402
 from components.comm.node import Node  # noqa: E402
 from components.comm.session import SessionSettings, open_session  # noqa: E402
 from components.messages import JOINT_STATE, joint_samples  # noqa: E402
@@ -420,15 +420,7 @@ class Detached:
     def __init__(self, home: Path, template: str) -> None:
         self.template = template
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.env = {
-            **os.environ,
-            "MSCTL_HOME": str(home),
-            "MSCTL_HOST": "bench-laptop",  # none of the assembly's computers: simulated
-            "MSCTL_ZENOH_CONNECT": self.endpoint,
-            "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
-            "MSCTL_ZENOH_MULTICAST": "0",
-            "PYTHONPATH": str(REPO),
-        }
+        self.env = msctl_env(home, self.endpoint)  # bench-laptop: simulated
         result = self.msctl("up", template, "--detach", "--speed", "1", timeout=600.0)
         if result.returncode != 0:
             self.down()
