@@ -547,3 +547,31 @@ def test_a_stale_state_file_never_blocks_up_nor_kills_strangers(tmp_path: Path) 
     finally:
         stranger.kill()
         stranger.wait()
+
+
+def test_at_once_runs_every_call_together_keeps_the_order_and_raises_what_failed() -> None:
+    import threading
+
+    from msctl.launcher.fleet import at_once
+
+    # Each call waits for all the others: one after another, the barrier would break.
+    together = threading.Barrier(4, timeout=30.0)
+
+    def answer(host: str) -> str:
+        together.wait()
+        return host.upper()
+
+    assert at_once(answer, ["a", "b", "c", "d"]) == ["A", "B", "C", "D"]
+    assert at_once(answer, []) == []
+
+    ended: list[str] = []
+
+    def fail_one(host: str) -> str:
+        if host == "b":
+            raise ValueError("b refused")
+        ended.append(host)
+        return host
+
+    with pytest.raises(ValueError, match="b refused"):
+        at_once(fail_one, ["a", "b", "c"])
+    assert sorted(ended) == ["a", "c"]  # the others still ran to their end

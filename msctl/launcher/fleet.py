@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import json
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 from msctl.launcher import state
 from msctl.launcher.control import AGENT_SRV, encode_args
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 def supervisors(node: Any) -> dict[str, str]:
@@ -25,45 +29,63 @@ def supervisors(node: Any) -> dict[str, str]:
     return found
 
 
+def at_once(work: Callable[[T], R], items: Sequence[T]) -> list[R]:
+    """``[work(item) for item in items]``, every call in its own thread at the same time.
+
+    For asking a fleet: one after another, loaded computers took the sum of their answer
+    times, and a slow one ate the time the others had. Plain threads, because
+    concurrent.futures imports logging, which ``msctl ps`` has no use for.
+
+    Raises:
+        Exception: The first exception a call raised, after every call ended.
+    """
+    import threading
+
+    results: list[Any] = [None] * len(items)
+    failures: list[BaseException] = []
+
+    def run(index: int, item: T) -> None:
+        try:
+            results[index] = work(item)
+        except BaseException as exc:  # handed to the caller's thread below
+            failures.append(exc)
+
+    threads = [
+        threading.Thread(target=run, args=(i, item), daemon=True) for i, item in enumerate(items)
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    if failures:
+        raise failures[0]
+    return results
+
+
 def ask_all(
     node: Any, verb: str, args: dict[str, Any] | None = None, timeout: float = 3.0
 ) -> dict[str, Any]:
-    """Send one request to every supervisor; ``{namespace: payload or {"error": ...}}``."""
-    import threading
-
+    """Send one request to every supervisor, all at once; ``{namespace: payload or
+    {"error": ...}}``, in the graph's order."""
     from components.comm.services import ServiceError
     from msctl.agent_wire import AgentClient
 
-    # Every supervisor is asked at once: one after another, a fleet of loaded computers took
-    # the sum of their answer times, and a slow one ate the time the others had. Plain
-    # threads: concurrent.futures imports logging, which `msctl ps` has no use for.
-    # Clients are made here, in this thread (the node numbers its entities).
     clients = {ns: AgentClient(node, service) for ns, service in supervisors(node).items()}
-    answers: dict[str, Any] = {}
 
-    def ask(namespace: str, client: AgentClient) -> None:
+    def ask(client: AgentClient) -> Any:
         try:
             response = client.ask(verb, encode_args(args), timeout=timeout)
         except ServiceError as exc:
-            answers[namespace] = {"error": str(exc)}
-            return
+            return {"error": str(exc)}
         if response.success:
-            answers[namespace] = json.loads(response.payload) if response.payload else {}
-        else:
-            answers[namespace] = {"error": response.message}
+            return json.loads(response.payload) if response.payload else {}
+        return {"error": response.message}
 
-    threads = [threading.Thread(target=ask, args=item, daemon=True) for item in clients.items()]
     try:
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        return dict(zip(clients, at_once(ask, list(clients.values())), strict=True))
     finally:
         for client in clients.values():
             client.close()
-    # In the graph's order, whatever order the answers came in.
-    return {ns: answers[ns] for ns in clients if ns in answers}
-    return answers
 
 
 def fleet_state(timeout: float = 3.0) -> tuple[list[dict[str, Any]], list[str]]:

@@ -137,7 +137,6 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
     """
     import json
     import time
-    from concurrent.futures import ThreadPoolExecutor
 
     from rich.markup import escape
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -153,7 +152,7 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         encode_args,
         host_namespace,
     )
-    from msctl.launcher.fleet import supervisors
+    from msctl.launcher.fleet import at_once, supervisors
     from msctl.plane import connected
 
     document = json.loads(assembly.lock_path.read_text()) if assembly.lock_path else {}
@@ -182,8 +181,7 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         # but slow (a loaded computer: 2 s was too short, and a host that was there was
         # named unreachable). The `up` itself gets longer still: an agent starts its
         # processes before it answers, and one told "unreachable" must not be starting.
-        # Every host is asked at once: an agent answers `up` once its processes are started,
-        # and asked one after another a fleet of loaded computers took the sum of their times.
+        # Every host is asked at once (fleet.at_once).
         present = set(supervisors(node))
         # An agent answers `up` once its processes are started: on a loaded computer that took
         # over 30 s (seen with four agents starting on one 2-core machine), so it gets as long
@@ -209,8 +207,7 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
 
         for host in hosts:
             err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
-        with ThreadPoolExecutor(max_workers=max(1, len(hosts))) as pool:
-            answers = list(pool.map(ask, hosts))
+        answers = at_once(ask, hosts)
         for host, (outcome, answer) in zip(hosts, answers, strict=True):
             if outcome == "started":
                 started[host] = answer
