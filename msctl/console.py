@@ -57,25 +57,38 @@ def print_table(columns: Sequence[str], rows: Sequence[Sequence[tuple[str, str]]
     """Print a table on stdout as aligned plain columns, without loading rich.
 
     For the listings typed all day (``msctl ps``): importing rich and laying a table out
-    through it cost about 80 ms a run, twice the time of opening the Zenoh session. The
-    last column is not padded (a long error stays whole), colours appear only on a terminal
-    and never with ``NO_COLOR`` set.
+    through it cost about 80 ms a run, twice the time of opening the Zenoh session. Cells
+    are one line each. The last column is not padded; on a terminal it is cut (``…``) to the
+    terminal's width, so a long error does not wrap into the next rows, and piped it stays
+    whole (``--json`` has it whole too). Colours appear only on a terminal and never with
+    ``NO_COLOR`` set.
 
     Args:
         columns: The header of each column.
         rows: Each row's cells as ``(text, colour)``; colour is ``""`` or one of green, red,
             yellow, dim.
     """
-    colour = sys.stdout.isatty() and not os.environ.get("NO_COLOR")
-    widths = [len(c) for c in columns]
-    for row in rows:
-        for i, (text, _) in enumerate(row):
-            widths[i] = max(widths[i], len(text))
+    terminal = sys.stdout.isatty()
+    colour = terminal and not os.environ.get("NO_COLOR")
+    rows = [[(" ".join(text.splitlines()), style) for text, style in row] for row in rows]
+    widths = [max([len(c), *(len(row[i][0]) for row in rows)]) for i, c in enumerate(columns)]
+    room = None  # characters the last column may take (None: whole)
+    if terminal:
+        import shutil
+
+        left = shutil.get_terminal_size().columns - sum(widths[:-1]) - 2 * (len(widths) - 1)
+        room = left if left >= 10 else None  # narrower than that, wrapping reads better
+    last = len(columns) - 1
 
     def line(cells: Sequence[tuple[str, str]]) -> str:
         parts = []
         for i, (text, style) in enumerate(cells):
-            padded = text if i == len(cells) - 1 else text.ljust(widths[i])
+            if i < last:
+                padded = text.ljust(widths[i])
+            elif room is not None and len(text) > room:
+                padded = text = text[: room - 1] + "…"
+            else:
+                padded = text
             if colour and style in _ANSI:
                 padded = f"\x1b[{_ANSI[style]}m{text}\x1b[0m" + padded[len(text) :]
             parts.append(padded)

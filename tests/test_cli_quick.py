@@ -473,3 +473,29 @@ def test_print_table_colours_only_a_terminal_without_no_color(
     monkeypatch.setenv("NO_COLOR", "1")
     print_table(("component", "state"), rows)
     assert capsys.readouterr().out == plain
+
+
+def test_print_table_cuts_a_long_last_cell_to_the_terminal_and_keeps_cells_on_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A killed component's error quotes its last log line: on a terminal it must not wrap
+    into the next rows; piped, it stays whole."""
+    from msctl.console import print_table
+
+    error = "killed by SIGKILL: 2026-11-23 18:20:31,220 INFO msctl.worker: built " + "x" * 80
+    rows = [
+        [("wheel2/joint_manager", ""), ("starting", "yellow"), (error, "")],
+        [("gc1/data_monitor", ""), ("running", "green"), ("line one\nline two", "")],
+    ]
+    print_table(("component", "state", "last error"), rows)
+    piped = capsys.readouterr().out.splitlines()
+    assert piped[1].endswith(error) and piped[2].endswith("line one line two")
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True)
+    monkeypatch.setenv("NO_COLOR", "1")
+    monkeypatch.setattr("shutil.get_terminal_size", lambda *a: os.terminal_size((60, 24)))
+    print_table(("component", "state", "last error"), rows)
+    shown = capsys.readouterr().out.splitlines()
+    assert len(shown) == 3 and all(len(line) <= 60 for line in shown), shown
+    assert shown[1].endswith("…") and shown[1].split("  ")[-1].startswith("killed by SIGKILL")
+    print_table(("component", "state", "last error"), [])  # nothing to show: a header alone
+    assert capsys.readouterr().out.split() == ["component", "state", "last", "error"]
