@@ -152,7 +152,16 @@ def wire() -> Iterator[dict[str, Any]]:
     node = Node(receiver, "fuzz_sink", "/fuzz")
     got: list[Any] = []
     subscription = node.subscription("joint_commands", JOINT_STATE, got.append)
-    publisher = sender.declare_publisher(subscription.key)
+    # Reliable and blocking: Zenoh's default congestion control drops a sample the sending
+    # queue cannot take within a millisecond, which a loaded machine reaches (a fuzz sample
+    # then lost on the sender's side, neither delivered nor counted here).
+    import zenoh
+
+    publisher = sender.declare_publisher(
+        subscription.key,
+        reliability=zenoh.Reliability.RELIABLE,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
     try:
         yield {"subscription": subscription, "publisher": publisher, "got": got}
     finally:
