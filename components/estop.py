@@ -55,6 +55,10 @@ class Acknowledgement:
 class Estop:
     """Halt and recover clients for a set of modules, declared once and reused.
 
+    The clients appear on the graph only once their first requests have left: a new token
+    wakes every process watching the graph, and arriving with a halt, that delayed it
+    (see :class:`~components.comm.services.ServiceClient`'s ``announce``).
+
     Args:
         node: The node the clients belong to (the caller keeps it open).
         modules: Slot -> the module's namespace (``/limb1``), or just slots (namespace
@@ -67,7 +71,9 @@ class Estop:
         self._clients: dict[str, dict[str, Any]] = {"halt": {}, "recover": {}}
         for slot, namespace in spaces.items():
             for verb, clients in self._clients.items():
-                clients[slot] = node.client(f"{namespace.rstrip('/')}/{verb}", TRIGGER)
+                clients[slot] = node.client(
+                    f"{namespace.rstrip('/')}/{verb}", TRIGGER, announce=False
+                )
 
     def halt(
         self, modules: Iterable[str] | None = None, timeout: float = HALT_TIMEOUT
@@ -100,7 +106,9 @@ class Estop:
         clients = self._clients[verb]
         request = clients[chosen[0]].request_type()() if chosen else None
         # Every request leaves before any answer is awaited: all modules at once.
-        calls = [(slot, clients[slot].call_async(request, timeout)) for slot in chosen]
+        calls = [(slot, clients[slot].call_async(request, timeout, urgent=True)) for slot in chosen]
+        for slot in chosen:
+            clients[slot].announce()
         answers = []
         for slot, call in calls:
             try:

@@ -102,6 +102,12 @@ class ComponentKind:
         validate: ``"module:function"`` checking a component's parameters as a whole,
             called as ``function(params, robots)`` with the template's robots (their root
             slots); raises ``ValueError`` naming what is wrong.
+        niceness: How far below the robot's safety path its process runs for CPU (a Unix
+            nice value, 0 to 19) when they share a computer, as off-robot everything does.
+            Work that can wait milliseconds without harm (recording, aggregating health)
+            says so, and a halt is not queued behind its bursts. A process of several
+            kinds takes the lowest (see :func:`process_niceness`). Lowering a priority
+            needs no privilege; raising one would, so the safety path stays at 0.
     """
 
     name: str
@@ -122,6 +128,7 @@ class ComponentKind:
     own_process: bool = False
     named: bool = False
     validate: str | None = None
+    niceness: int = 0
 
     @property
     def runnable(self) -> bool:
@@ -197,6 +204,11 @@ def registry() -> dict[str, ComponentKind]:
         for entry in entries:
             if not isinstance(entry, ComponentKind):
                 raise KindError(f"{source}: {entry!r} is not a ComponentKind")
+            if not (isinstance(entry.niceness, int) and 0 <= entry.niceness <= 19):
+                raise KindError(
+                    f"{source}: kind {entry.name!r} has niceness {entry.niceness!r}; "
+                    "use a whole number from 0 (the safety path's) to 19"
+                )
             if entry.name in found:
                 raise KindError(
                     f"component kind {entry.name!r} is declared twice: by {sources[entry.name]} "
@@ -250,6 +262,13 @@ def stand_ins(name: str) -> list[ComponentKind]:
 def replaced_in_simulation(name: str) -> bool:
     """Whether components of kind ``name`` do not run when the assembly is simulated."""
     return bool(stand_ins(name))
+
+
+def process_niceness(kind_names: Iterable[str]) -> int:
+    """The nice value of a process running components of these kinds: the lowest of their
+    :attr:`ComponentKind.niceness` (a module's process, holding its joint manager, runs at
+    the joint manager's 0 whatever else it holds)."""
+    return min((get(name).niceness for name in kind_names), default=0)
 
 
 def simulators() -> list[ComponentKind]:

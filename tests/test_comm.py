@@ -299,6 +299,69 @@ def test_deferred_service_answers_later(pair: tuple[Node, Node]) -> None:
     assert wait_until(answered).sum == 70
 
 
+def test_a_queue_only_server_is_called_on_zenohs_thread_and_urgent_calls_are_answered(
+    pair: tuple[Node, Node],
+) -> None:
+    caller, server_node = pair
+    threads: dict[str, threading.Thread] = {}
+    answer = msg("std_srvs/srv/Trigger_Response", success=True, message="held")
+
+    def queued(pending: Any) -> None:
+        threads.setdefault("queue_only", threading.current_thread())
+        threading.Thread(target=pending.reply, args=(answer,)).start()  # answered elsewhere
+
+    def own_thread(pending: Any) -> None:
+        threads.setdefault("own", threading.current_thread())
+        pending.reply(answer)
+
+    trigger = "std_srvs/srv/Trigger"
+    server_node.service("/q/halt", trigger, queued, deferred=True, queue_only=True, urgent=True)
+    server_node.service("/q/slow", trigger, own_thread, deferred=True)
+    halt = caller.client("/q/halt", trigger)
+    slow = caller.client("/q/slow", trigger)
+
+    def answered(client: Any) -> Any:
+        call = client.call_async(client.request_type()(), timeout=0.5, urgent=True)
+        try:
+            return call.result()
+        except ServiceError:
+            return None
+
+    assert wait_until(lambda: answered(halt)).message == "held"
+    assert wait_until(lambda: answered(slow)).message == "held"
+    # Zenoh's network thread is not one Python started; a handler that may block gets a
+    # Python thread of its own.
+    assert isinstance(threads["queue_only"], threading._DummyThread)
+    assert not isinstance(threads["own"], threading._DummyThread)
+
+
+def test_an_unannounced_client_calls_at_once_and_shows_on_the_graph_when_announced(
+    pair: tuple[Node, Node], open_sessions: Callable[[], Any]
+) -> None:
+    caller, server_node = pair
+    trigger = "std_srvs/srv/Trigger"
+    server_node.service("/quiet/halt", trigger, lambda r: msg("std_srvs/srv/Trigger_Response"))
+    with Graph(open_sessions()) as graph:
+        assert graph.wait_for(lambda g: "/quiet/halt" in g.services(), 5.0)
+        client = caller.client("/quiet/halt", trigger, announce=False)
+
+        def answered() -> Any:
+            try:
+                return client.call(client.request_type()(), timeout=0.5)
+            except ServiceTimeout:
+                return None
+
+        assert wait_until(answered) is not None
+        assert graph.services()["/quiet/halt"].clients == 0
+        client.announce()
+        client.announce()  # idempotent
+        assert graph.wait_for(lambda g: g.services()["/quiet/halt"].clients == 1, 5.0)
+        client.close()
+        assert graph.wait_for(lambda g: g.services()["/quiet/halt"].clients == 0, 5.0)
+        client.announce()  # closed: nothing is declared again
+        assert graph.services()["/quiet/halt"].clients == 0
+
+
 def test_service_without_server_times_out(pair: tuple[Node, Node]) -> None:
     caller, _ = pair
     client = caller.client("/nobody_home", "std_srvs/srv/Trigger")

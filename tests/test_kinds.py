@@ -166,6 +166,35 @@ def test_an_entry_point_redeclaring_a_kind_is_refused_naming_both(
         kinds.registry()
 
 
+def test_a_process_yields_the_cpu_as_its_most_important_kind_says(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fresh_registry: None
+) -> None:
+    assert kinds.get("data_archiver").niceness == 10
+    assert kinds.get("data_monitor").niceness == 5
+    assert kinds.process_niceness(["data_archiver"]) == 10
+    assert kinds.process_niceness(["data_monitor", "data_archiver"]) == 5
+    # A module's process holds its joint manager: the safety path's 0, whatever else.
+    assert kinds.process_niceness(["health_monitor", "joint_manager", "data_monitor"]) == 0
+    assert kinds.process_niceness([]) == 0
+    _install(
+        tmp_path,
+        monkeypatch,
+        "msctl_greedy",
+        """
+        from components.kinds import ComponentKind, Placement
+
+        KIND = ComponentKind(
+            name="greedy", summary="wants more", placement=Placement.STATION, niceness=-5
+        )
+        """,
+    )
+    kinds.reset()
+    with pytest.raises(
+        kinds.KindError, match=r"msctl_greedy.*kind 'greedy' has niceness -5; use .* 0 .* 19"
+    ):
+        kinds.registry()
+
+
 def test_an_entry_point_that_is_not_a_kind_is_refused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fresh_registry: None
 ) -> None:

@@ -368,3 +368,12 @@ def test_every_template_simulates_and_each_robot_has_a_pose(assembly, name: str)
             assert core.outbox.on(f"/sim/{root}/pose")
     for root in a.root_links:
         assert core.world.root_pose(root)[0][2] > 0.0  # above the ground
+
+
+def test_a_simulated_module_publishes_at_the_real_motor_interfaces_rate() -> None:
+    from components.motor_interface.interface import MOTOR_INTERFACE
+
+    # A drop-in: the joint manager, the recorder and every other subscriber see a simulated
+    # module's joint_states as often as a real one's, 100 Hz.
+    (tick,) = MOTOR_INTERFACE.every
+    assert SimulatorConfig().state_period == tick.period == 0.01

@@ -6,6 +6,7 @@ beside the robots' 44), each healthy."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from conftest import wait_until
@@ -64,5 +65,30 @@ def test_up_two_dragons_sim_reaches_60_of_60_components_healthy(tmp_path) -> Non
         assert all(c["restarts"] == 0 for c in running.values()), {
             n: c["last_error"] for n, c in running.items() if c["restarts"]
         }
+        # Sharing one computer, each process yields the CPU as its kinds say, every one of
+        # its threads: recording and aggregating below the robot's safety path.
+        kinds_of: dict[int, list[str]] = {}
+        for component in running.values():
+            kinds_of.setdefault(component["pid"], []).append(component["kind"])
+        niceness = {pid: _niceness(pid) for pid in kinds_of}
+        assert niceness == {pid: {kinds.process_niceness(k)} for pid, k in kinds_of.items()}
+        assert {
+            n for pid, k in kinds_of.items() if "data_archiver" in k for n in niceness[pid]
+        } == {10}
+        assert {
+            n for pid, k in kinds_of.items() if "joint_manager" in k for n in niceness[pid]
+        } == {0}
     finally:
         up.down()
+
+
+def _niceness(pid: int) -> set[int]:
+    """The nice values of every thread of a process (field 19 of /proc/<pid>/task/*/stat)."""
+    values = set()
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue  # a thread that just ended
+        values.add(int(text.rsplit(")", 1)[1].split()[16]))
+    return values

@@ -143,14 +143,24 @@ class Node:
         return qualify(name, self.namespace)
 
     def service(
-        self, service: str, srv_type: str, handler: Callable[[Any], Any], deferred: bool = False
+        self,
+        service: str,
+        srv_type: str,
+        handler: Callable[[Any], Any],
+        deferred: bool = False,
+        queue_only: bool = False,
+        urgent: bool = False,
     ) -> ServiceServer:
-        """Declare a service server."""
-        return self._own(ServiceServer(self, service, srv_type, handler, deferred))
+        """Declare a service server (see :class:`ServiceServer` for the arguments)."""
+        return self._own(
+            ServiceServer(
+                self, service, srv_type, handler, deferred, queue_only=queue_only, urgent=urgent
+            )
+        )
 
-    def client(self, service: str, srv_type: str) -> ServiceClient:
-        """Declare a service client."""
-        return self._own(ServiceClient(self, service, srv_type))
+    def client(self, service: str, srv_type: str, announce: bool = True) -> ServiceClient:
+        """Declare a service client (see :class:`ServiceClient` for ``announce``)."""
+        return self._own(ServiceClient(self, service, srv_type, announce=announce))
 
     def close(self) -> None:
         """Undeclare every endpoint and the node token (idempotent). The session stays open."""

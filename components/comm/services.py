@@ -123,7 +123,7 @@ class PendingRequest:
             self.attachment.sequence_number, time.time_ns(), self.attachment.gid
         ).encode()
         try:
-            self._query.reply(server.key, payload, attachment=attachment)
+            self._query.reply(server.key, payload, attachment=attachment, **server._reply_options)
         finally:
             self._release()
 
@@ -147,9 +147,18 @@ class PendingRequest:
 class ServiceServer:
     """Answers one service. Create through :meth:`Node.service`.
 
-    ``handler(request) -> response`` runs on the Zenoh thread unless ``deferred=True``, in
-    which case ``handler(pending)`` receives a :class:`PendingRequest` to answer later. With
-    ``raw=True``, requests and responses are CDR bytes, never decoded (a bridge's relay).
+    ``handler(request) -> response`` runs on the server's receiving thread unless
+    ``deferred=True``, in which case ``handler(pending)`` receives a :class:`PendingRequest`
+    to answer later. With ``raw=True``, requests and responses are CDR bytes, never decoded
+    (a bridge's relay).
+
+    The receiving thread is a Python thread of the server's own, fed by Zenoh, so a handler
+    may block. A deferred handler that only queues the request and never blocks (an
+    executor's) says ``queue_only=True``: it then runs on Zenoh's network thread itself,
+    which spares a thread's wake-up per request; on a loaded computer, that wake-up alone
+    can delay a halt by tens of milliseconds. An ``urgent`` server (a halt) answers at
+    Zenoh's real-time priority, unbatched, as an urgent call asks
+    (:meth:`ServiceClient.call_async`).
     """
 
     def __init__(
@@ -160,8 +169,12 @@ class ServiceServer:
         handler: Callable[[Any], Any],
         deferred: bool = False,
         raw: bool = False,
+        queue_only: bool = False,
+        urgent: bool = False,
     ) -> None:
         _identify(self, node, EntityKind.SERVICE, service, srv_type)
+        import zenoh
+
         reg = registry()
         self._deserialize: Callable[[bytes], Any] = bytes
         self._serialize: Callable[[Any], bytes] = bytes
@@ -170,6 +183,7 @@ class ServiceServer:
             self._serialize = reg.serializer(self.parts.response)
         self._handler = handler
         self._deferred = deferred
+        self._reply_options = _urgency(urgent)
         # Callers by GID, from the client tokens of this service (with history, so clients
         # that existed before this server are known too): who asked, for handlers that log it.
         self._callers: dict[bytes, str] = {}
@@ -182,7 +196,9 @@ class ServiceServer:
         )
         try:
             self._zqueryable = node.session.declare_queryable(
-                self.key, self._on_query, complete=True
+                self.key,
+                zenoh.handlers.Callback(self._on_query, indirect=not (deferred and queue_only)),
+                complete=True,
             )
         except Exception:
             self._clients.undeclare()
@@ -255,17 +271,34 @@ class ServiceServer:
 
 
 class ServiceClient:
-    """Calls one service. Create through :meth:`Node.client`."""
+    """Calls one service. Create through :meth:`Node.client`.
 
-    def __init__(self, node: Node, service: str, srv_type: str) -> None:
+    Args:
+        node: Its node.
+        service: The service's name.
+        srv_type: The service's type.
+        announce: Declare its liveliness token (the graph's ``SC``) now. An e-stop's client
+            declares it only after its first requests left (:meth:`announce`): every
+            process watching the graph wakes for a new token, and on a loaded computer
+            that wake-up, arriving with the halt, delayed the halt by 20-40 ms.
+    """
+
+    def __init__(self, node: Node, service: str, srv_type: str, announce: bool = True) -> None:
         _identify(self, node, EntityKind.CLIENT, service, srv_type)
         reg = registry()
         self._serialize = reg.serializer(self.parts.request)
         self._deserialize = reg.deserializer(self.parts.response)
         self._session = node.session
         self._seq = itertools.count(1)
-        self._token = node.session.liveliness().declare_token(self.token_key)
+        self._token: Any = None
         self._closed = False
+        if announce:
+            self.announce()
+
+    def announce(self) -> None:
+        """Declare this client's liveliness token, if not yet (idempotent)."""
+        if self._token is None and not self._closed:
+            self._token = self._session.liveliness().declare_token(self.token_key)
 
     def request_type(self) -> type:
         """The request message class (build requests with it)."""
@@ -328,11 +361,17 @@ class ServiceClient:
             "check it is running (`msctl service list`)"
         )
 
-    def call_async(self, request: Any, timeout: float = 2.0) -> PendingCall:
+    def call_async(self, request: Any, timeout: float = 2.0, urgent: bool = False) -> PendingCall:
         """Send ``request`` and return at once; the answer arrives on a Zenoh thread.
 
         Many calls sent this way are in flight together (an e-stop reaching every module at
         once), each stamped with the moment its own answer came.
+
+        Args:
+            request: The request message.
+            timeout: Seconds to wait for an answer.
+            urgent: Send it at Zenoh's real-time priority, unbatched (a halt): on every
+                link, it leaves before the samples queued there.
         """
         import zenoh
 
@@ -341,8 +380,11 @@ class ServiceClient:
         call.started = time.monotonic()
         self._session.get(
             self.key,
-            zenoh.handlers.Callback(call._on_reply, call._on_end),
+            # The answer's callback only decodes it and sets an event: on Zenoh's own thread,
+            # no Python thread of its own has to be woken (and, per call, started).
+            zenoh.handlers.Callback(call._on_reply, call._on_end, indirect=False),
             payload=self._serialize(request),
+            **_urgency(urgent),
             attachment=attachment,
             target=zenoh.QueryTarget.ALL_COMPLETE,
             consolidation=zenoh.ConsolidationMode.NONE,
@@ -355,10 +397,21 @@ class ServiceClient:
         if self._closed:
             return
         self._closed = True
+        if self._token is None:
+            return
         try:
             self._token.undeclare()
         except Exception:
             pass
+
+
+def _urgency(urgent: bool) -> dict[str, Any]:
+    """Zenoh's options for an urgent request or its answer (none for the others)."""
+    if not urgent:
+        return {}
+    import zenoh
+
+    return {"priority": zenoh.Priority.REAL_TIME, "express": True}
 
 
 class PendingCall:

@@ -255,7 +255,14 @@ class Executor:
             else:
                 self._work.put((component, handler, pending))
 
-        component.node.service(serve.service, serve.srv_type, on_request, deferred=True)
+        component.node.service(
+            serve.service,
+            serve.srv_type,
+            on_request,
+            deferred=True,
+            queue_only=True,
+            urgent=serve.urgent,
+        )
 
     def call_soon(self, component: Component, handler: str | Callable, *args: Any) -> None:
         """Have the executor thread call ``handler(*args, now)`` for ``component``.

@@ -54,7 +54,8 @@ class Serve:
     """The core answers service ``service`` of ``srv_type`` with ``handler``.
 
     ``urgent`` requests are handled before anything queued (samples, timers, other
-    requests), as soon as the handler running finishes: a halt never waits behind data.
+    requests), as soon as the handler running finishes, and answered at Zenoh's real-time
+    priority: a halt never waits behind data.
     """
 
     service: str

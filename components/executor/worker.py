@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     # Assembly-wide stand-ins (the simulator) are in no lock file: the launcher names them.
     stand_ins = {k.component_name: k.name for k in kinds.simulators()}
     options = {"sim": any(name in stand_ins for name in args.component), "speed": args.speed}
+    _yield_cpu(args.component, stand_ins, assembly)
 
     def build(name: str) -> Any:
         plan = simulator_plan(stand_ins[name]) if name in stand_ins else assembly.component(name)
@@ -140,6 +141,22 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     log.info("stopped cleanly")
     return 0
+
+
+def _yield_cpu(names: list[str], stand_ins: dict[str, str], assembly: Any) -> None:
+    """Lower this process's CPU priority as its kinds ask (:attr:`ComponentKind.niceness`).
+
+    Done before anything is built: every thread made later (Zenoh's, the executor's)
+    inherits it, where a nice value set afterwards would reach this thread only.
+    """
+    try:
+        niceness = kinds.process_niceness(
+            stand_ins.get(name) or assembly.component(name).kind for name in names
+        )
+    except LookupError:
+        return  # an unknown component or kind: refused below, with its own message
+    if niceness > 0:
+        os.nice(niceness)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from components.comm.qos import SENSOR
 from components.executor.interface import Every, InterfaceSpec, Publish, Serve, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, TRIGGER
+from components.motors.base import READ_PERIOD
 
 #: The node whose ``joint_commands`` the motor interface takes, relative to the module's
 #: namespace: the module's own joint manager (the builder names it from the assembly).
@@ -23,5 +24,5 @@ MOTOR_INTERFACE = InterfaceSpec(
         Serve("motors/halt", TRIGGER, "on_halt"),
         Serve("motors/recover", TRIGGER, "on_recover"),
     ),
-    every=(Every(0.01, "tick"),),
+    every=(Every(READ_PERIOD, "tick"),),
 )

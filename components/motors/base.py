@@ -115,6 +115,11 @@ class MotorCommand:
     effort: float | None = None
 
 
+#: Seconds between two reads of a bus by the motor interface (its tick), hence between two
+#: ``joint_states`` of a module: 100 Hz. The simulator publishes at the same rate, so a
+#: simulated module loads the data plane (and its joint manager) as a real one does.
+READ_PERIOD = 0.01
+
 #: Relative slack of :meth:`RawLimits.admits`: a command this close past a limit is float
 #: noise (calibration round trips; the simulator's model stores limits to 6 digits), not a
 #: command out of limits. 1e-5 of 3.14 rad is 31 µrad.

@@ -278,14 +278,25 @@ class RclpyNode:
         )
 
     def service(
-        self, service: str, srv_type: str, handler: Callable[[Any], Any], deferred: bool = False
+        self,
+        service: str,
+        srv_type: str,
+        handler: Callable[[Any], Any],
+        deferred: bool = False,
+        queue_only: bool = False,
+        urgent: bool = False,
     ) -> RclpyServer:
         """A service server (``handler(request) -> response``, or ``handler(pending)`` when
-        ``deferred``)."""
+        ``deferred``). ``queue_only`` and ``urgent`` are Zenoh's thread and priority hints
+        (:class:`components.comm.services.ServiceServer`); DDS has neither, so they change
+        nothing here."""
+        del queue_only, urgent
         return self._own(RclpyServer(self, service, srv_type, handler, deferred))
 
-    def client(self, service: str, srv_type: str) -> RclpyClient:
-        """A service client."""
+    def client(self, service: str, srv_type: str, announce: bool = True) -> RclpyClient:
+        """A service client. ``announce`` is the Zenoh graph's token timing
+        (:class:`components.comm.services.ServiceClient`); a DDS client is always seen."""
+        del announce
         return self._own(RclpyClient(self, service, srv_type))
 
     def close(self) -> None:

@@ -50,7 +50,7 @@ from components.messages import (
     to_time,
     trigger_response,
 )
-from components.motors.base import RawLimits, check_command, refused_whole
+from components.motors.base import READ_PERIOD, RawLimits, check_command, refused_whole
 from components.simulator.world import EFFORT, SimWorld
 
 #: Namespace of what belongs to the simulator itself (pose ground truth, diagnostics).
@@ -110,7 +110,8 @@ class SimulatorConfig:
             for tests).
         tick_period: How often the executor calls :meth:`SimulatorCore.tick`; one physics
             step per tick at speed 1 with the default 2 ms model time step.
-        state_period: Seconds between two ``joint_states`` of a module (200 Hz). A module
+        state_period: Seconds between two ``joint_states`` of a module: the real motor
+            interface's 100 Hz (:data:`~components.motors.base.READ_PERIOD`). A module
             that received a command also publishes at the first tick after it, so the
             effect of a command is seen one physics step later, not one period later.
         pose_period: Seconds between two ground-truth poses.
@@ -128,7 +129,7 @@ class SimulatorConfig:
 
     speed: float = 1.0
     tick_period: float = 0.002
-    state_period: float = 0.005
+    state_period: float = READ_PERIOD
     pose_period: float = 0.01
     diagnostics_period: float = 1.0
     max_catch_up: float = 0.1
