@@ -57,6 +57,7 @@ from datetime import datetime
 from typing import Any
 from urllib.parse import quote, unquote
 
+from components.comm.liveliness import ask_tokens
 from components.comm.names import mangle, unmangle
 
 #: The first chunks of every claim token (a verbatim ``@`` chunk: wildcards never match it,
@@ -504,15 +505,11 @@ class Claims:
         A liveliness query reaches every live token, so a claim made a moment ago elsewhere
         is not missed because its token is still on its way to our subscriber.
         """
-        replies = self.session.liveliness().get(
-            f"{PREFIX}/{self.domain}/{module}/**", timeout=timeout
-        )
         found = []
-        for reply in replies:
-            if reply.ok is not None:
-                info = parse_claim(str(reply.ok.key_expr))
-                if info is not None and info.module == module:
-                    found.append(info)
+        for key in ask_tokens(self.session, f"{PREFIX}/{self.domain}/{module}/**", timeout):
+            info = parse_claim(key)
+            if info is not None and info.module == module:
+                found.append(info)
         with self._lock:
             # What our own subscriber already saw counts too (our own tokens at least).
             found += [c for c in self._tokens.values() if c.module == module]
@@ -532,13 +529,11 @@ class Claims:
         return sorted(found.values(), key=ClaimInfo.order)
 
     def _survey_once(self, timeout: float) -> dict[str, ClaimInfo]:
-        replies = self.session.liveliness().get(f"{PREFIX}/{self.domain}/**", timeout=timeout)
         found: dict[str, ClaimInfo] = {}
-        for reply in replies:
-            if reply.ok is not None:
-                info = parse_claim(str(reply.ok.key_expr))
-                if info is not None:
-                    found[info.key] = info
+        for key in ask_tokens(self.session, f"{PREFIX}/{self.domain}/**", timeout):
+            info = parse_claim(key)
+            if info is not None:
+                found[info.key] = info
         return found
 
     def claim(self, module: str, holder: str, node: Any, take: bool = False) -> Claim:

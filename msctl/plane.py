@@ -35,12 +35,8 @@ def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
 
     try:
         # A short-lived command is a client of the router: its queries (graph, services)
-        # are answered by the router at once, where a fresh peer would first have to learn
-        # the routes (~50 ms of empty answers). MSCTL_ZENOH_MODE still wins.
-        mode = None if os.environ.get("MSCTL_ZENOH_MODE") else "client"
-        settings = SessionSettings.from_env(mode=mode)
-        if settings.mode == "client":
-            settings = dataclasses.replace(settings, listen=())
+        # are answered by the router at once and whole (see SessionSettings.joining).
+        settings = SessionSettings.joining()
         session = open_session(settings)
     except SessionOpenError as exc:
         # The settings were fine; nothing answered at the endpoints (a client needs a router).

@@ -74,10 +74,9 @@ class Up:
         )
 
     def settings(self) -> SessionSettings:
-        """Session settings that join this assembly's router only."""
-        return SessionSettings(
-            connect=(self.endpoint,), listen=("tcp/127.0.0.1:0",), multicast=False
-        )
+        """Session settings that join this assembly from outside, as a script or a command
+        does (:meth:`SessionSettings.joining`): a client of its router only."""
+        return SessionSettings(mode="client", connect=(self.endpoint,), multicast=False)
 
     def down(self) -> None:
         """``msctl down``, verified; whatever it could not stop is killed all the same, so a

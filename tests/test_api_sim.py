@@ -71,7 +71,8 @@ class Up:
         )
 
     def settings(self) -> SessionSettings:
-        return SessionSettings(connect=(self.endpoint,), listen=("tcp/127.0.0.1:0",))
+        # As a script joins it (SessionSettings.joining): a client of the router.
+        return SessionSettings(mode="client", connect=(self.endpoint,), multicast=False)
 
     def down(self) -> None:
         self.msctl("down", timeout=120.0)

@@ -21,7 +21,7 @@ from conftest import free_port, quick_peer_settings, quick_router, wait_until
 from components.comm import LATCHED, SENSOR, Node, QoS, ServiceError, ServiceTimeout
 from components.comm.attachment import Attachment, encode_keyed
 from components.comm.graph import Graph, snapshot
-from components.comm.liveliness import EntityKind
+from components.comm.liveliness import EntityKind, ask_tokens
 from components.comm.services import service_key
 from components.comm.session import (
     SessionConfigError,
@@ -449,6 +449,63 @@ def test_graph_ignores_foreign_tokens(open_sessions: Callable[[], Any]) -> None:
     finally:
         node.close()
         token.undeclare()
+
+
+def test_a_graph_query_answered_past_256_by_the_sessions_own_tokens_returns_them_all(
+    open_sessions: Callable[[], Any],
+) -> None:
+    # A session answers a liveliness query from what it knows inside ``get`` itself; read
+    # through Zenoh's default channel (256 answers), the 257th blocked that call for good,
+    # as a peer of two_dragons (625 tokens) did.
+    session = open_sessions()
+    nodes = [Node(session, f"many_{i}", domain=5) for i in range(400)]
+    expected = {f"/many_{i}" for i in range(400)}
+    result: list[Any] = []
+
+    def ask() -> None:
+        result.append(wait_until(lambda: snapshot(session, domain=5).node_names() == expected))
+
+    try:
+        asking = threading.Thread(target=ask, daemon=True)
+        asking.start()
+        asking.join(60.0)
+        assert not asking.is_alive(), "the graph query never ended"
+        assert result == [True]
+        assert len(ask_tokens(session, "@ros2_lv/5/**", 1.0)) == 400
+    finally:
+        for node in nodes:
+            node.close()
+
+
+def test_a_peers_graph_questions_get_the_whole_answer_every_time(
+    open_sessions: Callable[[], Any],
+) -> None:
+    # Asked of a peer itself, Zenoh 1.10 answered with 0 to 100 of these 100 tokens from one
+    # query to the next (its own tokens!); through a client of the router, all of them.
+    session = open_sessions()
+    other = open_sessions()
+    nodes = [Node(other, f"known_{i}", domain=6) for i in range(100)]
+    try:
+        wait_until(lambda: len(ask_tokens(session, "@ros2_lv/6/**", 1.0)) == 100)
+        answers = [len(ask_tokens(s, "@ros2_lv/6/**", 1.0)) for s in (session, other) * 10]
+        assert answers == [100] * 20
+    finally:
+        for node in nodes:
+            node.close()
+
+
+def test_a_joining_process_is_a_client_of_the_router_unless_told_otherwise() -> None:
+    env = {"MSCTL_ZENOH_CONNECT": "tcp/127.0.0.1:7999", "MSCTL_ZENOH_LISTEN": "tcp/0.0.0.0:0"}
+    joining = SessionSettings.joining(env)
+    assert (joining.mode, joining.connect, joining.listen) == (
+        "client",
+        ("tcp/127.0.0.1:7999",),
+        (),
+    )
+    # A component started by the launcher stays a peer; MSCTL_ZENOH_MODE wins for both.
+    assert SessionSettings.from_env(env).mode == "peer"
+    peer = SessionSettings.joining({**env, "MSCTL_ZENOH_MODE": "peer"})
+    assert (peer.mode, peer.listen) == ("peer", ("tcp/0.0.0.0:0",))
 
 
 def test_domains_are_separate(open_sessions: Callable[[], Any]) -> None:

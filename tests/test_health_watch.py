@@ -11,7 +11,6 @@ import pytest
 from conftest import wait_until
 
 from components.comm.node import Node
-from components.comm.session import SessionSettings, open_session
 from components.messages import DIAGNOSTIC_ARRAY, diagnostic_array
 from msctl.launcher import watch as watch_module
 from msctl.launcher.plan import ComponentRun
@@ -47,13 +46,10 @@ class BlindGraph:
 
 
 @pytest.fixture
-def watched(open_sessions: Callable[[], Any], router_endpoint: str) -> Any:
+def watched(open_sessions: Callable[[], Any]) -> Any:
     clock = Clock()
-    # As the launcher makes it: the recheck asks through a client of the router.
-    client = SessionSettings(mode="client", connect=(router_endpoint,), listen=())
-    watch = HealthWatch(
-        open_sessions(), [GUARDIAN], open_query_session=lambda: open_session(client), clock=clock
-    )
+    # A peer, as the launcher's: its recheck asks through a client of the router.
+    watch = HealthWatch(open_sessions(), [GUARDIAN], clock=clock)
     component = Node(open_sessions(), "d2_guardian", "/gc_rear")
     component.output = component.publisher("/gc_rear/diagnostics", DIAGNOSTIC_ARRAY)
     try:
@@ -116,7 +112,6 @@ def test_a_node_token_the_live_graph_missed_is_found_by_asking(
     wait_until(found, 30.0, "the node found by a direct query", interval=0.1)
     assert watch.healthy(GUARDIAN.name)
     assert all(names <= {"/gc_rear/d2_guardian"} for names in asked) and asked
-    assert watch._query_session is not None  # asked through the router's client
     # A restart forgets what the query found: the component must show itself again.
     watch.forget([GUARDIAN.name])
     assert watch.status()[GUARDIAN.name] == (False, False)

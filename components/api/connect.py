@@ -303,7 +303,8 @@ async def connect(
     Args:
         assembly: The template expected to run (``dragon``); None takes whatever runs.
         settings: Zenoh :class:`~components.comm.session.SessionSettings` (default: from the
-            environment, as every msctl process).
+            environment, as a client of the router: see
+            :meth:`~components.comm.session.SessionSettings.joining`).
         timeout: Seconds to find the modules and hear from every joint.
         slots: Only these modules (default: every module found).
 
@@ -315,11 +316,13 @@ async def connect(
     from components.comm import Node, SessionSettings, open_session
     from components.comm.session import SessionOpenError
 
-    settings = settings or SessionSettings.from_env()
+    # A script joins a running assembly: a client of its router, which knows the whole graph
+    # (SessionSettings.joining; MSCTL_ZENOH_MODE still wins).
+    settings = settings or SessionSettings.joining()
     try:
         session = await asyncio.to_thread(open_session, _failing_fast(settings))
     except SessionOpenError as exc:
-        raise RobotNotFoundError(_unreachable(settings, _refusal(exc))) from exc
+        raise RobotNotFoundError(_unreachable(settings, _refusal(exc, settings))) from exc
     node = None
     handlers: list[JointHandler] = []
     try:
@@ -391,13 +394,46 @@ def _failing_fast(settings: Any) -> Any:
     return replace(settings, extra={**settings.extra, keys[0]: True, keys[1]: 0})
 
 
-def _refusal(exc: Exception) -> str:
-    """What Zenoh's long open error says, in a few words."""
+def _refusal(exc: Exception, settings: Any) -> str:
+    """What Zenoh's long open error says, in a few words.
+
+    A client's error does not say why ("Unable to connect to any of [...]"), so its first
+    TCP endpoint is tried once more here, to name the cause all the same.
+    """
     text = str(exc)
     for words in ("Connection refused", "No route to host", "Network is unreachable"):
         if words in text:
             return words.lower()
+    for endpoint in settings.connect:
+        why = _tcp_refusal(endpoint)
+        if why is not None:
+            return why
     return "could not connect"
+
+
+def _tcp_refusal(endpoint: str, wait: float = 1.0) -> str | None:
+    """Why a TCP connection to ``endpoint`` (``tcp/host:port``, ``tls/...``) fails, in a few
+    words; ``None`` when it does not fail, or the endpoint is not one to try."""
+    import errno
+    import socket
+
+    protocol, _, address = endpoint.partition("/")
+    host, _, port = address.split("#", 1)[0].rpartition(":")
+    if protocol not in ("tcp", "tls") or not port.isdigit():
+        return None
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=wait):
+            return None
+    except ConnectionRefusedError:
+        return "connection refused"
+    except TimeoutError:
+        return f"no answer within {wait:g} s"
+    except OSError as exc:
+        if exc.errno == errno.EHOSTUNREACH:
+            return "no route to host"
+        if exc.errno == errno.ENETUNREACH:
+            return "network is unreachable"
+        return None
 
 
 def _unreachable(settings: Any, why: str) -> str:
@@ -455,9 +491,9 @@ async def _discover(
         ]
         if time.monotonic() > deadline:
             break
-        # Components are peers: a peer's tokens reach a new peer session over their direct
-        # link, not through the router, and that link can take seconds on a loaded machine.
-        # So a peer linked to this session means something runs, whatever a query said.
+        # The snapshot asked the router (a peer session's question goes through a client of
+        # it), which knows every token; still, a peer linked to this session means
+        # something runs, whatever one query said.
         peers = bool(list(node.session.info.peers_zid()))
         nothing = not found and not supervisors and whole and not peers
         if nothing and time.monotonic() - started > NOTHING_RUNS_WAIT:

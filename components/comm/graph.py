@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError, ask_tokens
 from components.comm.stats import drops
 
 
@@ -133,14 +133,8 @@ def snapshot(session: Any, domain: int = 0, timeout: float = 1.0, tokens: str = 
         tokens: Which tokens, as a key expression below ``@ros2_lv/<domain>/`` (default all);
             the router answers only those (e.g. one service type's servers).
     """
-    entities = []
-    for reply in session.liveliness().get(f"{PREFIX}/{domain}/{tokens}", timeout=timeout):
-        if reply.ok is None:
-            continue
-        entity = _parse(str(reply.ok.key_expr))
-        if entity is not None:
-            entities.append(entity)
-    return Snapshot(entities)
+    keys = ask_tokens(session, f"{PREFIX}/{domain}/{tokens}", timeout)
+    return Snapshot(e for key in keys if (e := _parse(key)) is not None)
 
 
 class Graph(GraphView):

@@ -12,8 +12,10 @@ SC (service client), and every ``/`` inside a name mangled to ``%``.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Any
 
 from components.comm.names import mangle, unmangle
 from components.comm.qos import QoS
@@ -34,6 +36,44 @@ class EntityKind(StrEnum):
 
 class TokenError(ValueError):
     """A liveliness key that is not an rmw_zenoh token."""
+
+
+#: Seconds past a liveliness query's own timeout to wait for Zenoh to end it.
+END_GRACE = 2.0
+
+
+def ask_tokens(session: Any, key: str, timeout: float) -> list[str]:
+    """The keys of the live tokens matching ``key``, asked of the network now.
+
+    The answers are gathered by a callback, never through Zenoh's default channel: a
+    session's own routing tables answer it inside ``get`` itself, before the caller can
+    read anything, and past the channel's 256 answers that blocked for good (a peer of
+    two_dragons knows 625 tokens). A peer's question goes through a client of its router
+    (:func:`~components.comm.session.graph_questions`): Zenoh answers a peer with part of
+    the tokens.
+
+    Args:
+        session: An open Zenoh session.
+        key: A key expression of tokens (``@ros2_lv/0/**``).
+        timeout: Seconds the answers may take at most.
+    """
+    import zenoh
+
+    from components.comm.session import graph_questions
+
+    keys: list[str] = []
+    ended = threading.Event()
+
+    def on_reply(reply: Any) -> None:
+        if reply.ok is not None:
+            keys.append(str(reply.ok.key_expr))
+
+    with graph_questions(session) as asked:
+        asked.liveliness().get(
+            key, zenoh.handlers.Callback(on_reply, ended.set, indirect=False), timeout=timeout
+        )
+        ended.wait(timeout + END_GRACE)
+    return list(keys)
 
 
 @dataclass(frozen=True)

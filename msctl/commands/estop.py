@@ -117,16 +117,14 @@ def modules_to_reach(node: object) -> tuple[dict[str, str], list[str]]:
     those this computer's resolved assembly plans (when it is the one running); notes on
     what did not agree."""
     from components.assembly import AssemblyError, load_assembly
-    from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+    from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError, ask_tokens
     from components.joint_manager.kind import KIND as JOINT_MANAGER
 
     found: dict[str, str] = {}
     key = f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.SERVICE.value}/**"
-    for reply in node.session.liveliness().get(key, timeout=GRAPH_TIMEOUT):
-        if reply.ok is None:
-            continue
+    for token in ask_tokens(node.session, key, GRAPH_TIMEOUT):
         try:
-            entity = Entity.parse(str(reply.ok.key_expr))
+            entity = Entity.parse(token)
         except TokenError:
             continue
         if entity.node_name != JOINT_MANAGER.name or entity.topic is None:

@@ -271,14 +271,7 @@ class Launch:
 
             self.watch = RclpyHealthWatch(self.plan.components, self.settings.domain)
         else:
-            self.watch = HealthWatch(
-                self.session,
-                self.plan.components,
-                self.settings.domain,
-                open_query_session=lambda: open_session(
-                    replace(self.settings, mode="client", listen=())
-                ),
-            )
+            self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
         if self._stop:
             return  # serving requests would first import the node machinery, for nothing
         if self.serve_control:

@@ -17,8 +17,8 @@ from msctl.launcher.plan import ComponentRun
 #: components: an operator that ran and published stayed "starting" for minutes, its node's
 #: token on the router (a fresh client session found it) but never delivered to the
 #: supervisor's peer session, whose direct link to that component's peer was missing. So the
-#: question goes through a client session (only the router answers a client, and the router
-#: has every token), opened the first time it is needed. Rare enough to ask about.
+#: router is asked (through a client: see components.comm.session.graph_questions), which
+#: has every token. Rare enough to ask about.
 RECHECK_AFTER = 2.0
 #: Seconds one such query may take.
 RECHECK_QUERY = 1.0
@@ -31,8 +31,6 @@ class HealthWatch(ComponentWatch):
         session: An open Zenoh session (the caller closes it after :meth:`close`).
         components: What to follow.
         domain: ROS domain id.
-        open_query_session: Opens the session the recheck asks through (a client of the
-            router; closed by :meth:`close`). ``None``: ask through ``session``.
         clock: Monotonic time (tests pass a fake one).
     """
 
@@ -41,13 +39,10 @@ class HealthWatch(ComponentWatch):
         session: Any,
         components: Iterable[ComponentRun],
         domain: int = 0,
-        open_query_session: Callable[[], Any] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ):
         super().__init__(components, clock)
         self._session, self._domain = session, domain
-        self._open_query_session = open_query_session
-        self._query_session: Any = None
         self._closed = False
         # Nodes a direct query found (see RECHECK_AFTER), until their process restarts.
         self._queried: set[str] = set()
@@ -94,20 +89,14 @@ class HealthWatch(ComponentWatch):
         return result
 
     def _ask(self, missing: set[str]) -> None:
-        """Ask the router for node tokens (off the caller's thread: it may take a second)."""
+        """Ask the router for node tokens (off the caller's thread: it may take a second).
+        A peer's graph question goes through a client of its router
+        (:func:`components.comm.session.graph_questions`)."""
         seen: set[str] = set()
         try:
-            session = self._session
-            if self._open_query_session is not None:
-                if self._query_session is None:
-                    opened = self._open_query_session()
-                    with self._lock:
-                        if self._closed:  # closed while it opened: it is ours to close
-                            opened.close()
-                            return
-                        self._query_session = opened
-                session = self._query_session
-            found = snapshot(session, self._domain, RECHECK_QUERY, "*/*/*/NN/**")
+            if self._closed:
+                return
+            found = snapshot(self._session, self._domain, RECHECK_QUERY, "*/*/*/NN/**")
             seen = found.node_names() & missing
         except Exception:  # no router now, or closing: the next turn asks again, or nobody
             pass
@@ -127,9 +116,7 @@ class HealthWatch(ComponentWatch):
         self._graph.close()
         with self._lock:
             self._closed = True
-            asking, query_session, self._query_session = self._asking, self._query_session, None
+            asking = self._asking
         if asking is not None:
             # Never long: a query still running on a closed session just fails.
             asking.join(timeout=RECHECK_QUERY)
-        if query_session is not None:
-            query_session.close()

@@ -453,7 +453,7 @@ class Recorder:
         offered = self._matching(self._graph.entities(), parsed)
         if offered:
             return offered
-        from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+        from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError, ask_tokens
         from components.comm.names import mangle
 
         selector = (
@@ -462,12 +462,11 @@ class Recorder:
         )
         entities = []
         try:
-            for reply in self.session.liveliness().get(selector, timeout=_QOS_QUERY):
-                if reply.ok is not None:
-                    try:
-                        entities.append(Entity.parse(str(reply.ok.key_expr)))
-                    except TokenError:
-                        continue
+            for key in ask_tokens(self.session, selector, _QOS_QUERY):
+                try:
+                    entities.append(Entity.parse(key))
+                except TokenError:
+                    continue
         except Exception:
             return []
         return self._matching(entities, parsed)
