@@ -113,6 +113,7 @@ class Node:
         senders: Iterable[str] | None = None,
         guarded: bool = False,
         on_other_type: Callable[[Entity], None] | None = None,
+        queue_only: bool = False,
     ) -> Subscription:
         """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``).
 
@@ -129,7 +130,16 @@ class Node:
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
         return self._own(
             Subscription(
-                self, topic, msg_type, callback, qos, raw, qualified, guarded, on_other_type
+                self,
+                topic,
+                msg_type,
+                callback,
+                qos,
+                raw,
+                qualified,
+                guarded,
+                on_other_type,
+                queue_only=queue_only,
             )
         )
 
