@@ -22,7 +22,6 @@ from components.comm import Node, ServiceError, ServiceTimeout
 from components.comm.graph import snapshot
 from components.comm.qos import QoS
 from components.comm.session import SessionSettings
-from components.comm.stats import drops
 from components.comm.topics import Subscription
 from components.executor import Core, Every, InterfaceSpec, Publish, Serve, Subscribe
 from components.executor.executor import Component, Executor
@@ -153,24 +152,6 @@ def test_two_cores_in_one_process_keep_their_own_state(
 
 def _zenoh_subscription(component: Component) -> Subscription:
     return next(e for e in component.node._owned if isinstance(e, Subscription))
-
-
-def test_a_malformed_sample_is_decoded_by_the_executor_counted_and_never_handled(
-    session_settings: SessionSettings, driver: Node
-) -> None:
-    executor = Executor(settings=session_settings)
-    counter = Counter("counter")
-    component = executor.add(counter, Counter.SPEC, namespace="/garbled")
-    pub = driver.publisher("/garbled/cmd", STRING)
-    zsub = _zenoh_subscription(component)
-    with Running(executor):
-        send_until(lambda: pub.publish(msg(STRING, data="ok")), lambda: counter.seen)
-        before = drops.count(zsub.topic, "malformed")
-        pub.publish_raw(b"\x00\x01\x00\x00\xff\xff\xff\x7f")  # a string longer than it
-        wait_until(lambda: drops.count(zsub.topic, "malformed") == before + 1)
-        send_until(lambda: pub.publish(msg(STRING, data="after")), lambda: "after" in counter.seen)
-    assert all(seen in ("ok", "after") for seen in counter.seen)
-    assert component.errors == 0
 
 
 def test_keep_last_depth_holds_only_the_newest_pending_samples(

@@ -142,32 +142,6 @@ class Publisher:
                 pass
 
 
-class Undecoded:
-    """A sample a ``queue_only`` subscription hands over as it came: its reader calls
-    :meth:`decode` off Zenoh's network thread (and a sample a keep-last queue pushes out is
-    never decoded at all).
-
-    Attributes:
-        payload: The CDR bytes.
-    """
-
-    __slots__ = ("_subscription", "payload")
-
-    def __init__(self, payload: bytes, subscription: Subscription) -> None:
-        self.payload = payload
-        self._subscription = subscription
-
-    def decode(self) -> Any | None:
-        """The message; ``None`` for a payload that does not decode (dropped and counted
-        under the topic as ``malformed``)."""
-        subscription = self._subscription
-        try:
-            return subscription._deserialize(self.payload)
-        except Exception as exc:
-            drops.drop(subscription.topic, "malformed", f"{type(exc).__name__}: {exc}")
-            return None
-
-
 class Subscription:
     """Receives one topic. Create through :meth:`Node.subscription`.
 
@@ -176,8 +150,7 @@ class Subscription:
     ``bench/transport.py``). A callback that only queues the message (an executor's) says
     ``queue_only=True`` and runs on Zenoh's network thread itself: one thread wake-up fewer
     per sample, which on two_dragons took the context switches from 58k/s to 42k/s, but a
-    flood is then taken sample by sample (73k msg/s). It is handed an :class:`Undecoded`
-    sample, for the queue's reader to decode. Samples whose payload or
+    flood is then taken sample by sample (73k msg/s). Samples whose payload or
     attachment do not decode are dropped and counted in :data:`components.comm.stats.drops`
     under the topic name; a publisher of another type (or another version of the type) on
     the topic is counted there once, from its liveliness token, naming its node (or, with
@@ -279,8 +252,6 @@ class Subscription:
             self._on_publisher_token,
             history=True,
         )
-        # Before the first sample can come (a latched topic's history comes at once).
-        self._queue_only = queue_only
         try:
             if self.qos.latched:
                 self._zsub = zenoh.ext.declare_advanced_subscriber(
@@ -441,10 +412,6 @@ class Subscription:
         payload = sample.payload.to_bytes()
         if self._raw:
             message: Any = payload
-        elif self._queue_only:
-            # Decoded by whoever reads the queue, never on Zenoh's network thread: a
-            # 100,000-name message takes long enough there to stall the link.
-            message = Undecoded(payload, self)
         else:
             try:
                 message = self._deserialize(payload)

@@ -28,7 +28,6 @@ from components.claims import ClaimGuard, Claims
 from components.comm.node import Node
 from components.comm.services import PendingRequest
 from components.comm.session import SessionSettings, open_session
-from components.comm.topics import Undecoded
 from components.executor.core import Core
 from components.executor.heartbeat import Heartbeat
 from components.executor.interface import InterfaceSpec, Serve, Subscribe
@@ -402,10 +401,6 @@ class Executor:
                         item.scheduled = False
                         return
                     message = item.items.popleft()
-                if type(message) is Undecoded:  # our subscriptions are queue_only
-                    message = message.decode()
-                    if message is None:  # malformed: dropped and counted
-                        continue
                 self._call(item.component, item.handler, message, self.clock())
                 self._serve_urgent()
             return
