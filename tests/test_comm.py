@@ -335,24 +335,6 @@ def test_a_queue_only_server_is_called_on_zenohs_thread_and_urgent_calls_are_ans
     assert not isinstance(threads["own"], threading._DummyThread)
 
 
-def test_a_queue_only_subscription_is_called_on_zenohs_thread(pair: tuple[Node, Node]) -> None:
-    sender, receiver = pair
-    threads: dict[str, threading.Thread] = {}
-    receiver.subscription(
-        "/q/fast",
-        STRING,
-        lambda m: threads.setdefault("queue_only", threading.current_thread()),
-        queue_only=True,
-    )
-    receiver.subscription(
-        "/q/own", STRING, lambda m: threads.setdefault("own", threading.current_thread())
-    )
-    fast, own = sender.publisher("/q/fast", STRING), sender.publisher("/q/own", STRING)
-    send_until(lambda: (fast.publish(text("a")), own.publish(text("b"))), lambda: len(threads) == 2)
-    assert isinstance(threads["queue_only"], threading._DummyThread)
-    assert not isinstance(threads["own"], threading._DummyThread)
-
-
 def test_an_unannounced_client_calls_at_once_and_shows_on_the_graph_when_announced(
     pair: tuple[Node, Node], open_sessions: Callable[[], Any]
 ) -> None:

@@ -113,7 +113,6 @@ class Node:
         senders: Iterable[str] | None = None,
         guarded: bool = False,
         on_other_type: Callable[[Entity], None] | None = None,
-        queue_only: bool = False,
     ) -> Subscription:
         """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``).
 
@@ -130,16 +129,7 @@ class Node:
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
         return self._own(
             Subscription(
-                self,
-                topic,
-                msg_type,
-                callback,
-                qos,
-                raw,
-                qualified,
-                guarded,
-                on_other_type,
-                queue_only=queue_only,
+                self, topic, msg_type, callback, qos, raw, qualified, guarded, on_other_type
             )
         )
 

@@ -145,12 +145,7 @@ class Publisher:
 class Subscription:
     """Receives one topic. Create through :meth:`Node.subscription`.
 
-    The callback runs with the decoded message on a Python thread of the subscription's own,
-    fed by Zenoh: it may block, and a flood is taken in batches (179k msg/s in
-    ``bench/transport.py``). A callback that only queues the message (an executor's) says
-    ``queue_only=True`` and runs on Zenoh's network thread itself: one thread wake-up fewer
-    per sample, which on two_dragons took the context switches from 58k/s to 42k/s, but a
-    flood is then taken sample by sample (73k msg/s). Samples whose payload or
+    The callback runs on a Zenoh thread with the decoded message. Samples whose payload or
     attachment do not decode are dropped and counted in :data:`components.comm.stats.drops`
     under the topic name; a publisher of another type (or another version of the type) on
     the topic is counted there once, from its liveliness token, naming its node (or, with
@@ -195,9 +190,7 @@ class Subscription:
         senders: Collection[str] | None = None,
         guarded: bool = False,
         on_other_type: Callable[[Entity], None] | None = None,
-        queue_only: bool = False,
     ) -> None:
-        import zenoh
         import zenoh.ext
 
         self.qos = qos or QoS()
@@ -264,9 +257,7 @@ class Subscription:
                     subscriber_detection=True,
                 )
             else:
-                self._zsub = session.declare_subscriber(
-                    self.key, zenoh.handlers.Callback(self._on_sample, indirect=not queue_only)
-                )
+                self._zsub = session.declare_subscriber(self.key, self._on_sample)
         except Exception:
             self._publishers.undeclare()
             raise

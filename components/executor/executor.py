@@ -233,7 +233,6 @@ class Executor:
             sub.qos,
             senders=sub.senders,
             guarded=sub.claim is not None,
-            queue_only=True,
         )
         if sub.claim is not None:
             self.claim_guard().add(subscription, sub.claim)
