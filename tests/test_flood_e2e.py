@@ -14,6 +14,7 @@ joint and ``halt`` still answers. Latencies are printed, never asserted (a share
 
 from __future__ import annotations
 
+import itertools
 import os
 import statistics
 import subprocess
@@ -55,6 +56,8 @@ JOINT = "limb1_joint2"
 RSS_GROWTH_BOUND = 100 * 2**20
 #: The first round only warms the allocators up: its bound is twice as loose.
 WARM_UP_BOUND = 2 * RSS_GROWTH_BOUND
+#: Flood rounds: one to warm up, two to judge.
+ROUNDS = 3
 COUNTED = ("refused_", "feedback_")
 #: (status, counter) of the flood counts of the cores that read both topics: the joint
 #: manager (joint_states) and the health monitor (both). The simulator's count is printed only:
@@ -230,9 +233,9 @@ def test_a_100k_name_flood_leaves_memory_flat_and_the_limb_responsive(
         before_latency = operator.latencies()
         memory = [{name: rss(pid) for name, pid in pids.items()}]
         counts = [tuple(0 for _ in FLOOD_COUNTERS)]
-        # Two rounds: the first takes the processes' allocators to their working size (a
-        # decoded 100k-name message is ~10 MB), the second shows whether anything is kept.
-        for round_ in range(2):
+        # The first round takes the processes' allocators to their working size (a decoded
+        # 100k-name message is ~10 MB); the next ones show whether anything is kept.
+        for round_ in range(ROUNDS):
             for index in range(FLOOD_MESSAGES):
                 message = flood(round_ * FLOOD_MESSAGES + index)
                 operator.flood_commands.publish(message)
@@ -247,24 +250,24 @@ def test_a_100k_name_flood_leaves_memory_flat_and_the_limb_responsive(
     finally:
         operator.close()
     print(
-        f"\nflood: 2 x {FLOOD_MESSAGES} x {FLOOD_NAMES} names on joint_commands and "
+        f"\nflood: {ROUNDS} x {FLOOD_MESSAGES} x {FLOOD_NAMES} names on joint_commands and "
         f"joint_states; refused and counted (joint manager, health monitor) {counts[1:]}, "
         f"simulator {in_sim}"
     )
     for name in sorted(pids):
         figures = ", ".join(f"{m[name] / mib:.1f}" for m in memory)
-        print(f"  RSS {name} before, after round 1, after round 2: {figures} MiB")
+        print(f"  RSS {name} before, then after each round: {figures} MiB")
     print(
         f"  joint_set -> motion: median {statistics.median(before_latency) * 1e3:.1f} ms "
         f"before, {statistics.median(after_latency) * 1e3:.1f} ms after"
     )
     for name in pids:
-        first, second = (
-            memory[1][name] - memory[0][name],
-            memory[2][name] - memory[1][name],
-        )
-        assert first < WARM_UP_BOUND, (name, memory)
-        assert second < RSS_GROWTH_BOUND / 2, (name, memory)  # flat: nothing kept
+        growth = [after[name] - before[name] for before, after in itertools.pairwise(memory)]
+        assert growth[0] < WARM_UP_BOUND, (name, memory)
+        # Flat: nothing kept. Keeping every name grows every round by as much as the last;
+        # the allocator's leftovers do not add up (a loaded run measured +55 MiB after one
+        # round, then none), so one flat round after the warm-up is the proof.
+        assert min(growth[1:]) < RSS_GROWTH_BOUND / 2, (name, memory)
 
 
 def settle(operator: Operator, previous: tuple[int, ...]) -> tuple[int, ...]:
