@@ -16,13 +16,19 @@ from msctl.launcher import watch as watch_module
 from msctl.launcher.plan import ComponentRun
 from msctl.launcher.watch import RECHECK_AFTER, HealthWatch
 
-GUARDIAN = ComponentRun(
-    name="gc_rear/d2_guardian",
-    kind="autonomous_operator",
-    namespace="/gc_rear",
-    node_fqn="/gc_rear/d2_guardian",
-    first_output="/gc_rear/diagnostics",
-)
+
+def rear_operator(name: str) -> ComponentRun:
+    """An autonomous operator of the rear station (they share its diagnostics output)."""
+    return ComponentRun(
+        name=f"gc_rear/{name}",
+        kind="autonomous_operator",
+        namespace="/gc_rear",
+        node_fqn=f"/gc_rear/{name}",
+        first_output="/gc_rear/diagnostics",
+    )
+
+
+GUARDIAN = rear_operator("d2_guardian")
 
 
 class Clock:
@@ -137,13 +143,7 @@ def test_the_shared_judgement_is_node_and_first_output_with_fake_time() -> None:
     components, the age of the first output, a restart forgotten."""
     from components.health.watch import ComponentWatch
 
-    posture = ComponentRun(
-        name="gc_rear/d2_posture",
-        kind="autonomous_operator",
-        namespace="/gc_rear",
-        node_fqn="/gc_rear/d2_posture",
-        first_output="/gc_rear/diagnostics",
-    )
+    posture = rear_operator("d2_posture")
 
     class Fixed(ComponentWatch):
         nodes: set[str] = set()
