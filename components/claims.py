@@ -356,7 +356,7 @@ class Claim:
     @property
     def held(self) -> bool:
         """Still held: neither released nor lost."""
-        return not self._released
+        return not (self._released or self.lost.is_set())
 
     def on_lost(self, callback: Callable[[ClaimInfo], None]) -> None:
         """Call ``callback(new_holder)`` when this claim is lost (at once if it already is).
@@ -378,8 +378,10 @@ class Claim:
                 return
             self.lost_to = new_holder
             callbacks = list(self._callbacks)
-        self.release()
+        # Lost before released: whoever sees the claim no longer held (releasing undeclares
+        # the token, a network call) must find it lost, and to whom, not merely gone.
         self.lost.set()
+        self.release()
         for callback in callbacks:
             _call(callback, new_holder)
 

@@ -674,3 +674,36 @@ def test_a_script_claims_what_it_commands_and_is_told_what_others_hold(
     finally:
         asyncio.run(robot.close())
         session.close()
+
+
+def test_a_claim_seen_no_longer_held_is_already_known_lost_and_to_whom() -> None:
+    """Losing a claim releases its token, a network call that can take a while on a loaded
+    computer: meanwhile a script seeing the claim gone must already read it as lost."""
+    from components.claims import Claim
+
+    in_undeclare, finish = threading.Event(), threading.Event()
+
+    class SlowToken:
+        def undeclare(self) -> None:
+            in_undeclare.set()
+            finish.wait(30.0)
+
+    class Owner:
+        def _forget(self, claim: Claim) -> None:
+            pass
+
+    def info(holder: str, since_ns: int) -> ClaimInfo:
+        key = f"@msctl/claim/0/limb2/{since_ns}/{holder}/zid/%node"
+        return ClaimInfo("limb2", holder, "/node", since_ns / 1e9, "zid", key)
+
+    claim = Claim(Owner(), info("script@pc", 1), SlowToken())  # type: ignore[arg-type]
+    taker = info("alice@laptop1", 2)
+    losing = threading.Thread(target=claim._lose, args=(taker,))
+    losing.start()
+    try:
+        assert in_undeclare.wait(30.0)
+        assert not claim.held
+        assert claim.lost.is_set() and claim.lost_to == taker
+    finally:
+        finish.set()
+        losing.join(30.0)
