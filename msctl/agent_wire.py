@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import itertools
 import struct
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 from components.comm.services import SERVICE_QOS, ServiceClient, ServiceError
 from components.comm.stats import drops
@@ -26,8 +25,7 @@ _CDR_LE = b"\x00\x01\x00\x00"
 _CDR_BE = b"\x00\x00\x00\x00"
 
 
-@dataclass(frozen=True)
-class AgentResponse:
+class AgentResponse(NamedTuple):
     """A supervisor's answer."""
 
     success: bool

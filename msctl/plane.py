@@ -3,12 +3,11 @@ and turning messages into and out of the YAML/dict form the ``ros2`` CLI uses.""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, NamedTuple
 
 from msctl.errors import InputError, NetworkError, NotFoundError
 
@@ -123,8 +122,7 @@ def unknown_name_hint(name: str, known: Iterable[str], kind: str) -> str:
     return f"the graph shows {', '.join(names[:8])}{more}; {listing}"
 
 
-@dataclasses.dataclass(frozen=True)
-class TopicUsers:
+class TopicUsers(NamedTuple):
     """Who uses a topic, by type, from one graph snapshot.
 
     Attributes:

@@ -18,16 +18,17 @@ import os
 import re
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 #: A number the quick path converts itself; typer handles every other spelling.
 _PLAIN_NUMBER = re.compile(r"[0-9]{1,9}(\.[0-9]{1,9})?")
 
 
-@dataclass(frozen=True)
-class QuickCommand:
+class QuickCommand(NamedTuple):
     """One command the quick path answers.
+
+    A named tuple, not a dataclass: this path imports no dataclasses (see the note in
+    :mod:`components.comm.graph`).
 
     Attributes:
         words: The command's words (``("topic", "list")``).
@@ -39,8 +40,8 @@ class QuickCommand:
 
     words: tuple[str, ...]
     target: str
-    flags: dict[str, str] = field(default_factory=dict)
-    numbers: dict[str, str] = field(default_factory=dict)
+    flags: dict[str, str]
+    numbers: dict[str, str]
 
     def parse(self, argv: list[str]) -> dict[str, Any] | None:
         """The keyword arguments for ``argv``, or ``None`` if it is not this command's plain
@@ -91,6 +92,7 @@ COMMANDS: tuple[QuickCommand, ...] = (
             "-v": "verbose",
             "--json": "json_output",
         },
+        numbers={},
     ),
 )
 

@@ -7,7 +7,6 @@ the test's own, discovering on localhost only (:mod:`ros_rigs`).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import subprocess
@@ -355,7 +354,7 @@ def test_the_bridge_kind_runs_as_a_station_component(
     executors: list[Any] = []
     runner = threading.Thread(
         target=run_built,
-        args=([built], dataclasses.replace(session_settings, domain=domain)),
+        args=([built], session_settings._replace(domain=domain)),
         kwargs={"on_ready": executors.append},
         daemon=True,
     )

@@ -40,7 +40,7 @@ from msctl.launcher.control import AGENT_SRV
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Never needed to list components or topics (each costs 0.05-0.3 s to import; hashlib,
-#: which loads OpenSSL, and logging about 10 ms each).
+#: which loads OpenSSL, logging, and dataclasses with the inspect it loads, 6-10 ms each).
 HEAVY = (
     "typer",
     "pydantic",
@@ -51,6 +51,8 @@ HEAVY = (
     "components.assembly",
     "hashlib",
     "logging",
+    "dataclasses",
+    "inspect",
 )
 #: Loaded only to draw a table.
 RICH = ("rich",)

@@ -30,7 +30,7 @@ import re
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import fields, replace
+from dataclasses import fields
 from typing import Any
 
 from components.api.errors import (
@@ -391,7 +391,7 @@ def _failing_fast(settings: Any) -> Any:
     keys = ("connect/exit_on_failure", "connect/timeout_ms")
     if settings.multicast or not settings.connect or any(k in settings.extra for k in keys):
         return settings
-    return replace(settings, extra={**settings.extra, keys[0]: True, keys[1]: 0})
+    return settings._replace(extra={**settings.extra, keys[0]: True, keys[1]: 0})
 
 
 def _refusal(exc: Exception, settings: Any) -> str:

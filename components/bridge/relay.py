@@ -31,7 +31,6 @@ registry's, two types on one name) is reported once and skipped.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -179,7 +178,7 @@ class _TopicToMsctl:
         # Deeper than the publishers' history: rclpy takes one sample per turn of its
         # executor, and a burst (or the bridge's own samples coming back) must not push the
         # source's out before they are relayed. Matching does not depend on depth.
-        reader = dataclasses.replace(qos, depth=max(qos.depth, SOURCE_DEPTH))
+        reader = qos._replace(depth=max(qos.depth, SOURCE_DEPTH))
         self._subscription = bridge.ros.ros.create_subscription(
             message_class(type_name), topic, self._on_sample, qos_profile(reader), raw=True
         )

@@ -11,7 +11,7 @@ each key and the gid prefixed by a LEB128 length. Accepted on receive, never sen
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import xxhash
 
@@ -26,8 +26,7 @@ class AttachmentError(ValueError):
     """Attachment bytes that are neither the current nor the older keyed form."""
 
 
-@dataclass(frozen=True, slots=True)
-class Attachment:
+class Attachment(NamedTuple):
     """Per-sample metadata: publisher sequence number, source time and publisher GID."""
 
     sequence_number: int

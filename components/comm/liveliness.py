@@ -13,9 +13,8 @@ SC (service client), and every ``/`` inside a name mangled to ``%``.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import Any, NamedTuple
 
 from components.comm.names import mangle, unmangle
 from components.comm.qos import QoS
@@ -76,8 +75,7 @@ def ask_tokens(session: Any, key: str, timeout: float) -> list[str]:
     return list(keys)
 
 
-@dataclass(frozen=True)
-class Entity:
+class Entity(NamedTuple):
     """One graph entity, as carried by its liveliness token.
 
     Attributes:

@@ -11,8 +11,7 @@ durations, automatic liveliness) is left empty. Enum values are the rmw ones: re
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 Reliability = Literal["reliable", "best_effort"]
 Durability = Literal["volatile", "transient_local"]
@@ -24,8 +23,14 @@ _HISTORY = {"keep_last": 1, "keep_all": 2}
 _BASELINE_DEPTH = 42
 
 
-@dataclass(frozen=True)
-class QoS:
+class _QoSFields(NamedTuple):
+    reliability: Reliability
+    durability: Durability
+    history: History
+    depth: int
+
+
+class QoS(_QoSFields):
     """A topic's quality of service (the subset msctl honours).
 
     Attributes:
@@ -35,20 +40,25 @@ class QoS:
         depth: Queue depth for ``keep_last``.
     """
 
-    reliability: Reliability = "reliable"
-    durability: Durability = "volatile"
-    history: History = "keep_last"
-    depth: int = 10
+    # A named tuple checked as it is made (not a dataclass: see components.comm.graph).
+    __slots__ = ()
 
-    def __post_init__(self) -> None:
-        if self.reliability not in _RELIABILITY:
+    def __new__(
+        cls,
+        reliability: Reliability = "reliable",
+        durability: Durability = "volatile",
+        history: History = "keep_last",
+        depth: int = 10,
+    ) -> QoS:
+        if reliability not in _RELIABILITY:
             raise ValueError(f"reliability must be one of {list(_RELIABILITY)}")
-        if self.durability not in _DURABILITY:
+        if durability not in _DURABILITY:
             raise ValueError(f"durability must be one of {list(_DURABILITY)}")
-        if self.history not in _HISTORY:
+        if history not in _HISTORY:
             raise ValueError(f"history must be one of {list(_HISTORY)}")
-        if self.history == "keep_last" and self.depth < 1:
+        if history == "keep_last" and depth < 1:
             raise ValueError("depth must be at least 1 for keep_last")
+        return super().__new__(cls, reliability, durability, history, depth)
 
     @property
     def latched(self) -> bool:

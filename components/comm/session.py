@@ -27,11 +27,11 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, NamedTuple
 
 #: Where rmw_zenoh's router (``rmw_zenohd``) listens, and so where ours does by default.
 DEFAULT_ROUTER_PORT = 7447
@@ -54,8 +54,7 @@ class SessionOpenError(SessionConfigError):
     """Zenoh refused to open a session with usable settings (e.g. a client reaching no router)."""
 
 
-@dataclass(frozen=True)
-class SessionSettings:
+class SessionSettings(NamedTuple):
     """How to open a Zenoh session.
 
     Attributes:
@@ -76,7 +75,8 @@ class SessionSettings:
     lease_ms: int = DEFAULT_LEASE_MS
     domain: int = 0
     config_file: Path | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    # Shared by every default instance, so read-only; ``_replace`` gives a new one.
+    extra: Mapping[str, Any] = MappingProxyType({})
 
     @classmethod
     def from_env(cls, environ: dict[str, str] | None = None, **overrides: Any) -> SessionSettings:
@@ -116,7 +116,7 @@ class SessionSettings:
             if not env.get("MSCTL_ZENOH_CONNECT"):
                 changes["connect"] = (f"tls/localhost:{SECURE_ROUTER_PORT}",)
         changes.update({k: v for k, v in overrides.items() if v is not None})
-        settings = replace(settings, **changes)
+        settings = settings._replace(**changes)
         settings.validate()
         return settings
 
@@ -139,7 +139,7 @@ class SessionSettings:
         if env.get("MSCTL_ZENOH_MODE"):
             return cls.from_env(env)
         settings = cls.from_env(env, mode="client")
-        return replace(settings, listen=()) if settings.mode == "client" else settings
+        return settings._replace(listen=()) if settings.mode == "client" else settings
 
     def validate(self) -> None:
         """Check the settings.
@@ -161,7 +161,7 @@ class SessionSettings:
 
     def with_endpoint(self, endpoint: str) -> SessionSettings:
         """The same settings connecting to exactly ``endpoint`` (tests, ``--router``)."""
-        return replace(self, connect=(endpoint,))
+        return self._replace(connect=(endpoint,))
 
     def to_config(self) -> Any:
         """A ``zenoh.Config`` for these settings."""
@@ -286,7 +286,7 @@ def open_session(settings: SessionSettings | None = None) -> Any:
             f"listen {list(settings.listen)}): {exc}"
         ) from exc
     if settings.mode == "peer" and settings.connect:
-        _PEER_ROUTERS[str(session.zid())] = replace(settings, mode="client", listen=())
+        _PEER_ROUTERS[str(session.zid())] = settings._replace(mode="client", listen=())
     return session
 
 
@@ -331,4 +331,4 @@ def router_settings(
     """
     base = SessionSettings.from_env(mode="router")
     extra = {"scouting/delay": 0, **base.extra, **overrides.pop("extra", {})}
-    return replace(base, mode="router", listen=tuple(listen), connect=(), extra=extra, **overrides)
+    return base._replace(mode="router", listen=tuple(listen), connect=(), extra=extra, **overrides)

@@ -22,10 +22,9 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 # rosbags (about 0.1 s to import) is imported where a definition is parsed or a field
 # description read: a process that only names types (a graph listing, a key) never needs it.
@@ -65,8 +64,7 @@ class UnknownTypeError(LookupError):
     """A message or service type that no definition is registered for."""
 
 
-@dataclass(frozen=True)
-class ServiceParts:
+class ServiceParts(NamedTuple):
     """The three message types a service is made of (names in ``pkg/srv/Name_X`` form)."""
 
     request: str

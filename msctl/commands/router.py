@@ -58,7 +58,7 @@ def command(
     try:
         settings = router_settings(listen=endpoints, config_file=config_file)
         if connect:
-            settings = settings.__class__(**{**settings.__dict__, "connect": tuple(connect)})
+            settings = settings._replace(connect=tuple(connect))
         session = open_session(settings)
     except SessionConfigError as exc:
         raise NetworkError(

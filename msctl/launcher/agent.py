@@ -34,7 +34,6 @@ import queue
 import sys
 import threading
 from collections.abc import Callable, Mapping
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -248,7 +247,7 @@ class Agent:
         if self.endpoint and not router_reachable(self.endpoint):
             self._start_router()
         self._refuse_a_second_supervisor()
-        self.session = open_session(replace(self.settings, mode="peer"))
+        self.session = open_session(self.settings._replace(mode="peer"))
         self.node = Node(
             self.session, "supervisor", host_namespace(self.host), self.settings.domain
         )
@@ -274,7 +273,7 @@ class Agent:
         if not self.endpoint:
             return  # peers only, no router to ask
         service = f"{host_namespace(self.host)}/request"
-        session = open_session(replace(self.settings, mode="client", listen=()))
+        session = open_session(self.settings._replace(mode="client", listen=()))
         try:
             with Node(session, f"msctl_agent_{os.getpid()}", "/", self.settings.domain) as node:
                 taken = service in supervisors(node).values()

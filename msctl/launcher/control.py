@@ -12,8 +12,7 @@ import contextlib
 import json
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 AGENT_SRV = "msctl_msgs/srv/AgentRequest"
 VERBS = ("ps", "logs", "restart", "stop", "start", "down", "up", "doctor")
@@ -53,8 +52,7 @@ def host_namespace(host: str) -> str:
     return f"/msctl/{mangled}"
 
 
-@dataclass(frozen=True)
-class Request:
+class Request(NamedTuple):
     """A validated request."""
 
     verb: str

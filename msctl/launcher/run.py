@@ -13,7 +13,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 from components import kinds
@@ -263,7 +263,7 @@ class Launch:
                 return
         if self._stop:
             return
-        self.session = open_session(replace(self.settings, mode="peer"))
+        self.session = open_session(self.settings._replace(mode="peer"))
         if os.environ.get("MSCTL_TRANSPORT") == "rclpy" and rclpy_available():
             # Components are rclpy nodes: judged from the ROS graph (their workers say it
             # when rclpy is missing).
