@@ -431,6 +431,9 @@ def test_msctl_up_forks_its_workers_and_restarts_a_killed_one(tmp_path: Path, fo
             assert (
                 b"components.executor.worker" in Path(f"/proc/{worker['pid']}/cmdline").read_bytes()
             )
+            # Its module runs once, as __main__ (runpy warns when it was imported before).
+            log = (home / "run" / "logs" / f"{worker['name']}.log").read_text()
+            assert "RuntimeWarning" not in log, log
         victim = workers[0]
         os.killpg(victim["pgid"], signal.SIGKILL)
 

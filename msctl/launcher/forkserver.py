@@ -67,15 +67,19 @@ from msctl.launcher import boot
 MODULE = "msctl.launcher.forkserver"
 #: ``MSCTL_FORKSERVER=0`` spawns every worker as a fresh interpreter (as before the server).
 ENABLE_ENV = "MSCTL_FORKSERVER"
-#: Imported by the server before it says ready: what every component worker imports.
+#: Imported by the server before it says ready: what every component worker imports. Not
+#: the worker module itself (only what it imports): a child runs it as ``__main__``, and a
+#: module already imported would be run a second time, under runpy's RuntimeWarning in
+#: every worker's log.
 COMMON = (
+    "argparse",
     "ctypes",
     "numpy",
     "zenoh",
     "components.messages",
     "components.assembly",
     "components.build",
-    "components.executor.worker",
+    "components.executor.heartbeat",
     "components.executor.runner",
     "components.executor.executor",
     "components.comm.node",
