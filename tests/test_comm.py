@@ -20,7 +20,7 @@ from conftest import free_port, quick_peer_settings, quick_router, wait_until
 
 from components.comm import LATCHED, SENSOR, Node, QoS, ServiceError, ServiceTimeout
 from components.comm.attachment import Attachment, encode_keyed
-from components.comm.graph import Graph, snapshot
+from components.comm.graph import NODE_TOKENS, Graph, snapshot
 from components.comm.liveliness import EntityKind, ask_tokens
 from components.comm.services import service_key
 from components.comm.session import (
@@ -438,6 +438,21 @@ def test_graph_snapshot_and_live_view(open_sessions: Callable[[], Any]) -> None:
     assert (EntityKind.NODE, True) in changes
     assert (EntityKind.NODE, False) in changes
     assert (EntityKind.SERVICE, True) in changes
+
+
+def test_a_graph_of_nodes_only_takes_no_endpoint_token(open_sessions: Callable[[], Any]) -> None:
+    observer = open_sessions()
+    kinds: list[EntityKind] = []
+    with Graph(observer, on_change=lambda e, _alive: kinds.append(e.kind), tokens=NODE_TOKENS):
+        node = Node(open_sessions(), "probe", "/limb1")
+        node.publisher("joint_read", "sensor_msgs/msg/JointState", SENSOR)
+        node.service("halt", "std_srvs/srv/Trigger", lambda r: None)
+        with Graph(observer) as whole:
+            # Once a graph of everything has the endpoints, the nodes-only one had its chance.
+            assert whole.wait_for(lambda g: "/limb1/halt" in g.services(), 30.0)
+        wait_until(lambda: EntityKind.NODE in kinds, 30.0, "the node token")
+        node.close()
+    assert set(kinds) == {EntityKind.NODE}
 
 
 def test_graph_ignores_foreign_tokens(open_sessions: Callable[[], Any]) -> None:

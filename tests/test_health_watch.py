@@ -11,6 +11,7 @@ import pytest
 from conftest import wait_until
 
 from components.comm.node import Node
+from components.comm.session import SessionSettings, open_session
 from components.messages import DIAGNOSTIC_ARRAY, diagnostic_array
 from msctl.launcher import watch as watch_module
 from msctl.launcher.plan import ComponentRun
@@ -82,6 +83,27 @@ def test_a_component_is_healthy_once_its_node_and_its_output_are_seen(watched: A
     assert watch.healthy(GUARDIAN.name)
     watch.forget([GUARDIAN.name])  # its process restarted: it must show itself again
     assert watch.status()[GUARDIAN.name] == (True, False)
+
+
+def test_a_component_that_starts_after_the_watch_is_seen_by_its_first_output(
+    open_sessions: Callable[[], Any], router_endpoint: str
+) -> None:
+    """Outputs taken through a client of the router: a new peer sends its samples there from
+    the start, where a peer session (the launcher's) gets them only once directly linked
+    (measured: the first sample of 3 new peers in 20)."""
+    client = open_session(SessionSettings(mode="client", connect=(router_endpoint,), listen=()))
+    watch = HealthWatch(open_sessions(), [GUARDIAN], outputs_session=client)
+    try:
+        for _ in range(3):  # each a component process starting: one output, at once
+            component = Node(open_sessions(), "d2_guardian", "/gc_rear")
+            output = component.publisher("/gc_rear/diagnostics", DIAGNOSTIC_ARRAY)
+            output.publish(diagnostic_array([]))
+            wait_until(lambda: watch.status()[GUARDIAN.name][1], 30.0, "its one output")
+            watch.forget([GUARDIAN.name])
+            component.close()
+    finally:
+        watch.close()
+        client.close()
 
 
 def test_a_node_token_the_live_graph_missed_is_found_by_asking(

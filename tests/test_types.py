@@ -111,6 +111,18 @@ def test_project_service_from_srv_text(reg: TypeRegistry) -> None:
     assert reg.type_hash("msctl_test/srv/Scale") != reg.type_hash(parts.request)
 
 
+def test_a_prepared_type_has_its_codecs_and_hash_made(reg: TypeRegistry) -> None:
+    reg.register_srv("msctl_test/srv/Prepared", "int32 a\n---\nint32 b\n")
+    reg.prepare("msctl_test/srv/Prepared")
+    for part in ("msctl_test/srv/Prepared_Request", "msctl_test/srv/Prepared_Response"):
+        assert part in reg._encoders and part in reg._decoders  # made now, not on first use
+    assert "msctl_test/srv/Prepared" in reg._hashes
+    reg.prepare("msctl_msgs/msg/JointInfo")
+    assert "msctl_msgs/msg/JointInfo" in reg._encoders
+    with pytest.raises(UnknownTypeError):
+        reg.prepare("msctl_test/msg/Nothing")
+
+
 def test_bundled_types_are_registered() -> None:
     reg = registry()
     for name in (

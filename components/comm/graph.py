@@ -166,6 +166,13 @@ def _parse(key: str) -> Entity | None:
         return None
 
 
+#: The node tokens only (zid/node/entity/kind ``NN``/...), for :class:`Graph` and
+#: :func:`snapshot`: a watcher of nodes that took every token parsed each of a two_dragons'
+#: 625 (each endpoint has one) to keep its 53 nodes, in each of its ~15 processes that watch,
+#: on the network threads the start-up of every component needs.
+NODE_TOKENS = f"*/*/*/{EntityKind.NODE.value}/**"
+
+
 def snapshot(session: Any, domain: int = 0, timeout: float = 1.0, tokens: str = "**") -> Snapshot:
     """Ask the network for the live tokens of ``domain`` and return the graph.
 
@@ -187,6 +194,8 @@ class Graph(GraphView):
         session: An open Zenoh session.
         domain: ROS domain id.
         on_change: Called (on a Zenoh thread) with ``(entity, alive)`` for every change.
+        tokens: Which tokens, as a key expression below ``@ros2_lv/<domain>/`` (default
+            all; :data:`NODE_TOKENS`: the nodes only).
     """
 
     def __init__(
@@ -194,13 +203,14 @@ class Graph(GraphView):
         session: Any,
         domain: int = 0,
         on_change: Callable[[Entity, bool], None] | None = None,
+        tokens: str = "**",
     ) -> None:
         self._lock = threading.Lock()
         self._entities: dict[str, Entity] = {}
         self._on_change = on_change
         self._changed = threading.Condition(self._lock)
         self._subscriber = session.liveliness().declare_subscriber(
-            f"{PREFIX}/{domain}/**", self._on_token, history=True
+            f"{PREFIX}/{domain}/{tokens}", self._on_token, history=True
         )
 
     def _on_token(self, sample: Any) -> None:

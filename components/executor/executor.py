@@ -156,16 +156,21 @@ class Executor:
         """A node on the data plane (the Zenoh one here)."""
         return Node(self.session, name, namespace, domain=self._settings.domain)
 
-    def graph(self, on_change: Callable[[Any, bool], None] | None = None) -> Any:
+    def graph(
+        self, on_change: Callable[[Any, bool], None] | None = None, nodes_only: bool = False
+    ) -> Any:
         """A live view of the data plane's graph, the caller closes it.
 
         Args:
             on_change: Called with ``(entity, alive)`` for every change, from another thread
                 (nodes already up are reported at once).
+            nodes_only: Follow the nodes alone, not their endpoints (less work, where only
+                nodes matter).
         """
-        from components.comm.graph import Graph
+        from components.comm.graph import NODE_TOKENS, Graph
 
-        return Graph(self.session, self._settings.domain, on_change=on_change)
+        tokens = NODE_TOKENS if nodes_only else "**"
+        return Graph(self.session, self._settings.domain, on_change=on_change, tokens=tokens)
 
     # ------------------------------------------------------------------ building
     def add(

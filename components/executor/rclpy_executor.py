@@ -86,8 +86,11 @@ class RclpyExecutor(Executor):
     def _node(self, name: str, namespace: str) -> Any:
         return self.plane.node(name, namespace)
 
-    def graph(self, on_change: Callable[[Any, bool], None] | None = None) -> Any:
-        """A live view of the ROS graph as rclpy sees it (see :class:`Executor.graph`)."""
+    def graph(
+        self, on_change: Callable[[Any, bool], None] | None = None, nodes_only: bool = False
+    ) -> Any:
+        """A live view of the ROS graph as rclpy sees it (see :class:`Executor.graph`; it
+        reads the whole graph whatever ``nodes_only`` says)."""
         from components.ros.graph import RclpyGraph
 
         return RclpyGraph(self.plane, on_change)

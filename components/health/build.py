@@ -123,7 +123,7 @@ class GraphFeed:
         self._post = post
         # The graph reports the nodes already up at once (Zenoh's liveliness history, rclpy's
         # first read), so a component that started before the monitor is seen at once.
-        self.graph = executor.graph(on_change=self._on_change)
+        self.graph = executor.graph(on_change=self._on_change, nodes_only=True)
         self.built.resources.append(self.graph)
 
     def _on_change(self, entity: Entity, alive: bool) -> None:

@@ -116,7 +116,7 @@ class OperatorDesk:
     def __call__(self, executor: Executor, component: Component) -> None:
         """Open the claims watcher, the relay inputs, the graph watch and ``~/request``."""
         from components.claims import Claims
-        from components.comm.graph import Graph
+        from components.comm.graph import NODE_TOKENS, Graph
 
         self.executor, self.component = executor, component
         node = component.node
@@ -131,7 +131,9 @@ class OperatorDesk:
                 route.relay, route.msg_type, relay, senders=(), guarded=True
             )
         self._reallow()
-        self._graph = Graph(executor.session, node.domain, on_change=self._on_graph)
+        self._graph = Graph(
+            executor.session, node.domain, on_change=self._on_graph, tokens=NODE_TOKENS
+        )
         self._thread = threading.Thread(target=self._serve, name="operator-desk", daemon=True)
         self._thread.start()
         node.service(REQUEST, REQUEST_SRV, self._requests.put, deferred=True)

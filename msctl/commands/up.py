@@ -97,6 +97,7 @@ def command(
     # Before anything looks at the state: of two `up` started together, one goes on and the
     # other is refused here, naming the first (the state file cannot tell them apart yet).
     lock = _run_lock(template, host)
+    server = None
     try:
         previous = state.read_state()
         if state.supervisor_alive(previous) and os.environ.get(_DAEMON_ENV) != "1":
@@ -106,6 +107,9 @@ def command(
                 hint="see it with `msctl ps`, stop it with `msctl down`",
                 exit_code=3,
             )
+        if not detach or os.environ.get(_DAEMON_ENV) == "1":
+            # This process runs the launch: its fork server imports while it resolves.
+            server = _early_forkserver()
         try:
             assembly = load_resolved(template, use or [], defaults)
         except OSError as exc:  # writing the resolution into MSCTL_HOME
@@ -126,9 +130,22 @@ def command(
         if detach and os.environ.get(_DAEMON_ENV) != "1":
             _detach(plan, sim, duration, host, speed, timeout, kill_unresponsive, lock)
             return
-        _run_foreground(assembly, plan, duration, speed, timeout, kill_unresponsive)
+        _run_foreground(assembly, plan, duration, speed, timeout, kill_unresponsive, server)
     finally:
+        if server is not None:
+            server.close()  # after the run's workers (idempotent), or unused: a refusal
         lock.release()
+
+
+def _early_forkserver() -> Any:
+    """The run's fork server, started now (``None``: workers start as new interpreters)."""
+    from components.assembly import lock_path
+    from msctl.launcher import forkserver
+
+    try:
+        return forkserver.for_run(lock_path())
+    except OSError:
+        return None  # the launch says why when it tries again
 
 
 #: The descriptor of the run lock a detached supervisor inherits from the `up` that started it.
@@ -178,6 +195,7 @@ def _run_foreground(
     speed: float,
     timeout: float,
     kill_unresponsive: float,
+    server: Any = None,
 ) -> None:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -186,7 +204,11 @@ def _run_foreground(
     from msctl.launcher.supervisor import LivenessPolicy
 
     launch = Launch(
-        assembly, plan, speed=speed, liveness=LivenessPolicy(kill_after=kill_unresponsive)
+        assembly,
+        plan,
+        speed=speed,
+        liveness=LivenessPolicy(kill_after=kill_unresponsive),
+        forkserver=server,
     )
     signals: list[int] = []  # the stop signals received, first first
 

@@ -205,6 +205,11 @@ class Launch:
     events: list[str] = field(default_factory=list)
     started_router: bool = False
     serve_control: bool = True
+    #: Forks the component workers (msctl.launcher.forkserver), on Zenoh only: one started
+    #: by the caller (``msctl up`` starts it before resolving, see
+    #: :func:`msctl.launcher.forkserver.for_run`),
+    #: else one started by :meth:`start`. Closed by :meth:`shutdown`.
+    forkserver: forkserver.ForkServer | None = None
 
     def __post_init__(self) -> None:
         self.supervisor = Supervisor(
@@ -216,6 +221,8 @@ class Launch:
         self.endpoint = self.settings.connect[0] if self.settings.connect else ""
         self.session: Any = None
         self.watch: HealthWatch | None = None
+        #: The health watch's client of the router (see :meth:`start`), when there is one.
+        self._watch_session: Any = None
         self._node: Any = None
         self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
         #: Set when a request arrives, so the loop answers it at once rather than after its
@@ -229,25 +236,28 @@ class Launch:
         # Components rebuilt alone and not seen again yet: the process log's line count when
         # the order went (their worker says "rebuilt <name>" in it once done).
         self._rebuilding: dict[str, int] = {}
-        #: Forks the component workers (msctl.launcher.forkserver), on Zenoh only.
-        self.forkserver: forkserver.ForkServer | None = None
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
         """Reach or start the router, and start every process of the plan.
 
-        When the router has to be started, the component processes start at the same time:
-        they are peers that keep retrying the router, and their imports take longer than
-        the router's start-up, so waiting for it first only added its start-up time. The
-        launcher's own session (and so the health watch) opens once the router answers,
-        still before any component has been built.
+        Before any component starts, the launcher opens its own sessions: its peer session
+        (the control service; it opens at once, and links to a router it has just started
+        once that listens; the health watch follows the graph there), then, once the
+        router answers, a client of it, on which the watch takes the components' outputs.
+        It sees every component's first output that way: a new peer
+        sends its samples to the router as soon as its session is open, where a direct
+        link to another peer comes later (measured: a subscriber on a peer got the first
+        sample of 3 new peers in 20, a client of the router all 20). The watch opened on
+        the peer session after the workers started missed most first outputs, and each
+        missed one was waited for again (a health monitor's, once a second).
 
         The component workers are forked from a fork server (:mod:`msctl.launcher.forkserver`)
-        started first: it imports what they need once, while the router starts.
+        started first (by ``msctl up``, before it resolves): it imports what they need once,
+        while the router starts.
 
-        A :meth:`request_stop` meanwhile (a Ctrl-C) ends it early, before the session opens:
-        what was started is stopped by :meth:`shutdown`, and nothing waits for what would
-        only be closed again.
+        A :meth:`request_stop` meanwhile (a Ctrl-C) ends it early: what was started is
+        stopped by :meth:`shutdown`, and nothing waits for what would only be closed again.
         """
         router = None
         if self._stop:
@@ -256,29 +266,44 @@ class Launch:
         if self.endpoint and not router_reachable(self.endpoint):
             router = start_router(self.supervisor, self.endpoint)
             self.started_router = True
-            self._start_processes()
-            if not wait_for_router(
-                self.supervisor, router, self.endpoint, stopping=lambda: self._stop
-            ):
-                return
+        # No scouting delay: Zenoh's default (0.5 s) waits in open for peers the launcher
+        # does not need before its router.
+        extra = {**self.settings.extra, "scouting/delay": 0}
+        self.session = open_session(self.settings._replace(mode="peer", extra=extra))
+        if self._stop:
+            return  # serving requests would first import the node machinery, for nothing
+        if self.serve_control:
+            self._serve_control()
+        if router is not None and not wait_for_router(
+            self.supervisor, router, self.endpoint, stopping=lambda: self._stop
+        ):
+            return
         if self._stop:
             return
-        self.session = open_session(self.settings._replace(mode="peer"))
+        self._watch()
+        if self._stop:
+            return
+        self._start_processes()
+        self.write_state()
+
+    def _watch(self) -> None:
+        """Start judging the components' health: the graph on the launcher's session, the
+        outputs through a client of the router when there is one (see :meth:`start`)."""
         if os.environ.get("MSCTL_TRANSPORT") == "rclpy" and rclpy_available():
             # Components are rclpy nodes: judged from the ROS graph (their workers say it
             # when rclpy is missing).
             from components.ros.health_watch import RclpyHealthWatch
 
             self.watch = RclpyHealthWatch(self.plan.components, self.settings.domain)
-        else:
-            self.watch = HealthWatch(self.session, self.plan.components, self.settings.domain)
-        if self._stop:
-            return  # serving requests would first import the node machinery, for nothing
-        if self.serve_control:
-            self._serve_control()
-        if router is None and not self._stop:
-            self._start_processes()
-        self.write_state()
+            return
+        outputs = None
+        if self.settings.connect:
+            outputs = self._watch_session = open_session(
+                self.settings._replace(mode="client", listen=())
+            )
+        self.watch = HealthWatch(
+            self.session, self.plan.components, self.settings.domain, outputs_session=outputs
+        )
 
     def _start_forkserver(self) -> None:
         """Start the fork server, which imports while the router and the session start.
@@ -287,22 +312,29 @@ class Launch:
         ``MSCTL_FORKSERVER=0``: workers are then started as new interpreters, as they are
         whenever the server does not work.
         """
-        transport = os.environ.get("MSCTL_TRANSPORT", "zenoh")
-        if transport != "zenoh" or not forkserver.enabled() or not self.plan.processes:
+        if not self.plan.processes:
+            if self.forkserver is not None:
+                self.forkserver.close()
+                self.forkserver = None
             return
-        room = max(len("\0".join(self._worker_argv(p))) for p in self.plan.processes)
-        try:
-            self.forkserver = forkserver.ForkServer.start(
-                (), state.log_dir() / "forkserver.log", tag=str(self.assembly.lock_path), room=room
-            )
-        except OSError as exc:
-            self.events.append(f"fork server: cannot start ({exc}); workers start as themselves")
-            return
-        # Each kind's modules imported just before its first worker is forked.
-        for process in self.plan.processes:
-            self.forkserver.preloads[process.name] = forkserver.preload_for(
-                c.kind for c in process.components
-            )
+        if self.forkserver is None:
+            room = max(len("\0".join(self._worker_argv(p))) for p in self.plan.processes)
+            try:
+                self.forkserver = forkserver.for_run(self.assembly.lock_path, room)
+            except OSError as exc:
+                self.events.append(
+                    f"fork server: cannot start ({exc}); workers start as themselves"
+                )
+                return
+            if self.forkserver is None:
+                return
+        # Every kind's modules imported before the first worker is forked: imported between
+        # two forks instead, each import ran on a machine already loaded by the workers
+        # forked before it, and held up every fork after it.
+        first = self.plan.processes[0].name
+        self.forkserver.preloads[first] = forkserver.preload_for(
+            c.kind for p in self.plan.processes for c in p.components
+        )
 
     def _forkserver_ready(self) -> forkserver.ForkServer | None:
         """The fork server once it has imported (``None``: workers start as themselves)."""
@@ -618,6 +650,9 @@ class Launch:
         router = self.supervisor.processes.pop(ROUTER_PROCESS, None)
         if self.watch is not None:
             self.watch.close()
+        if self._watch_session is not None:
+            self._watch_session.close()
+            self._watch_session = None
         if self._node is not None:
             self._node.close()
         self.supervisor.shutdown()

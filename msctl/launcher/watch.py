@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from components.comm.graph import Graph, snapshot
+from components.comm.graph import NODE_TOKENS, Graph, snapshot
 from components.health.watch import ComponentWatch
 from msctl.launcher.plan import ComponentRun
 
@@ -32,6 +32,8 @@ class HealthWatch(ComponentWatch):
         components: What to follow.
         domain: ROS domain id.
         clock: Monotonic time (tests pass a fake one).
+        outputs_session: Where to take the outputs instead (a client of the router: it gets
+            a new peer's first samples, which a peer session gets only once linked to it).
     """
 
     def __init__(
@@ -40,6 +42,7 @@ class HealthWatch(ComponentWatch):
         components: Iterable[ComponentRun],
         domain: int = 0,
         clock: Callable[[], float] = time.monotonic,
+        outputs_session: Any = None,
     ):
         super().__init__(components, clock)
         self._session, self._domain = session, domain
@@ -48,12 +51,14 @@ class HealthWatch(ComponentWatch):
         self._queried: set[str] = set()
         self._asked_at = -RECHECK_AFTER
         self._asking: threading.Thread | None = None
-        self._graph = Graph(session, domain)
+        self._graph = Graph(session, domain, tokens=NODE_TOKENS)
         self._subscribers = []
         for topic, names in self.outputs().items():
             key = f"{domain}/{topic.strip('/')}/*/*"
             self._subscribers.append(
-                session.declare_subscriber(key, lambda _s, names=names: self.saw(names))
+                (outputs_session or session).declare_subscriber(
+                    key, lambda _s, names=names: self.saw(names)
+                )
             )
 
     def forget(self, names: Iterable[str]) -> None:
@@ -96,7 +101,7 @@ class HealthWatch(ComponentWatch):
         try:
             if self._closed:
                 return
-            found = snapshot(self._session, self._domain, RECHECK_QUERY, "*/*/*/NN/**")
+            found = snapshot(self._session, self._domain, RECHECK_QUERY, NODE_TOKENS)
             seen = found.node_names() & missing
         except Exception:  # no router now, or closing: the next turn asks again, or nobody
             pass
