@@ -11,8 +11,9 @@ each as a fresh subprocess of this interpreter, timed from start to exit:
     this interpreter, else ``python -m msctl``), output piped.
 
 The three are run in turn, N rounds, so load that drifts over the run weighs on each alike;
-a first round, not counted, fills a compiled-module cache (``PYTHONPYCACHEPREFIX`` in the run's
-home) as an installed msctl has one, whatever ``PYTHONDONTWRITEBYTECODE`` says.
+msctl's sources are compiled first, as an installed msctl has them, whatever
+``PYTHONDONTWRITEBYTECODE`` says (``bench._common.compiled_sources``), and a first round is
+not counted (it warms the disk cache).
 Every run must exit 0 with output (``ps`` must list the assembly's components, checked once
 before timing). Printed: p50/p90 of each and its ratio to bare (target: p50 within 2x).
 ``msctl down`` runs at the end, always, also after Ctrl-C or SIGTERM; whatever it could not
@@ -39,7 +40,13 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench._common import free_port, msctl_env, percentile, print_table  # noqa: E402
+from bench._common import (  # noqa: E402
+    compiled_sources,
+    free_port,
+    msctl_env,
+    percentile,
+    print_table,
+)
 
 HOST = "bench-laptop"  # none of the robots' computers: the whole assembly runs here, simulated
 #: The bare session: the same settings msctl's CLI opens its session with.
@@ -60,15 +67,6 @@ COMMANDS: dict[str, list[str]] = {
     "msctl topic list": [*MSCTL, "topic", "list"],
     "msctl ps": [*MSCTL, "ps"],
 }
-
-
-def _env(home: Path, endpoint: str) -> dict[str, str]:
-    env = msctl_env(home, endpoint, HOST)
-    env.pop("PYTHONDONTWRITEBYTECODE", None)
-    # Compiled modules cached as an installed msctl has them (PYTHONDONTWRITEBYTECODE made
-    # every run compile msctl's sources), kept out of the checkout.
-    env["PYTHONPYCACHEPREFIX"] = str(home / "pycache")
-    return env
 
 
 def _run(argv: list[str], env: dict[str, str], timeout: float) -> tuple[float, str]:
@@ -111,7 +109,8 @@ def measure(runs: int, template: str, timeout: float) -> dict[str, Any]:
     """Bring ``template`` up, time every row ``runs`` times in turn, bring it down."""
     home = Path(tempfile.mkdtemp(prefix="msctl_bench_cli_"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    env = _env(home, endpoint)
+    compiled_sources()
+    env = msctl_env(home, endpoint, HOST)
     rows: dict[str, list[float]] = {"bare zenoh open+close": [], **{n: [] for n in COMMANDS}}
     previous = signal.signal(signal.SIGTERM, _terminate)
     components = 0
@@ -124,7 +123,7 @@ def measure(runs: int, template: str, timeout: float) -> dict[str, Any]:
         if not components:
             raise SystemExit(f"msctl ps lists no component after `msctl up {template}`")
         for round_ in range(runs + 1):
-            # Round 0 is not counted: it fills the compiled-module cache.
+            # Round 0 is not counted: it warms the disk cache.
             took, _ = _run([sys.executable, "-c", BARE, endpoint], env, timeout)
             if round_:
                 rows["bare zenoh open+close"].append(took)

@@ -19,6 +19,10 @@ loopback router port:
     a client subscribed before the kill;
   * shutdown: Ctrl-C (SIGINT) to exit, every process group checked gone.
 
+msctl's sources are compiled before anything is timed, as an installed msctl has them
+(``bench._common.compiled_sources``): with ``PYTHONDONTWRITEBYTECODE`` set, every msctl
+process compiled them from source on each run.
+
 Only components whose kind exists in the code are started; the count of the plan's total
 is printed (never a placeholder to make up the number): a component counts as started when
 it runs itself, or when it is a motor interface and the simulator standing in for it runs.
@@ -46,7 +50,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench._common import free_port, msctl_env, print_table
+from bench._common import compiled_sources, free_port, msctl_env, print_table
 from components import kinds
 from msctl.launcher.state import process_group_alive
 
@@ -80,10 +84,6 @@ class Result:
     def ratio(self) -> float:
         """``msctl up`` over the floor of one bare interpreter per planned component."""
         return self.up_s / (sum(self.floor_components_s) / len(self.floor_components_s))
-
-
-def _env(home: Path, endpoint: str) -> dict[str, str]:
-    return msctl_env(home, endpoint, HOST)
 
 
 def _state(home: Path) -> dict:
@@ -203,7 +203,7 @@ def _run_template(template: str) -> Result:
     result = Result(template)
     home = Path(tempfile.mkdtemp(prefix=f"msctl_bench_{template}_"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    env = _env(home, endpoint)
+    env = msctl_env(home, endpoint, HOST)
     # Resolved once first, for the floors' N (`up` below resolves it again, as typed).
     subprocess.run(
         [sys.executable, "-m", "msctl", "assemble", template],
@@ -305,6 +305,7 @@ def main() -> None:
     parser.add_argument("--templates", nargs="+", default=["dragon", "two_dragons"])
     args = parser.parse_args()
     print(f"msctl launch benchmark on {os.cpu_count()} cores, simulated, off-robot ({HOST})")
+    compiled_sources()
     results = [_run_template(template) for template in args.templates]
 
     for r in results:
