@@ -105,17 +105,28 @@ def test_an_rclpy_node_reads_joint_read_and_its_joint_set_moves_the_joint(
     try:
         with RosPeer(domain, "ros_user") as peer:
             read = peer.collect(JointState, "/limb1/joint_read")
-            wait_until(lambda: read, 60.0, "limb1's joint_read on DDS")
-            names = list(read[-1].name)
-            joint = names.index("limb1_joint1")
-            start = read[-1].position[joint]
+
+            def position() -> float | None:
+                """limb1_joint1's latest position: a joint_read carries the joints that
+                changed (and every joint at its keepalive), not always this one."""
+                for message in reversed(list(read)):
+                    if "limb1_joint1" in message.name:
+                        return message.position[list(message.name).index("limb1_joint1")]
+                return None
+
+            found = wait_until(
+                lambda: (p := position()) is not None and [p],  # 0.0 is a position too
+                60.0,
+                "limb1_joint1 in limb1's joint_read on DDS",
+            )
+            start = found[0]
             target = start + 0.08
             command = JointState(name=["limb1_joint1"], position=[target])
             joint_set = peer.node.create_publisher(JointState, "/limb1/joint_set", 10)
 
             def moved() -> bool:
-                latest = read[-1]
-                return abs(latest.position[list(latest.name).index("limb1_joint1")] - target) < 0.01
+                latest = position()
+                return latest is not None and abs(latest - target) < 0.01
 
             publish_until(lambda: joint_set.publish(command), moved, 60.0)
     finally:
