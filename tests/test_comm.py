@@ -515,6 +515,23 @@ def test_a_peers_graph_questions_get_the_whole_answer_every_time(
             node.close()
 
 
+def test_a_closed_peer_is_forgotten_by_the_graph_questions(
+    session_settings: SessionSettings,
+) -> None:
+    from components.comm import session as session_module
+
+    first = open_session(session_settings)
+    first_zid = str(first.zid())
+    assert first_zid in session_module._PEER_ROUTERS
+    first.close()
+    second = open_session(session_settings)  # a later peer prunes what closed since
+    try:
+        assert first_zid not in session_module._PEER_ROUTERS
+        assert str(second.zid()) in session_module._PEER_ROUTERS
+    finally:
+        second.close()
+
+
 def test_a_joining_process_is_a_client_of_the_router_unless_told_otherwise() -> None:
     env = {"MSCTL_ZENOH_CONNECT": "tcp/127.0.0.1:7999", "MSCTL_ZENOH_LISTEN": "tcp/0.0.0.0:0"}
     joining = SessionSettings.joining(env)

@@ -286,13 +286,17 @@ def open_session(settings: SessionSettings | None = None) -> Any:
             f"listen {list(settings.listen)}): {exc}"
         ) from exc
     if settings.mode == "peer" and settings.connect:
-        _PEER_ROUTERS[str(session.zid())] = settings._replace(mode="client", listen=())
+        # Forget the peers closed since (a script may open and close many in its life).
+        for zid, (known, _) in list(_PEER_ROUTERS.items()):
+            if known.is_closed():
+                del _PEER_ROUTERS[zid]
+        _PEER_ROUTERS[str(session.zid())] = (session, settings._replace(mode="client", listen=()))
     return session
 
 
-#: For each peer session this process opened (by Zenoh id), the settings of a client of the
-#: same router(s): see :func:`graph_questions`.
-_PEER_ROUTERS: dict[str, SessionSettings] = {}
+#: For each open peer session of this process (by Zenoh id): the session, and the settings of
+#: a client of the same router(s): see :func:`graph_questions`.
+_PEER_ROUTERS: dict[str, tuple[Any, SessionSettings]] = {}
 
 
 @contextmanager
@@ -307,7 +311,7 @@ def graph_questions(session: Any) -> Iterator[Any]:
     that cannot open one (its router is down) asks through itself: part of the answer
     rather than none.
     """
-    client = _PEER_ROUTERS.get(str(session.zid()))
+    _, client = _PEER_ROUTERS.get(str(session.zid()), (None, None))
     asked = None
     if client is not None:
         try:
