@@ -128,13 +128,14 @@ def free_port() -> int:
 
 
 def wait_until(
-    predicate: Callable[[], Any], timeout: float = 5.0, what: str = "", interval: float = 0.02
+    predicate: Callable[[], Any], timeout: float = 30.0, what: str = "", interval: float = 0.02
 ) -> Any:
     """Poll ``predicate`` until it returns something truthy; fail the test on timeout.
 
     Args:
         predicate: What to poll.
-        timeout: Seconds before failing.
+        timeout: Seconds before failing: generous by default, as a loaded CI machine needs
+            (a wait ends as soon as its condition holds; 5 s failed a loaded full run).
         what: Said in the failure (what was awaited).
         interval: Seconds between polls.
     """

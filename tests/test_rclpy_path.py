@@ -130,7 +130,7 @@ def test_cores_are_rclpy_nodes_under_the_executors_contract(domain: int) -> None
             to_a.publish(String(data="after"))
             wait_until(lambda: "after" in fragile.seen, 20.0)
             ticks = sturdy.ticks
-            wait_until(lambda: sturdy.ticks >= ticks + 3)  # the other core runs on
+            wait_until(lambda: sturdy.ticks >= ticks + 3, 30.0)  # the other core runs on
 
             answer = peer.call(Trigger, "/a/count", Trigger.Request())
             assert (answer.success, answer.message) == (True, "2")
