@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
+from components.comm import publishers
 from components.comm.attachment import (
     CURRENT_FORMAT,
     CURRENT_SIZE,
@@ -22,7 +23,7 @@ from components.comm.attachment import (
     AttachmentError,
     gid_of,
 )
-from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+from components.comm.liveliness import Entity, EntityKind, TokenError
 from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
@@ -239,11 +240,8 @@ class Subscription:
         self._on_other_type = on_other_type
         # Tokens before samples: with senders, the allowed set should be filled (from the
         # liveliness history) before the first sample is judged.
-        self._publishers = session.liveliness().declare_subscriber(
-            f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.PUBLISHER.value}/*/*/*/"
-            f"{mangle(self.topic)}/*/*/*",
-            self._on_publisher_token,
-            history=True,
+        self._publishers = publishers.listen(
+            session, node.domain, mangle(self.topic), self._on_publisher_token
         )
         try:
             if self.qos.latched:
@@ -263,11 +261,7 @@ class Subscription:
             raise
         self._token = session.liveliness().declare_token(self.token_key)
 
-    def _on_publisher_token(self, sample: Any) -> None:
-        import zenoh
-
-        alive = sample.kind == zenoh.SampleKind.PUT
-        key = str(sample.key_expr)
+    def _on_publisher_token(self, key: str, alive: bool) -> None:
         try:
             entity = Entity.parse(key)
         except TokenError:
