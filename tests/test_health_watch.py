@@ -185,3 +185,46 @@ def test_the_shared_judgement_is_node_and_first_output_with_fake_time() -> None:
     assert watch.healthy(GUARDIAN.name) and not watch.healthy(posture.name)
     watch.forget([GUARDIAN.name])
     assert watch.output_age(GUARDIAN.name) is None and not watch.healthy(GUARDIAN.name)
+
+
+def test_the_launcher_takes_outputs_on_its_peer_session_when_no_client_opens(
+    open_sessions: Callable[[], Any], session_settings: SessionSettings, monkeypatch
+) -> None:
+    """The router answered a moment ago and no longer does: the launch goes on, its watch
+    taking the outputs on the peer session, and says so."""
+    from types import SimpleNamespace
+
+    from components.comm.session import SessionOpenError
+    from msctl.launcher import run
+
+    def refuse(settings: SessionSettings) -> Any:
+        raise SessionOpenError(f"no router at {settings.connect[0]}")
+
+    monkeypatch.setattr(run, "open_session", refuse)
+    peer = open_sessions()
+    launch = SimpleNamespace(
+        settings=session_settings,
+        session=peer,
+        plan=SimpleNamespace(components=[GUARDIAN]),
+        events=[],
+        watch=None,
+        _watch_session=None,
+    )
+    run.Launch._watch(launch)  # type: ignore[arg-type]
+    try:
+        assert launch._watch_session is None
+        endpoint = session_settings.connect[0]
+        assert launch.events == [
+            f"health watch: outputs on the peer session (no router at {endpoint})"
+        ]
+        component = Node(open_sessions(), "d2_guardian", "/gc_rear")
+        component.output = component.publisher("/gc_rear/diagnostics", DIAGNOSTIC_ARRAY)
+
+        def published() -> bool:
+            publish_output(component)
+            return launch.watch.status()[GUARDIAN.name][1]
+
+        wait_until(published, 30.0, "its output on the peer session", interval=0.1)
+        component.close()
+    finally:
+        launch.watch.close()

@@ -289,7 +289,7 @@ def open_session(settings: SessionSettings | None = None) -> Any:
         # Forget the peers closed since (a script may open and close many in its life).
         for zid, (known, _) in list(_PEER_ROUTERS.items()):
             if known.is_closed():
-                del _PEER_ROUTERS[zid]
+                _PEER_ROUTERS.pop(zid, None)  # another thread may have pruned it already
         _PEER_ROUTERS[str(session.zid())] = (session, settings._replace(mode="client", listen=()))
     return session
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from components import kinds
 from components.assembly import ResolvedAssembly
-from components.comm.session import SessionSettings, open_session
+from components.comm.session import SessionConfigError, SessionSettings, open_session
 from components.ros import rclpy_available
 from msctl.launcher import boot, forkserver, state
 from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
@@ -298,9 +298,14 @@ class Launch:
             return
         outputs = None
         if self.settings.connect:
-            outputs = self._watch_session = open_session(
-                self.settings._replace(mode="client", listen=())
-            )
+            try:
+                outputs = self._watch_session = open_session(
+                    self.settings._replace(mode="client", listen=())
+                )
+            except SessionConfigError as exc:
+                # A router that answered a moment ago and no longer does (not ours): the
+                # outputs on the peer session, as the rest, rather than no launch at all.
+                self.events.append(f"health watch: outputs on the peer session ({exc})")
         self.watch = HealthWatch(
             self.session, self.plan.components, self.settings.domain, outputs_session=outputs
         )
