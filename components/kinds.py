@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
+import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import Enum
@@ -108,6 +109,10 @@ class ComponentKind:
             says so, and a halt is not queued behind its bursts. A process of several
             kinds takes the lowest (see :func:`process_niceness`). Lowering a priority
             needs no privilege; raising one would, so the safety path stays at 0.
+        preload: Modules its components import only once they run (a library loaded
+            lazily, so that commands which never run it stay quick: psutil for a health
+            monitor), which the fork server imports once before forking, where every
+            worker of the kind would import them again.
     """
 
     name: str
@@ -129,6 +134,7 @@ class ComponentKind:
     named: bool = False
     validate: str | None = None
     niceness: int = 0
+    preload: tuple[str, ...] = ()
 
     @property
     def runnable(self) -> bool:
@@ -183,6 +189,10 @@ def _entry_point_kinds() -> Iterable[tuple[str, Any]]:
         yield f"entry point {entry.name} ({entry.value})", entry.load
 
 
+#: A dotted module name (a kind's ``preload``).
+_MODULE_NAME = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
+
+
 def registry() -> dict[str, ComponentKind]:
     """Every kind by name: the built-in ones, then those of installed entry points.
 
@@ -208,6 +218,13 @@ def registry() -> dict[str, ComponentKind]:
                 raise KindError(
                     f"{source}: kind {entry.name!r} has niceness {entry.niceness!r}; "
                     "use a whole number from 0 (the safety path's) to 19"
+                )
+            if not isinstance(entry.preload, tuple) or not all(
+                isinstance(m, str) and _MODULE_NAME.match(m) for m in entry.preload
+            ):
+                raise KindError(
+                    f"{source}: kind {entry.name!r} has preload {entry.preload!r}; "
+                    'use a tuple of module names ("psutil", "mcap.writer")'
                 )
             if entry.name in found:
                 raise KindError(

@@ -49,6 +49,13 @@ def main():
         time.sleep(600)
     if mode == "interrupt":
         raise KeyboardInterrupt
+    if mode == "imports":
+        from components import kinds
+        wanted = sys.argv[2].split(",")
+        print(json.dumps({
+            "kinds_loaded": kinds._kinds is not None,
+            "missing": [m for m in wanted if m not in sys.modules],
+        }), flush=True)
     if mode == "types":
         from components.comm import types
         built = types.registry.cache_info().currsize == 1  # before this process asked
@@ -226,6 +233,36 @@ def test_a_forked_worker_finds_the_message_types_made(server: ForkServer) -> Non
         "std_srvs/srv/Trigger_Request",
     ):
         assert name in report["made"], report["made"]
+
+
+def test_what_a_kind_imports_once_running_is_imported_before_its_worker_is_forked(
+    probe_dir: Path,
+) -> None:
+    # Each worker imported psutil (a health monitor), the MCAP writer (an archiver), the
+    # kind registry's entry points: 10-25 ms of CPU each, in 23 workers at once.
+    from components import kinds
+    from msctl.launcher.forkserver import preload_for
+
+    chosen = ["health_monitor", "data_archiver", "joint_manager", "autonomous_operator"]
+    preload = preload_for(chosen)
+    assert len(preload) == len(set(preload))
+    for kind in chosen:
+        assert set(kinds.get(kind).preload) <= set(preload)
+    assert "components.overrides" in preload  # an extension of the joint manager's
+    assert "components.autonomous_operator.operators.guardian" in preload  # a subpackage's
+    server = _start(probe_dir, preload)
+    try:
+        assert server.wait_ready(120.0), server.failure
+        wanted = ["psutil", "mcap.writer", "components.overrides.locked_joint", "zenoh.ext"]
+        wanted += ["components.comm.topics", "components.autonomous_operator.operators.steering"]
+        child, heartbeat = _spawn(server, "imports", ",".join(wanted))
+        os.close(heartbeat)
+        assert child.wait(timeout=60.0) == 0
+        assert child.stdout is not None
+        report = json.loads(child.stdout.read())
+    finally:
+        server.close()
+    assert report == {"kinds_loaded": True, "missing": []}
 
 
 def test_a_worker_given_up_on_while_the_server_imports_never_runs(

@@ -195,6 +195,30 @@ def test_a_process_yields_the_cpu_as_its_most_important_kind_says(
         kinds.registry()
 
 
+def test_a_kind_preloads_module_names_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fresh_registry: None
+) -> None:
+    # What a health monitor imports once running, the fork server imports for every worker.
+    assert "psutil" in kinds.get("health_monitor").preload
+    _install(
+        tmp_path,
+        monkeypatch,
+        "msctl_sloppy",
+        """
+        from components.kinds import ComponentKind, Placement
+
+        KIND = ComponentKind(
+            name="sloppy", summary="a path", placement=Placement.STATION, preload=("a/b.py",)
+        )
+        """,
+    )
+    kinds.reset()
+    with pytest.raises(
+        kinds.KindError, match=r"msctl_sloppy.*kind 'sloppy' has preload \('a/b.py',\); use a tuple"
+    ):
+        kinds.registry()
+
+
 def test_an_entry_point_that_is_not_a_kind_is_refused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fresh_registry: None
 ) -> None:

@@ -19,5 +19,7 @@ KIND = ComponentKind(
     claim_relay=True,
     own_process=True,
     named=True,
+    # The API's IK (its random restarts) and its thread pool, loaded on first use.
+    preload=("numpy.random", "concurrent.futures.thread"),
     not_rebuilt_alone="its script runs in its own process: restart it whole",
 )

@@ -13,4 +13,6 @@ KIND = ComponentKind(
     healthy_output="diagnostics",
     # Recording is buffered: a burst written milliseconds later loses nothing.
     niceness=10,
+    # The recorder's writer (MCAP, its compressors) and its metadata's YAML.
+    preload=("msctl.recorder.recorder", "msctl.recorder.writer", "mcap.writer", "yaml"),
 )

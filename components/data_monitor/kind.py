@@ -13,4 +13,6 @@ KIND = ComponentKind(
     healthy_output="/diagnostics_toplevel_state",
     # Health is judged over seconds; a late aggregate by milliseconds changes nothing.
     niceness=5,
+    # It asks each computer's agent what runs there (the launcher's control service).
+    preload=("msctl.launcher.control",),
 )

@@ -26,4 +26,6 @@ KIND = ComponentKind(
     healthy_output="health",
     module_facts=("joints", "thresholds"),
     checks={"thresholds": "components.health.kind:check_thresholds"},
+    # Its computer's figures (CPU, memory, temperatures) come from psutil.
+    preload=("psutil",),
 )

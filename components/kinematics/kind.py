@@ -15,4 +15,6 @@ KIND = ComponentKind(
     # It takes ik_target only from the limb's claim holder and turns it into joint_set.
     claim_relay=True,
     extensions=("components.kinematics.injections",),
+    # The IK's random restarts (numpy loads numpy.random on first use).
+    preload=("numpy.random",),
 )

@@ -82,7 +82,10 @@ COMMON = (
     "components.executor.heartbeat",
     "components.executor.runner",
     "components.executor.executor",
+    "zenoh.ext",
     "components.comm.node",
+    "components.comm.topics",
+    "components.comm.publishers",
     "components.comm.liveliness",
     "components.comm.graph",
     "components.claims",
@@ -105,35 +108,57 @@ def enabled(environ: Mapping[str, str] = os.environ) -> bool:
 
 def preload_for(kind_names: Iterable[str]) -> list[str]:
     """The modules to import before forking the workers of these component kinds: each
-    kind's registered modules (builder, interface, config) and its package's other modules
-    (its core, and what the builder imports when it runs: a limb's Pinocchio model)."""
-    import pkgutil
-
+    kind's registered modules (builder, interface, config, extensions), the other modules of
+    its package and of the packages within it (its core, what the builder imports when it
+    runs: a limb's Pinocchio model; an operator's scripts), and what it imports lazily once
+    running (:attr:`ComponentKind.preload`)."""
     from components import kinds
 
-    names: list[str] = []
+    names: dict[str, None] = {}  # ordered, once each
+    scanned: set[str] = set()
     for kind_name in dict.fromkeys(kind_names):
         try:
             kind = kinds.get(kind_name)
         except kinds.KindError:
             continue
-        paths = [kind.builder, kind.interface, kind.validate, *kind.config, *kind.checks.values()]
+        paths = [
+            kind.builder,
+            kind.interface,
+            kind.validate,
+            *kind.config,
+            *kind.checks.values(),
+            *kind.extensions,
+        ]
         modules = [p.partition(":")[0] for p in paths if p]
         for module in list(modules):
-            package = module.rpartition(".")[0]
-            if not package.startswith("components."):
-                continue
-            try:
-                found = importlib.util.find_spec(package)
-            except (ImportError, ValueError):
-                continue
-            if found is not None and found.submodule_search_locations:
-                modules += [
-                    f"{package}.{info.name}"
-                    for info in pkgutil.iter_modules(found.submodule_search_locations)
-                ]
-        names += [m for m in modules if m not in names]
-    return names
+            for package in (module.rpartition(".")[0], module):
+                if package not in scanned:
+                    scanned.add(package)
+                    modules += _package_modules(package)
+        names.update(dict.fromkeys((*modules, *kind.preload)))
+    return list(names)
+
+
+def _package_modules(package: str) -> list[str]:
+    """Every module of one of msctl's component packages, its subpackages' included; none
+    for a module that is not a package, or a package outside ``components``."""
+    import pkgutil
+
+    if not package.startswith("components."):
+        return []
+    try:
+        found = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        return []
+    if found is None or not found.submodule_search_locations:
+        return []
+    found_names = []
+    for info in pkgutil.iter_modules(found.submodule_search_locations):
+        name = f"{package}.{info.name}"
+        found_names.append(name)
+        if info.ispkg:
+            found_names += _package_modules(name)
+    return found_names
 
 
 # ---------------------------------------------------------------------------- supervisor side
@@ -528,6 +553,18 @@ def _import_all(modules: Iterable[str]) -> None:
             print(f"forkserver: not preloaded {module}: {exc!r}", file=sys.stderr, flush=True)
 
 
+def _warm_kinds() -> None:
+    """Load the kind registry once: every worker looks its kinds up in it, and loading it
+    imports the kind modules not preloaded (kinds that do not run here) and reads the
+    installed distributions' entry points."""
+    from components import kinds
+
+    try:
+        kinds.registry()
+    except Exception as exc:  # a broken kind: each worker says so in its own log
+        print(f"forkserver: kinds not preloaded: {exc!r}", file=sys.stderr, flush=True)
+
+
 #: A ROS type name as msctl's modules spell them in constants (``sensor_msgs/msg/JointState``).
 _TYPE_NAME = re.compile(r"^[A-Za-z]\w*/(msg|srv)/[A-Za-z]\w*$")
 
@@ -655,6 +692,7 @@ def main() -> None:
     args = parser.parse_args()
     control = socket.socket(fileno=args.control)
     _import_all((*COMMON, *args.preload))
+    _warm_kinds()
     _warm_types(_type_names())
     threads = _threads()
     message = "ready" if threads == 1 else f"error {threads} threads after importing"
