@@ -291,8 +291,10 @@ def leg_bounds(side: float, pace: Pace, speed: float) -> tuple[float, float]:
     """Shortest and longest leg (m) of a square of ``side`` driven at ``speed`` by time:
     ``side`` times the real-time factor while it was driven, plus the idle spread and a
     late start or stop at either end (the Dragon crabs along the leg, so a late command
-    lengthens or shortens it; it does not turn it)."""
-    slack = IDLE_LEG + 2 * late_run(pace, speed)
+    lengthens or shortens it; it does not turn it). Each end is one moment, so one stall
+    there counts in full, as for the body's turn (:func:`yaw_slack`): a full run at load 8
+    made a 0.430 m leg against a p99-based 0.425, in a run whose worst stall was 55 ms."""
+    slack = IDLE_LEG + 2 * speed * max(pace.jitter, pace.worst)
     return side * min(pace.rtf_min, 1.0) - slack, side * max(pace.rtf_max, 1.0) + slack
 
 
