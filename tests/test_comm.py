@@ -335,41 +335,6 @@ def test_a_queue_only_server_is_called_on_zenohs_thread_and_urgent_calls_are_ans
     assert not isinstance(threads["own"], threading._DummyThread)
 
 
-def test_a_direct_subscription_runs_on_zenohs_thread_and_starts_no_python_thread(
-    pair: tuple[Node, Node],
-) -> None:
-    # zenoh-python starts (and waits for) a Python thread per callback unless told to run it
-    # on its network thread: a module process bound ten subscriptions that way.
-    publisher_node, subscriber_node = pair
-    seen: dict[str, list[threading.Thread]] = {"direct": [], "own": []}
-    # The session's one follower of publisher tokens (components.comm.publishers) first.
-    subscriber_node.subscription("/direct/other", "std_msgs/msg/String", lambda _m: None)
-    before = {t.ident for t in threading.enumerate()}
-    subscriber_node.subscription(
-        "/direct/chatter",
-        "std_msgs/msg/String",
-        lambda _m: seen["direct"].append(threading.current_thread()),
-        direct=True,
-    )
-    started = [t for t in threading.enumerate() if t.ident not in before]
-    assert not [t for t in started if "pyo3" in t.name], started
-    subscriber_node.subscription(
-        "/direct/chatter",
-        "std_msgs/msg/String",
-        lambda _m: seen["own"].append(threading.current_thread()),
-    )
-    publisher = publisher_node.publisher("/direct/chatter", "std_msgs/msg/String")
-    assert wait_until(
-        lambda: (
-            publisher.publish(msg("std_msgs/msg/String", data="hi"))
-            or (seen["direct"] and seen["own"])
-        ),
-        30.0,
-    )
-    assert all(isinstance(t, threading._DummyThread) for t in seen["direct"])
-    assert not any(isinstance(t, threading._DummyThread) for t in seen["own"])
-
-
 def test_an_unannounced_client_calls_at_once_and_shows_on_the_graph_when_announced(
     pair: tuple[Node, Node], open_sessions: Callable[[], Any]
 ) -> None:

@@ -154,27 +154,6 @@ def _zenoh_subscription(component: Component) -> Subscription:
     return next(e for e in component.node._owned if isinstance(e, Subscription))
 
 
-def test_binding_a_core_starts_no_python_thread_per_input(
-    session_settings: SessionSettings, driver: Node
-) -> None:
-    # Its samples are queued on Zenoh's thread and its services' callers followed there:
-    # zenoh-python's thread per callback, started and waited for, made binding a module
-    # process take a second on a loaded computer.
-    executor = Executor(settings=session_settings)
-    try:
-        executor.add(Counter("first"), Counter.SPEC, "/first")  # the session's shared ones
-        before = {t.ident for t in threading.enumerate()}
-        many = InterfaceSpec(
-            subscribe=tuple(Subscribe(f"in{i}", STRING, "on_cmd") for i in range(4)),
-            serve=tuple(Serve(f"ask{i}", "std_srvs/srv/Trigger", "on_count") for i in range(3)),
-        )
-        executor.add(Counter("many"), many, "/many")
-        started = [t.name for t in threading.enumerate() if t.ident not in before]
-        assert started == []
-    finally:
-        executor.close()
-
-
 def test_keep_last_depth_holds_only_the_newest_pending_samples(
     session_settings: SessionSettings, driver: Node
 ) -> None:

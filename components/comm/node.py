@@ -113,7 +113,6 @@ class Node:
         senders: Iterable[str] | None = None,
         guarded: bool = False,
         on_other_type: Callable[[Entity], None] | None = None,
-        direct: bool = False,
     ) -> Subscription:
         """Declare a subscription whose callback gets decoded messages (or bytes if ``raw``).
 
@@ -124,24 +123,13 @@ class Node:
             guarded: The senders may change while it runs (:meth:`Subscription.allow`).
             on_other_type: Called (on a Zenoh thread) with each publisher on the topic of
                 another type, or another version of the type, instead of logging it.
-            direct: The callback runs on Zenoh's network thread: only for one that never
-                blocks nor waits on Zenoh (it holds up that link's other samples meanwhile).
         """
         from components.comm.topics import Subscription
 
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
         return self._own(
             Subscription(
-                self,
-                topic,
-                msg_type,
-                callback,
-                qos,
-                raw,
-                qualified,
-                guarded,
-                on_other_type,
-                direct,
+                self, topic, msg_type, callback, qos, raw, qualified, guarded, on_other_type
             )
         )
 

@@ -188,11 +188,10 @@ class ServiceServer:
         # that existed before this server are known too): who asked, for handlers that log it.
         self._callers: dict[bytes, str] = {}
         self._callers_lock = threading.Lock()
-        # On Zenoh's thread (a dictionary update): no Python thread of its own to start.
         self._clients = node.session.liveliness().declare_subscriber(
             f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.CLIENT.value}/*/*/*/"
             f"{mangle(self.service)}/*/*/*",
-            zenoh.handlers.Callback(self._on_client_token, indirect=False),
+            self._on_client_token,
             history=True,
         )
         try:

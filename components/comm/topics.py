@@ -146,10 +146,7 @@ class Publisher:
 class Subscription:
     """Receives one topic. Create through :meth:`Node.subscription`.
 
-    The callback runs on a Python thread zenoh-python keeps for it, with the decoded message;
-    with ``direct``, on Zenoh's network thread itself (for a callback that only hands the
-    message on, such as an executor's queueing: it spares that thread, started as the
-    subscriber is declared, and a thread wake-up per sample). Samples whose payload or
+    The callback runs on a Zenoh thread with the decoded message. Samples whose payload or
     attachment do not decode are dropped and counted in :data:`components.comm.stats.drops`
     under the topic name; a publisher of another type (or another version of the type) on
     the topic is counted there once, from its liveliness token, naming its node (or, with
@@ -194,7 +191,6 @@ class Subscription:
         senders: Collection[str] | None = None,
         guarded: bool = False,
         on_other_type: Callable[[Entity], None] | None = None,
-        direct: bool = False,
     ) -> None:
         import zenoh.ext
 
@@ -247,22 +243,19 @@ class Subscription:
         self._publishers = publishers.listen(
             session, node.domain, mangle(self.topic), self._on_publisher_token
         )
-        # zenoh-python runs a callback on a Python thread of its own (started, and waited
-        # for, as the subscriber is declared) unless told to run it on its network thread.
-        on_sample = zenoh.handlers.Callback(self._on_sample, indirect=not direct)
         try:
             if self.qos.latched:
                 self._zsub = zenoh.ext.declare_advanced_subscriber(
                     session,
                     self.key,
-                    on_sample,
+                    self._on_sample,
                     history=zenoh.ext.HistoryConfig(
                         detect_late_publishers=True, max_samples=self.qos.depth
                     ),
                     subscriber_detection=True,
                 )
             else:
-                self._zsub = session.declare_subscriber(self.key, on_sample)
+                self._zsub = session.declare_subscriber(self.key, self._on_sample)
         except Exception:
             self._publishers.undeclare()
             raise

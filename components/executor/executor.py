@@ -238,7 +238,6 @@ class Executor:
             sub.qos,
             senders=sub.senders,
             guarded=sub.claim is not None,
-            direct=True,  # on_message only queues
         )
         if sub.claim is not None:
             self.claim_guard().add(subscription, sub.claim)

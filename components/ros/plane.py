@@ -270,12 +270,8 @@ class RclpyNode:
         raw: bool = False,
         senders: Collection[str] | None = None,
         guarded: bool = False,
-        direct: bool = False,
     ) -> RclpySubscription:
-        """A subscription whose callback gets decoded messages (or CDR bytes if ``raw``).
-        ``direct`` is Zenoh's thread hint (:class:`components.comm.topics.Subscription`);
-        rclpy calls every callback from its own executor, so it changes nothing here."""
-        del direct
+        """A subscription whose callback gets decoded messages (or CDR bytes if ``raw``)."""
         qualified = None if senders is None else [self.qualify_node(s) for s in senders]
         return self._own(
             RclpySubscription(self, topic, msg_type, callback, qos, raw, qualified, guarded)
