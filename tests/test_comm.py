@@ -532,7 +532,7 @@ def test_a_closed_peer_is_forgotten_by_the_graph_questions(
         second.close()
 
 
-def test_a_joining_process_is_a_client_of_the_router_unless_told_otherwise() -> None:
+def test_a_joining_or_launched_process_is_a_client_of_the_router_unless_told_otherwise() -> None:
     env = {"MSCTL_ZENOH_CONNECT": "tcp/127.0.0.1:7999", "MSCTL_ZENOH_LISTEN": "tcp/0.0.0.0:0"}
     joining = SessionSettings.joining(env)
     assert (joining.mode, joining.connect, joining.listen) == (
@@ -540,10 +540,14 @@ def test_a_joining_process_is_a_client_of_the_router_unless_told_otherwise() -> 
         ("tcp/127.0.0.1:7999",),
         (),
     )
-    # A component started by the launcher stays a peer; MSCTL_ZENOH_MODE wins for both.
+    # So is a component the launcher started; a process opening a session of its own with
+    # the defaults is a peer; MSCTL_ZENOH_MODE wins for all.
+    launched = SessionSettings.launched(env)
+    assert (launched.mode, launched.connect, launched.listen) == joining[:3]
     assert SessionSettings.from_env(env).mode == "peer"
-    peer = SessionSettings.joining({**env, "MSCTL_ZENOH_MODE": "peer"})
-    assert (peer.mode, peer.listen) == ("peer", ("tcp/0.0.0.0:0",))
+    for settings in (SessionSettings.joining, SessionSettings.launched):
+        peer = settings({**env, "MSCTL_ZENOH_MODE": "peer"})
+        assert (peer.mode, peer.listen) == ("peer", ("tcp/0.0.0.0:0",))
 
 
 def test_domains_are_separate(open_sessions: Callable[[], Any]) -> None:

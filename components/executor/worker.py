@@ -30,7 +30,7 @@ from typing import Any
 from components import kinds
 from components.assembly import AssemblyError, load_assembly
 from components.build import BuildError, build_component, simulator_plan
-from components.comm.session import SessionConfigError
+from components.comm.session import SessionConfigError, SessionSettings
 from components.executor.heartbeat import Heartbeat
 
 #: Seconds between GIL hand-overs in a component process (see :func:`main`).
@@ -115,9 +115,11 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         from components.executor.runner import ComponentFailed, RebuildFailed, run_built
 
+        settings = SessionSettings.launched()
         try:
             run_built(
                 built,
+                settings=settings,
                 duration=args.duration,
                 heartbeat=heartbeat,
                 rebuild=build,
