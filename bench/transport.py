@@ -12,7 +12,13 @@ Three flavours, each with its own topic:
     messages and codec (``ros2_pyterfaces.cydr``): ``Pub.publish`` of a message, and a
     ``RawSub`` whose callback decodes each sample (what its typed ``Sub`` does before handing
     the message to asyncio, so both sides deliver a decoded message on Zenoh's thread);
-  * ``bare``: ``put`` of the same CDR bytes, no attachment, no decoding: the floor.
+  * ``bare``: ``put`` of the same CDR bytes, no attachment, no decoding: the floor;
+  * ``codec``: a reference between the two, not a target: bare ``put`` and subscriber with
+    msctl's generated CDR codec on each side (encode before the put, decode in the
+    callback), no attachment, no node. ``ours`` over ``codec`` is what msctl's publisher and
+    subscription add (attachment, GID, checks); ``codec`` over ``bare`` is what encoding and
+    decoding a message in Python costs where it runs, between two waits for the network
+    (several times its cost in a loop, the caches cold).
 
 The load of a shared machine drifts, so the flavours take turns: the round trips in
 ``--rounds`` rounds of ``pings / rounds`` each, the floods one flood per flavour per round;
@@ -42,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench._common import free_port, print_table, summary
 
-FLAVOURS = ("bare", "pyzeros", "ours")
+FLAVOURS = ("bare", "codec", "pyzeros", "ours")
 JOINTS = [f"limb1_joint{i}" for i in range(1, 7)]
 #: Each flavour's topics (ping, pong, flood): ROS topic names for ours and pyzeros, plain
 #: Zenoh keys for bare.
@@ -50,6 +56,7 @@ TOPICS = {
     "ours": ("/bench/ping", "/bench/pong", "/bench/flood"),
     "pyzeros": ("/bench/pz_ping", "/bench/pz_pong", "/bench/pz_flood"),
     "bare": ("bare/ping", "bare/pong", "bare/flood"),
+    "codec": ("codec/ping", "codec/pong", "codec/flood"),
 }
 JOINT_STATE = "sensor_msgs/msg/JointState"
 
@@ -143,6 +150,11 @@ class Endpoints:
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         self._things.append(bare)
+        if self.flavour == "codec":
+            from components.comm.types import registry
+
+            encode, put = registry().serializer(JOINT_STATE), bare.put
+            return lambda message: put(encode(message)), _sample_message()
         return bare.put, publisher_bytes(_sample_message())
 
     def subscription(self, topic: str, callback: Callable[[Any], None], keep_all: bool = False):
@@ -167,6 +179,15 @@ class Endpoints:
                     lambda sample: callback(decode(sample.payload.to_bytes())),
                     qos_profile=qos,
                     session=self._node,
+                )
+            )
+        elif self.flavour == "codec":
+            from components.comm.types import registry
+
+            decode = registry().deserializer(JOINT_STATE)
+            self._things.append(
+                self._session.declare_subscriber(
+                    topic, lambda s: callback(decode(s.payload.to_bytes()))
                 )
             )
         else:
@@ -387,6 +408,8 @@ def run(pings: int, messages: int, rounds: int) -> dict[str, Any]:
         "throughput": throughput,
         "ratios": {
             "p50_ours_bare": latency["ours"]["p50"] / latency["bare"]["p50"],
+            "p50_codec_bare": latency["codec"]["p50"] / latency["bare"]["p50"],
+            "p50_ours_codec": latency["ours"]["p50"] / latency["codec"]["p50"],
             "p50_ours_pyzeros": latency["ours"]["p50"] / latency["pyzeros"]["p50"],
             "rate_ours_pyzeros": throughput["ours"]["rate"]
             / max(throughput["pyzeros"]["rate"], 1.0),
@@ -410,7 +433,8 @@ def report(doc: dict[str, Any]) -> None:
     )
     print(
         f"ours/bare p50: {ratios['p50_ours_bare']:.2f} (target <= 1.3); "
-        f"ours/pyzeros p50: {ratios['p50_ours_pyzeros']:.2f}"
+        f"ours/pyzeros p50: {ratios['p50_ours_pyzeros']:.2f}; of which codec/bare "
+        f"{ratios['p50_codec_bare']:.2f}, ours/codec {ratios['p50_ours_codec']:.2f}"
     )
     print_table(
         f"Throughput, {doc['messages']:,} JointState a round, one publisher -> one subscriber "
