@@ -21,6 +21,10 @@ from components.comm.qos import QoS
 from components.comm.types import UnknownTypeError, normalize_type_name
 
 PREFIX = "@ros2_lv"
+#: An endpoint token's fields (``@ros2_lv/domain/zid/node/entity/kind/enclave/namespace/
+#: node name/topic/type/hash/qos``), and where its (mangled) topic is among them.
+ENDPOINT_FIELDS = 13
+TOPIC_FIELD = 9
 
 
 class EntityKind(StrEnum):
@@ -165,7 +169,7 @@ class Entity(NamedTuple):
             if len(parts) != 9:
                 raise TokenError(f"malformed node token {key!r}")
             return cls(**common)
-        if len(parts) != 13:
+        if len(parts) != ENDPOINT_FIELDS:
             raise TokenError(f"malformed {kind.name.lower()} token {key!r}")
         try:
             type_name = normalize_type_name(parts[10])
@@ -173,7 +177,7 @@ class Entity(NamedTuple):
             raise TokenError(f"malformed type in token {key!r}: {exc}") from exc
         return cls(
             **common,
-            topic=unmangle(parts[9]),
+            topic=unmangle(parts[TOPIC_FIELD]),
             type_name=type_name,
             type_hash=parts[11],
             qos=parts[12],

@@ -14,12 +14,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from components.comm.liveliness import PREFIX, EntityKind
-
-#: A token's fields: @ros2_lv/domain/zid/node/entity/kind/enclave/namespace/node name/topic/
-#: type/hash/qos; the topic (mangled) is the 10th.
-_FIELDS = 13
-_TOPIC = 9
+from components.comm.liveliness import ENDPOINT_FIELDS, PREFIX, TOPIC_FIELD, EntityKind
 
 #: ``(session zid, domain)`` -> its followed tokens, while a subscription of it listens.
 _FOLLOWED: dict[tuple[str, int], PublisherTokens] = {}
@@ -49,9 +44,9 @@ class PublisherTokens:
 
         key = str(sample.key_expr)
         parts = key.split("/")
-        if len(parts) != _FIELDS:
+        if len(parts) != ENDPOINT_FIELDS:
             return  # not a publisher token of rmw_zenoh's form (the graph counts those)
-        topic = parts[_TOPIC]
+        topic = parts[TOPIC_FIELD]
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
             keys = self._alive.setdefault(topic, {})
