@@ -57,7 +57,7 @@ from datetime import datetime
 from typing import Any
 from urllib.parse import quote, unquote
 
-from components.comm.liveliness import ask_tokens
+from components.comm.liveliness import ask_tokens, follow_tokens
 from components.comm.names import mangle, unmangle
 
 #: The first chunks of every claim token (a verbatim ``@`` chunk: wildcards never match it,
@@ -429,9 +429,7 @@ class Claims:
         self._callbacks: list[Callable[[str, ClaimInfo | None], None]] = []
         self._closed = False
         self._made = time.monotonic()
-        self._subscriber = session.liveliness().declare_subscriber(
-            f"{PREFIX}/{domain}/**", self._on_token, history=True
-        )
+        self._subscriber = follow_tokens(session, f"{PREFIX}/{domain}/**", self._on_token)
 
     # ------------------------------------------------------------------ watching
     def holders(self) -> dict[str, ClaimInfo]:

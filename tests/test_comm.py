@@ -21,7 +21,7 @@ from conftest import free_port, quick_peer_settings, quick_router, wait_until
 from components.comm import LATCHED, SENSOR, Node, QoS, ServiceError, ServiceTimeout
 from components.comm.attachment import Attachment, encode_keyed
 from components.comm.graph import NODE_TOKENS, Graph, snapshot
-from components.comm.liveliness import EntityKind, ask_tokens
+from components.comm.liveliness import EntityKind, ask_tokens, follow_tokens
 from components.comm.services import service_key
 from components.comm.session import (
     SessionConfigError,
@@ -515,6 +515,57 @@ def test_a_peers_graph_questions_get_the_whole_answer_every_time(
             node.close()
 
 
+def test_a_client_asks_through_itself_until_it_follows_tokens(router_endpoint: str) -> None:
+    from components.comm.session import graph_questions
+
+    client = open_session(SessionSettings(mode="client", connect=(router_endpoint,)))
+    try:
+        with graph_questions(client) as asked:
+            assert asked is client
+        follower = follow_tokens(client, "@ros2_lv/7/**", lambda _sample: None)
+        try:
+            with graph_questions(client) as asked:
+                assert asked is not client and str(asked.zid()) != str(client.zid())
+            assert asked.is_closed()
+        finally:
+            follower.undeclare()
+    finally:
+        client.close()
+
+
+def test_a_client_that_follows_publisher_tokens_gets_the_whole_graph_every_time(
+    router_endpoint: str,
+) -> None:
+    # Asked of such a client itself, Zenoh 1.10 ended the query before resending the
+    # publisher tokens it had already sent for the subscriber: 100 of 159 tokens (no
+    # publisher) in 3 of 20 loaded `msctl topic echo` error paths.
+    settings = SessionSettings(mode="client", connect=(router_endpoint,))
+    others = open_session(settings)
+    nodes = [Node(others, f"known_{i}", domain=7) for i in range(20)]
+    publishers = [n.publisher(f"/t{i}", "std_msgs/msg/String") for i, n in enumerate(nodes)]
+    asker = open_session(settings)
+    node = Node(asker, "asker", domain=7)
+
+    def answer() -> set[str]:
+        return set(ask_tokens(asker, "@ros2_lv/7/**", 5.0))
+
+    try:
+        node.subscription("/t0", "std_msgs/msg/String", lambda _m: None)  # follows MP tokens
+        # The nodes and publishers; the asker's node and subscription.
+        wait_until(lambda: len(answer()) == 20 + 20 + 1 + 1, 30.0)
+        everything = answer()
+        misses = [len(everything - answer()) for _ in range(30)]
+        assert misses == [0] * 30
+    finally:
+        node.close()
+        asker.close()
+        for publisher in publishers:
+            publisher.close()
+        for other in nodes:
+            other.close()
+        others.close()
+
+
 def test_a_closed_peer_is_forgotten_by_the_graph_questions(
     session_settings: SessionSettings,
 ) -> None:
@@ -522,12 +573,12 @@ def test_a_closed_peer_is_forgotten_by_the_graph_questions(
 
     first = open_session(session_settings)
     first_zid = str(first.zid())
-    assert first_zid in session_module._PEER_ROUTERS
+    assert first_zid in session_module._QUESTION_ROUTES
     first.close()
     second = open_session(session_settings)  # a later peer prunes what closed since
     try:
-        assert first_zid not in session_module._PEER_ROUTERS
-        assert str(second.zid()) in session_module._PEER_ROUTERS
+        assert first_zid not in session_module._QUESTION_ROUTES
+        assert str(second.zid()) in session_module._QUESTION_ROUTES
     finally:
         second.close()
 

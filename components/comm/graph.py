@@ -12,7 +12,14 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple
 
-from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError, ask_tokens
+from components.comm.liveliness import (
+    PREFIX,
+    Entity,
+    EntityKind,
+    TokenError,
+    ask_tokens,
+    follow_tokens,
+)
 from components.comm.stats import drops
 
 # The records of the graph layer (here, and the QoS, entities, attachments and session
@@ -209,9 +216,7 @@ class Graph(GraphView):
         self._entities: dict[str, Entity] = {}
         self._on_change = on_change
         self._changed = threading.Condition(self._lock)
-        self._subscriber = session.liveliness().declare_subscriber(
-            f"{PREFIX}/{domain}/{tokens}", self._on_token, history=True
-        )
+        self._subscriber = follow_tokens(session, f"{PREFIX}/{domain}/{tokens}", self._on_token)
 
     def _on_token(self, sample: Any) -> None:
         import zenoh

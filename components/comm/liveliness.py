@@ -13,6 +13,7 @@ SC (service client), and every ``/`` inside a name mangled to ``%``.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from enum import StrEnum
 from typing import Any, NamedTuple
 
@@ -45,15 +46,30 @@ class TokenError(ValueError):
 END_GRACE = 2.0
 
 
+def follow_tokens(session: Any, key: str, callback: Callable[[Any], None]) -> Any:
+    """Declare a liveliness subscriber of ``key`` with history (the tokens alive now, then
+    every change): msctl's one way to, so that the session's graph questions go through a
+    client of its router from then on (:func:`~components.comm.session.graph_questions`).
+
+    Returns:
+        The Zenoh liveliness subscriber (the caller undeclares it).
+    """
+    from components.comm.session import follows_tokens
+
+    follows_tokens(session)
+    return session.liveliness().declare_subscriber(key, callback, history=True)
+
+
 def ask_tokens(session: Any, key: str, timeout: float) -> list[str]:
     """The keys of the live tokens matching ``key``, asked of the network now.
 
     The answers are gathered by a callback, never through Zenoh's default channel: a
     session's own routing tables answer it inside ``get`` itself, before the caller can
     read anything, and past the channel's 256 answers that blocked for good (a peer of
-    two_dragons knows 625 tokens). A peer's question goes through a client of its router
-    (:func:`~components.comm.session.graph_questions`): Zenoh answers a peer with part of
-    the tokens.
+    two_dragons knows 625 tokens). The question of a peer, or of a session that follows
+    tokens, goes through a client of its router
+    (:func:`~components.comm.session.graph_questions`): Zenoh answers those with part of the
+    tokens.
 
     Args:
         session: An open Zenoh session.

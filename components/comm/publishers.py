@@ -14,7 +14,13 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from components.comm.liveliness import ENDPOINT_FIELDS, PREFIX, TOPIC_FIELD, EntityKind
+from components.comm.liveliness import (
+    ENDPOINT_FIELDS,
+    PREFIX,
+    TOPIC_FIELD,
+    EntityKind,
+    follow_tokens,
+)
 
 #: ``(session zid, domain)`` -> its followed tokens, while a subscription of it listens.
 _FOLLOWED: dict[tuple[str, int], PublisherTokens] = {}
@@ -33,10 +39,8 @@ class PublisherTokens:
         self._alive: dict[str, dict[str, None]] = {}  # mangled topic -> keys, in order
         self._listeners: dict[str, list[Listener]] = {}
         self.users = 0
-        self._subscriber = session.liveliness().declare_subscriber(
-            f"{PREFIX}/{domain}/*/*/*/{EntityKind.PUBLISHER.value}/**",
-            self._on_token,
-            history=True,
+        self._subscriber = follow_tokens(
+            session, f"{PREFIX}/{domain}/*/*/*/{EntityKind.PUBLISHER.value}/**", self._on_token
         )
 
     def _on_token(self, sample: Any) -> None:

@@ -18,7 +18,7 @@ from contextvars import ContextVar
 from typing import TYPE_CHECKING, Any
 
 from components.comm.attachment import Attachment, AttachmentError, gid_of
-from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError
+from components.comm.liveliness import PREFIX, Entity, EntityKind, TokenError, follow_tokens
 from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
@@ -188,11 +188,11 @@ class ServiceServer:
         # that existed before this server are known too): who asked, for handlers that log it.
         self._callers: dict[bytes, str] = {}
         self._callers_lock = threading.Lock()
-        self._clients = node.session.liveliness().declare_subscriber(
+        self._clients = follow_tokens(
+            node.session,
             f"{PREFIX}/{node.domain}/*/*/*/{EntityKind.CLIENT.value}/*/*/*/"
             f"{mangle(self.service)}/*/*/*",
             self._on_client_token,
-            history=True,
         )
         try:
             self._zqueryable = node.session.declare_queryable(
