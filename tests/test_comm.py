@@ -533,6 +533,21 @@ def test_a_client_asks_through_itself_until_it_follows_tokens(router_endpoint: s
         client.close()
 
 
+def test_a_session_asking_itself_hears_each_of_its_own_tokens_once(router_endpoint: str) -> None:
+    # Its own tables and the router both answer with its tokens: Zenoh delivered each twice.
+    client = open_session(SessionSettings(mode="client", connect=(router_endpoint,)))
+    node = Node(client, "self_asker", domain=8)
+    publisher = node.publisher("/mine", "std_msgs/msg/String")
+    try:
+        wait_until(lambda: len(ask_tokens(client, "@ros2_lv/8/**", 5.0)) == 2, 30.0)
+        keys = ask_tokens(client, "@ros2_lv/8/**", 5.0)
+        assert len(keys) == len(set(keys)) == 2
+    finally:
+        publisher.close()
+        node.close()
+        client.close()
+
+
 def test_a_client_that_follows_publisher_tokens_gets_the_whole_graph_every_time(
     router_endpoint: str,
 ) -> None:
