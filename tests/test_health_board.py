@@ -26,6 +26,7 @@ from components.data_monitor.core import (
     alarm_message,
 )
 from components.data_monitor.plan import board_for, watched
+from components.executor.core import RecordingOutbox
 from components.messages import (
     ERROR,
     OK,
@@ -440,6 +441,18 @@ def test_the_core_serves_its_alarm_history_oldest_first(dragon) -> None:
     one = core.on_get_alarms(msg("msctl_msgs/srv/GetAlarms_Request", max_count=1), 1.0)
     assert len(one.alarms) == 1
     assert alarm_from_message(alarm_message(received[0])) == received[0]
+
+
+def test_a_bound_core_stamps_its_alarms_with_the_executors_wall_clock(dragon) -> None:
+    # As the data monitor's build makes it: a board with no wall clock of its own.
+    core = DataMonitorCore("gc1/data_monitor", board_for(dragon))
+    core.bind(RecordingOutbox(), wall_offset=1_700_000_000.0)
+    core.start(0.0)
+    core.on_health("limb1", health("limb1", ("motors/j1", 2, "hot", {})), 0.5)
+    core.tick(0.5)
+    response = core.on_get_alarms(msg("msctl_msgs/srv/GetAlarms_Request", max_count=0), 1.0)
+    stamps = [alarm_from_message(a).at for a in response.alarms]
+    assert stamps and all(s == pytest.approx(1_700_000_000.5) for s in stamps)
 
 
 def test_history_from_a_data_monitor_merges_without_duplicates(dragon) -> None:

@@ -38,7 +38,7 @@ from components.data_monitor.board import (
     Row,
 )
 from components.data_monitor.encoding import AggregateEncoder
-from components.executor.core import Core
+from components.executor.core import Core, Outbox
 from components.messages import (
     OK,
     Level,
@@ -202,6 +202,13 @@ class DataMonitorCore(Core):
         for spec in board.watched:
             handler = functools.partial(self.on_health, spec.name)
             setattr(self, health_handler(spec.name), handler)
+
+    def bind(self, outbox: Outbox, wall_offset: float = 0.0) -> None:
+        """Attach the outputs; the board stamps its alarms with the executor's wall clock
+        (built without one, it stamped them in monotonic seconds: a history merged into
+        `msctl health` showed 1970 times, sorted before every local alarm)."""
+        super().bind(outbox, wall_offset)
+        self.board.wall_offset = wall_offset
 
     def publish_encoded(self, publish_raw: Callable[[bytes], None]) -> None:
         """Publish ``/diagnostics_agg`` as CDR bytes through ``publish_raw`` (the bound
