@@ -31,6 +31,7 @@ from components.joints import JointCalibration, JointSpec
 from components.messages import JOINT_STATE, joint_samples, msg
 from components.motor_interface.core import MotorInterfaceCore
 from components.motors.base import (
+    LIMIT_TOLERANCE,
     MotorBackend,
     MotorCommand,
     MotorDiagnostic,
@@ -106,12 +107,21 @@ ACTIONS = st.lists(
 )
 
 
+def _slack(limit: float) -> float:
+    """What a motor may see past ``limit``: the documented float-noise slack of its checks
+    (LIMIT_TOLERANCE, relative), and this test's own rounding."""
+    return LIMIT_TOLERANCE * max(1.0, abs(limit)) + TOLERANCE if math.isfinite(limit) else 0.0
+
+
 def within(name: str, position: Any, velocity: Any, effort: Any) -> bool:
-    limits = LIMITS[name]
+    lim = LIMITS[name]
     return (
-        (position is None or limits.lower - TOLERANCE <= position <= limits.upper + TOLERANCE)
-        and (velocity is None or abs(velocity) <= limits.max_velocity + TOLERANCE)
-        and (effort is None or abs(effort) <= limits.max_effort + TOLERANCE)
+        (
+            position is None
+            or lim.lower - _slack(lim.lower) <= position <= lim.upper + _slack(lim.upper)
+        )
+        and (velocity is None or abs(velocity) <= lim.max_velocity + _slack(lim.max_velocity))
+        and (effort is None or abs(effort) <= lim.max_effort + _slack(lim.max_effort))
     )
 
 
