@@ -54,9 +54,9 @@ def follow_tokens(session: Any, key: str, callback: Callable[[Any], None]) -> An
     Returns:
         The Zenoh liveliness subscriber (the caller undeclares it).
     """
-    from components.comm.session import follows_tokens
+    from components.comm.session import ask_through_a_client
 
-    follows_tokens(session)
+    ask_through_a_client(session)
     return session.liveliness().declare_subscriber(key, callback, history=True)
 
 

@@ -322,7 +322,7 @@ class _QuestionRoute:
         session: The session.
         client: Settings of a client of the same router(s).
         through_client: Whether its questions go through such a client: a peer's always, a
-            client's once it follows tokens (:func:`follows_tokens`).
+            client's once it follows tokens (:func:`ask_through_a_client`).
     """
 
     __slots__ = ("client", "session", "through_client")
@@ -335,9 +335,10 @@ class _QuestionRoute:
 _QUESTION_ROUTES: dict[str, _QuestionRoute] = {}
 
 
-def follows_tokens(session: Any) -> None:
-    """Note that ``session`` is about to declare a liveliness subscriber: from now on its
-    graph questions go through a client of its router (see :func:`graph_questions`)."""
+def ask_through_a_client(session: Any) -> None:
+    """From now on, ``session``'s graph questions go through a client of its router (see
+    :func:`graph_questions`); :func:`~components.comm.liveliness.follow_tokens` calls it
+    before declaring a liveliness subscriber."""
     route = _QUESTION_ROUTES.get(str(session.zid()))
     if route is not None:
         route.through_client = True
