@@ -2,12 +2,14 @@
 
 Every registered message type: random messages encode to rosbags' exact bytes and decode to
 equal messages; mutated payloads decode to what rosbags decodes or raise where it raises. The
-string-sequence memo (JointState's names) never hands out a stale or shared list.
+string-sequence memo (JointState's names) never hands out a stale or shared list; the shape
+path (a payload laid out like the last one) reads what the full path would.
 """
 
 from __future__ import annotations
 
 import random
+import struct
 from typing import Any
 
 import numpy as np
@@ -78,6 +80,64 @@ def _same(a: Any, b: Any) -> bool:
     return type(a) is type(b) and (a == b or (a != a and b != b))
 
 
+def _revalue(reg: TypeRegistry, type_name: str, message: Any, rng: random.Random) -> Any:
+    """A message of the same shape (strings, string lists, sequence lengths) as ``message``,
+    with new numbers."""
+    values = []
+    for field, desc in reg.fields(type_name):
+        value, node = getattr(message, field), int(desc[0])
+        if node == 2:
+            value = _revalue(reg, desc[1], value, rng)
+        elif isinstance(value, np.ndarray):
+            inner = desc[1][0]
+            value = np.array([_random_value(reg, inner, rng) for _ in value], dtype=value.dtype)
+        elif node == 1 and desc[1][0] != "string":
+            value = _random_value(reg, desc, rng)
+        values.append(value)
+    return reg.msg_class(type_name)(*values)
+
+
+def test_messages_of_the_last_shape_encode_and_decode_as_rosbags_does(reg: TypeRegistry) -> None:
+    rng = random.Random(22)
+    for type_name in reg.message_names():
+        encode, decode = reg.serializer(type_name), reg.deserializer(type_name)
+        first = _random_message(reg, type_name, rng)
+        decode(encode(first))  # its shape remembered on both sides
+        for _ in range(3):
+            message = _revalue(reg, type_name, first, rng)
+            expected = bytes(reg._store.serialize_cdr(message, type_name))
+            assert encode(message) == expected, type_name
+            assert _same(decode(expected), _rosbags_decode(reg, expected, type_name)), type_name
+
+
+def test_the_encoder_leaves_the_shape_path_for_any_other_shape(reg: TypeRegistry) -> None:
+    encode = reg.serializer(JOINT_STATE)
+    message = _joint_state(["a", "b"])
+    encode(message)
+    others = {
+        "frame": {"header.frame_id": "base"},
+        "a name": {"name": ["a", "c"]},
+        "a tuple of names": {"name": ("a", "b")},
+        "a length": {"position": np.arange(3.0)},
+        "a dtype": {"position": np.arange(2, dtype=np.float32)},
+        "a list": {"position": [1.0, 2.5]},
+    }
+    for what, change in others.items():
+        other = _joint_state(["a", "b"])
+        for path, value in change.items():
+            owner = other.header if path.startswith("header.") else other
+            setattr(owner, path.rsplit(".", 1)[-1], value)
+        encode(message)
+        got = encode(other)
+        other.position = np.asarray(other.position, dtype=np.float64)  # as rosbags takes it
+        assert got == bytes(reg._store.serialize_cdr(other, JOINT_STATE)), what
+    encode(message)
+    flat = _joint_state(["a", "b"])
+    flat.position = np.zeros((1, 2))  # the same bytes, two dimensions
+    with pytest.raises(ValueError, match="dimensions"):
+        encode(flat)
+
+
 def _rosbags_decode(reg: TypeRegistry, data: bytes, type_name: str) -> Any:
     return reg._store.deserialize_cdr(data, type_name)
 
@@ -103,6 +163,7 @@ def test_mutated_payloads_decode_as_rosbags_does_or_raise_where_it_raises(
         decode = reg.deserializer(type_name)
         good = reg.serializer(type_name)(_random_message(reg, type_name, rng))
         for _ in range(12):
+            decode(good)  # the good payload's shape remembered: a mutation meets it
             data = bytearray(good)
             kind = rng.randrange(4)
             if kind == 0:
@@ -188,3 +249,32 @@ def test_bad_headers_and_shapes_are_refused(reg: TypeRegistry) -> None:
     message.position = np.zeros((1, 1))
     with pytest.raises(ValueError, match="dimensions"):
         encode(message)
+
+
+def test_the_shape_path_reads_new_values_and_leaves_on_any_other_byte(reg: TypeRegistry) -> None:
+    encode, decode = reg.serializer(JOINT_STATE), reg.deserializer(JOINT_STATE)
+    first = _joint_state(["a", "b"])
+    first.header.frame_id = "base"
+    decode(encode(first))
+    again = _joint_state(["a", "b"])  # the same layout, other values
+    again.header.frame_id = "base"
+    again.header.stamp.sec, again.position = 7, np.array([3.5, -1.0])
+    decoded = decode(encode(again))
+    assert decoded.header.stamp.sec == 7 and list(decoded.position) == [3.5, -1.0]
+    assert decoded.header.frame_id == "base" and decoded.name == ["a", "b"]
+    decoded.name.append("mine")  # the caller's list: never the memo's
+    assert decode(encode(again)).name == ["a", "b"]
+    # The same length, one shape byte other: a name, the frame, a count.
+    for names, frame in ((["a", "c"], "base"), (["b", "b"], "base"), (["a", "b"], "bass")):
+        other = _joint_state(names)
+        other.header.frame_id = frame
+        payload = encode(other)
+        assert len(payload) == len(encode(again))
+        decode(encode(again))
+        assert _same(decode(payload), _rosbags_decode(reg, payload, JOINT_STATE))
+    payload = encode(again)
+    decode(payload)
+    at = payload.index(struct.pack("<I4xd", 2, 3.5))  # position's count
+    forged = payload[:at] + b"\x03" + payload[at + 1 :]
+    with pytest.raises((ValueError, struct.error)):
+        decode(forged)

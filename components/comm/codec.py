@@ -13,7 +13,16 @@ one flat function per type (XCDR1 little-endian, the 4-byte encapsulation header
   ``tobytes``;
 * a string sequence (JointState's names) compared with the last one seen at that place, and
   its decoded list (or its encoded bytes) reused when equal: names rarely change from one
-  sample to the next.
+  sample to the next;
+* a *shape path* beside the full one: a topic's messages are laid out alike from one sample
+  to the next (the same frame, names and array lengths), so each codec remembers the last
+  layout it went through, the bytes between the values and where the values are. A payload
+  of the same length whose bytes between values are all equal is read at the remembered
+  places with no lengths parsed or checked (it is what the full path would read); a message
+  with the same strings, string lists and array shapes is written as the remembered bytes
+  around its packed values. Anything else takes the full path, which remembers anew. Where
+  the codec runs, between two waits for the network, this took a JointState's decoding from
+  ~11 to ~9 us and its encoding from ~6 to ~3 us.
 
 Messages are ``rosbags``' classes of the type store, so what a decoder returns is what
 ``rosbags`` returns. Every length is checked against the bytes there are: a malformed payload
@@ -24,6 +33,7 @@ count. Big-endian payloads, ``wstring`` and ``float128`` go to ``rosbags``' gene
 
 from __future__ import annotations
 
+import re
 import struct
 from collections.abc import Callable
 from typing import Any
@@ -175,7 +185,17 @@ class _Run:
 # ----------------------------------------------------------------------------- decoding
 class _Decoder(_Run):
     """Writes the body of one decoding function: ``data``, ``n`` (its length) and ``pos``
-    (the absolute position, 4 at the top: CDR aligns from the end of the header)."""
+    (the absolute position, 4 at the top: CDR aligns from the end of the header).
+
+    Beside it, the same walk writes the *shape path*: for a payload laid out like the last
+    one decoded, it reads only the values. A payload's shape is every byte but its values
+    (numbers in runs, numeric sequences' elements): counts, string bytes, padding, and its
+    length. The full path ends by remembering the last good payload's shape (its gaps
+    between values, as bytes, and where each value starts) with what it decoded from them
+    (strings, string lists); the shape path runs when the length and every gap are equal,
+    so it reads exactly what the full path would, checks included. Types with sequences
+    or arrays of messages or fixed arrays of strings have no shape path (``fast_ok``).
+    """
 
     def __init__(self, out: _Writer, fields: Definitions, classes: Callable[[str], type]):
         self.out, self.fields, self.classes = out, fields, classes
@@ -186,6 +206,23 @@ class _Decoder(_Run):
         self.targets: list[str] = []
         self.after: list[str] = []  # lines that read fixed arrays of the pending run
         self.functions: dict[str, str] = {}  # element type -> its decoding function
+        # The shape path: its lines, the full path's expressions it remembers (slot i + 1
+        # of the memo; slot 0 is the length), and where each run of values starts and ends.
+        self.fast: list[str] = []
+        self.fast_ok = True
+        self.memo: list[str] = []
+        self.spans: list[tuple[str, str]] = []
+        self.variable = False  # whether any part of the layout depends on the payload
+
+    def slot(self, expr: str) -> int:
+        """Remember ``expr`` (evaluated at the end of the full path); its memo index."""
+        self.memo.append(expr)
+        return len(self.memo)
+
+    def both(self, line: str) -> None:
+        """A line of both paths."""
+        self.emit(line)
+        self.fast.append(line)
 
     # position bookkeeping
     def align(self, alignment: int) -> None:
@@ -207,13 +244,26 @@ class _Decoder(_Run):
         self.off += size
         return target
 
-    def flush(self) -> None:
-        """Read the pending run and move ``pos`` past it."""
+    def flush(self, tail: int = 0) -> None:
+        """Read the pending run and move ``pos`` past it. ``tail``: the bytes of a count or
+        length that ends the run, part of the shape, not of the values."""
+        size = self.off - tail
+        if size > 0:
+            # Values: the shape path reads them where the last payload had them.
+            start = self.out.name("a")
+            self.emit(f"{start} = pos")
+            self.spans.append((start, f"{start} + {size}"))
+            self.fast.append(f"pos = S[{self.slot(start)}]")
         if self.targets:
             unpack = self.out.const("unpack", struct.Struct(self.fmt).unpack_from)
-            self.emit(f"{', '.join(self.targets)}, = {unpack}(data, pos)")
-        for line in self.after:
+            line = f"{', '.join(self.targets)}, = {unpack}(data, pos)"
             self.emit(line)
+            if size > 0:
+                self.fast.append(line)
+            else:  # only a count or a length: the last payload's
+                self.fast += [f"{t} = S[{self.slot(t)}]" for t in self.targets]
+        for line in self.after:
+            self.both(line)
         if self.off:
             self.emit(f"pos += {self.off}")
         self.fmt, self.targets, self.after, self.off = "<", [], [], 0
@@ -232,7 +282,7 @@ class _Decoder(_Run):
         if self.targets or self.after:
             self.after.append(line)
         else:
-            self.emit(line)
+            self.both(line)
         return target
 
     def field(self, desc: Any) -> str:
@@ -245,19 +295,22 @@ class _Decoder(_Run):
         inner, count = desc[1]
         if node == _SEQUENCE:
             length = self.scalar("uint32")
-            self.flush()
+            self.flush(tail=4)
             self.dynamic(4)
+            self.variable = True
             return self.sequence(inner, length)
         return self.array(inner, count)
 
     def string(self) -> str:
         length = self.scalar("uint32")
-        self.flush()
+        self.flush(tail=4)
+        self.variable = True
         self.emit(f"end = pos + {length}")
         self.emit(f"if not {length} or end > n or data[end - 1]:")
         self.emit(f"    raise ValueError(f'bad string of length {{{length}}} at byte {{pos}}')")
         target = self.out.name("s")
         self.emit(f"{target} = data[pos:end - 1].decode()")
+        self.fast.append(f"{target} = S[{self.slot(target)}]")
         self.emit("pos = end")
         self.dynamic(1)
         return target
@@ -274,12 +327,18 @@ class _Decoder(_Run):
                 self.emit(f"if {length}:")
                 self.emit("    pos = ((pos + 3) & -8) + 4")
             dtype = self.out.const("dt", numpy.dtype(_DTYPES[base]))
+            start = self.out.name("d")
+            self.emit(f"{start} = pos")
             self.emit(f"{target} = frombuffer(data, {dtype}, {length}, pos)")
             self.emit(f"pos += {length} * {size}" if size > 1 else f"pos += {length}")
+            self.spans.append((start, f"{start} + {length} * {size}"))
+            at = f"S[{self.slot(start)}]"
+            self.fast.append(f"{target} = frombuffer(data, {dtype}, {length}, {at})")
             self.dynamic(min(4, size))
             return target
         if inner[0] == _BASE:
             self.string_list(target, length)
+            self.fast.append(f"{target} = S[{self.slot(f'{target}.copy()')}].copy()")
         else:
             self.message_list(target, inner[1], length)
         self.dynamic(1)
@@ -306,6 +365,7 @@ class _Decoder(_Run):
         self.emit(f"    {memo}[0] = (start, {length}, data[start:pos], pos, {target}.copy())")
 
     def message_list(self, target: str, type_name: str, length: str) -> None:
+        self.fast_ok = False  # the shape of each element would be its own
         function = self.element_function(type_name)
         self.emit(f"{target} = []")
         self.emit(f"for _ in range({length}):")
@@ -337,7 +397,9 @@ class _Decoder(_Run):
             self.off += count * size
             return target
         self.flush()
+        self.variable = True
         if inner[0] == _BASE:
+            self.fast_ok = False
             self.emit(f"{target} = []")
             self.emit(f"for _ in range({count}):")
             self.emit("    pos = (pos + 3) & -4")
@@ -375,12 +437,33 @@ def decoder(
     body.indent = 1
     result = body.message(type_name)
     body.flush()
+    fast: list[str] = []
+    remember: list[str] = []
+    if body.fast_ok and body.variable:
+        # The gaps between runs of values, from the header to the end of the last field
+        # (the up to 3 bytes after it are never read: the same length, the same count).
+        ends = ["0", *(end for _, end in body.spans)]
+        starts = [*(start for start, _ in body.spans), "pos"]
+        gaps = [f"data[{a}:{b}], {a}" for a, b in zip(ends, starts, strict=True)]
+        first = len(body.memo) + 1
+        same = " and ".join(
+            f"data.startswith(S[{first + 2 * i}], S[{first + 2 * i + 1}])" for i in range(len(gaps))
+        )
+        memo = out.const("shape", [(-1,)])
+        fast = [
+            f"    S = {memo}[0]",
+            f"    if n == S[0] and {same}:",
+            *(f"        {line}" for line in _used(body.fast, result)),
+            f"        return {result}",
+        ]
+        remember = [f"    {memo}[0] = (n, {', '.join([*body.memo, *gaps])})"]
     main = [
         *out.defs,
         "def decode(data):",
         "    if data.__class__ is not bytes:",
         "        data = bytes(data)",
         "    n = len(data)",
+        *fast,
         "    if n < 4 or data[0] or data[1] != 1:",
         "        if n >= 4 and data[0] == 0 and data[1] == 0:",
         "            return fallback(data)",
@@ -389,9 +472,24 @@ def decoder(
         *out.lines,
         "    if pos + 3 < n:",
         f"        raise ValueError(f'{{n - pos}} trailing bytes after a {type_name}')",
+        *remember,
         f"    return {result}",
     ]
     return _compile(main, out.consts, {"fallback": fallback})["decode"]
+
+
+def _used(lines: list[str], result: str) -> list[str]:
+    """``lines`` without the assignments of names nothing after them reads (the counts the
+    shape path takes from the memo only for the sequences that need them)."""
+    kept: list[str] = []
+    needed = set(re.findall(r"\w+", result))
+    for line in reversed(lines):
+        target, _, value = line.partition(" = ")
+        if target.isidentifier() and target not in needed:
+            continue
+        needed.update(re.findall(r"\w+", value if target.isidentifier() else line))
+        kept.append(line)
+    return kept[::-1]
 
 
 def _compile(lines: list[str], consts: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
@@ -422,6 +520,37 @@ class _Encoder(_Run):
         self.fmt = "<"
         self.values: list[str] = []
         self.functions: dict[str, str] = {}
+        # The shape path: the lines that read the message's fields, what the message must
+        # match (strings, string lists, numeric sequences' shapes; memo slot i + 1 holds what
+        # the full path saw, slot 0 whether it ran), and the pieces of values it writes
+        # between the remembered bytes. A run of only counts and lengths is shape.
+        self.reads: list[str] = []
+        self.checks: list[str] = []
+        self.memo: list[str] = []
+        self.pieces: list[str] = []
+        self.marks: list[str] = []  # the full path's index of each piece in ``parts``
+        self.shapes: list[bool] = []  # which of the pending run's values are shape
+        self.run_values = False  # whether the pending run holds values, not only shape
+        self.fast_ok = True
+        self.variable = False
+
+    def slot(self, expr: str) -> int:
+        """Remember ``expr`` (evaluated at the end of the full path); its memo index."""
+        self.memo.append(expr)
+        return len(self.memo)
+
+    def both(self, line: str) -> None:
+        """A line that reads the message, in both paths."""
+        self.emit(line)
+        self.reads.append(line)
+
+    def piece(self, slow: str, fast: str) -> None:
+        """Append a piece of values: ``slow`` in the full path, ``fast`` in the shape path."""
+        mark = self.out.name("i")
+        self.emit(f"{mark} = len(parts)")
+        self.emit(f"parts.append({slow})")
+        self.marks.append(mark)
+        self.pieces.append(fast)
 
     def align(self, alignment: int) -> None:
         if self.pad_in_run(alignment):
@@ -440,8 +569,15 @@ class _Encoder(_Run):
         """Pack the pending scalars (their bytes are already counted in ``off``)."""
         if self.fmt != "<":
             pack = self.out.const("pack", struct.Struct(self.fmt).pack)
-            self.emit(f"parts.append({pack}({', '.join(self.values)}))")
-        self.fmt, self.values = "<", []
+            if self.run_values:
+                fast = [
+                    f"E[{self.slot(value)}]" if shape else value
+                    for value, shape in zip(self.values, self.shapes, strict=True)
+                ]
+                self.piece(f"{pack}({', '.join(self.values)})", f"{pack}({', '.join(fast)})")
+            else:  # counts and lengths only: part of the shape
+                self.emit(f"parts.append({pack}({', '.join(self.values)}))")
+        self.fmt, self.values, self.shapes, self.run_values = "<", [], [], False
 
     def settle(self) -> None:
         """Add the static offset to ``pos``."""
@@ -449,11 +585,15 @@ class _Encoder(_Run):
             self.emit(f"pos += {self.off}")
         self.off = 0
 
-    def scalar(self, base: str, value: str) -> None:
+    def scalar(self, base: str, value: str, shape: bool = False) -> None:
+        """One fixed-size value in the pending run; ``shape``: a count or a length, what the
+        shape path takes from the memo."""
         size = _size(base)
         self.align(size)
         self.fmt += _CODES[base]
         self.values.append(value)
+        self.shapes.append(shape)
+        self.run_values = self.run_values or not shape
         self.off += size
 
     def message(self, type_name: str, value: str) -> None:
@@ -464,7 +604,7 @@ class _Encoder(_Run):
         node = desc[0]
         if node == _NAME:
             local = self.out.name("m")
-            self.emit(f"{local} = {expr}")
+            self.both(f"{local} = {expr}")
             self.message(desc[1], local)
             return
         if node == _BASE:
@@ -479,9 +619,10 @@ class _Encoder(_Run):
         if inner[0] == _BASE and _base(inner) != "string":
             self.numbers(inner, count, node == _SEQUENCE, expr, local)
             return
-        self.emit(f"{local} = {expr}")
+        self.both(f"{local} = {expr}")
+        self.variable = True
         if node == _SEQUENCE:
-            self.scalar("uint32", f"len({local})")
+            self.scalar("uint32", f"len({local})", shape=True)
         else:
             self.emit(f"if len({local}) != {count}:")
             self.emit(f"    raise ValueError(f'{{len({local})}} elements, expected {count}')")
@@ -489,19 +630,27 @@ class _Encoder(_Run):
         self.settle()
         if inner[0] == _BASE and node == _SEQUENCE:
             self.string_list(local)
+            self.checks.append(
+                f"{local}.__class__ is list and {local} == E[{self.slot(f'list({local})')}]"
+            )
         elif inner[0] == _BASE:
+            self.fast_ok = False
             self.emit(f"for item in {local}:")
             self.string_item("item")
         else:
+            self.fast_ok = False
             function = self.element_function(inner[1])
             self.emit(f"for item in {local}:")
             self.emit(f"    pos = {function}(item, parts, pos)")
         self.known = 1
 
     def string(self, expr: str) -> None:
-        local = self.out.name("b")
-        self.emit(f"{local} = {expr}.encode()")
-        self.scalar("uint32", f"len({local}) + 1")
+        text, local = self.out.name("t"), self.out.name("b")
+        self.both(f"{text} = {expr}")
+        self.checks.append(f"{text} == E[{self.slot(text)}]")
+        self.variable = True
+        self.emit(f"{local} = {text}.encode()")
+        self.scalar("uint32", f"len({local}) + 1", shape=True)
         self.flush_run()
         self.emit(f"parts.append({local})")
         self.emit("parts.append(PADS[1])")
@@ -537,9 +686,16 @@ class _Encoder(_Run):
         dtype = self.out.const("dt", numpy.dtype(_DTYPES[base]))
         self.emit(f"{local} = asarray({expr}, {dtype})")
         if sequence:
+            # The shape path takes an array of the type's own dtype and the last length.
+            self.reads.append(f"{local} = {expr}")
+            self.checks.append(
+                f"{local}.__class__ is ndarray and {local}.dtype is {dtype} and "
+                f"{local}.shape == E[{self.slot(f'{local}.shape')}]"
+            )
+            self.variable = True
             self.emit(f"if {local}.ndim != 1:")
             self.emit(f"    raise ValueError(f'a sequence of {{{local}.ndim}} dimensions')")
-            self.scalar("uint32", f"len({local})")
+            self.scalar("uint32", f"len({local})", shape=True)
             self.flush_run()
             self.settle()
             if size > 4:
@@ -547,15 +703,17 @@ class _Encoder(_Run):
                 self.emit("    pad = (4 - pos) & 7")
                 self.emit("    parts.append(PADS[pad])")
                 self.emit("    pos += pad")
-            self.emit(f"parts.append({local}.tobytes())")
+            self.piece(f"{local}.tobytes()", f"{local}.tobytes()")
             self.emit(f"pos += {local}.nbytes")
             self.known = min(4, size)
             return
+        self.reads.append(f"{local} = asarray({expr}, {dtype})")
+        self.checks.append(f"{local}.shape == ({count},)")
         self.emit(f"if {local}.shape != ({count},):")
         self.emit(f"    raise ValueError(f'shape {{{local}.shape}}, expected ({count},)')")
         self.align(size)
         self.flush_run()
-        self.emit(f"parts.append({local}.tobytes())")
+        self.piece(f"{local}.tobytes()", f"{local}.tobytes()")
         self.off += count * size
 
     ROLE = "encode"
@@ -581,12 +739,32 @@ def encoder(type_name: str, fields: Definitions) -> Callable[[Any], bytes]:
     body = _Encoder(out, fields)
     body.message(type_name, "message")
     body.flush_run()
+    fast: list[str] = []
+    end = ["    return b''.join(parts)"]
+    if body.fast_ok and body.variable:
+        # The bytes between the pieces of values, as the full path wrote them.
+        bounds = ["", *(f"{mark} + 1" for mark in body.marks)]
+        stops = [*body.marks, ""]
+        gaps = [f"b''.join(parts[{a}:{b}])" for a, b in zip(bounds, stops, strict=True)]
+        first = len(body.memo) + 1
+        pieces = [f"E[{first}]"]
+        for i, piece in enumerate(body.pieces):
+            pieces += [piece, f"E[{first + i + 1}]"]
+        memo = out.const("shape", [(False,)])
+        fast = [
+            f"    E = {memo}[0]",
+            *(f"    {line}" for line in body.reads),
+            f"    if E[0] and {' and '.join(body.checks)}:",
+            f"        return b''.join(({', '.join(pieces)},))",
+        ]
+        end = [f"    {memo}[0] = (True, {', '.join([*body.memo, *gaps])})", *end]
     main = [
         *out.defs,
         "def encode(message):",
+        *fast,
         "    parts = [HEADER]",
         "    pos = 4",
         *out.lines,
-        "    return b''.join(parts)",
+        *end,
     ]
-    return _compile(main, out.consts, {})["encode"]
+    return _compile(main, out.consts, {"ndarray": numpy.ndarray})["encode"]
