@@ -278,3 +278,23 @@ def test_the_shape_path_reads_new_values_and_leaves_on_any_other_byte(reg: TypeR
     forged = payload[:at] + b"\x03" + payload[at + 1 :]
     with pytest.raises((ValueError, struct.error)):
         decode(forged)
+
+
+def test_each_stream_remembers_its_own_shape(reg: TypeRegistry) -> None:
+    encoders = [reg.serializer(JOINT_STATE, stream=True) for _ in range(2)]
+    decoders = [reg.deserializer(JOINT_STATE, stream=True) for _ in range(2)]
+    messages = [_joint_state(["a", "b"]), _joint_state(["limb2_a", "limb2_b", "limb2_c"])]
+    for _ in range(2):  # interleaved, as two limbs' states arrive
+        for encode, decode, message in zip(encoders, decoders, messages, strict=True):
+            payload = encode(message)
+            assert payload == bytes(reg._store.serialize_cdr(message, JOINT_STATE))
+            assert _same(decode(payload), _rosbags_decode(reg, payload, JOINT_STATE))
+    # Each remembers the layout of its own stream, not the other's, nor the shared codec's.
+    for encode, decode, message, other in zip(
+        encoders, decoders, messages, messages[::-1], strict=True
+    ):
+        (memo,) = decode.__defaults__
+        assert memo[0][0] == len(encode(message)) != len(reg.serializer(JOINT_STATE)(other))
+        (memo,) = encode.__defaults__
+        assert message.name in memo[0] and other.name not in memo[0]
+    assert reg.deserializer(JOINT_STATE) not in decoders

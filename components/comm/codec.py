@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import re
 import struct
+import types
 from collections.abc import Callable
 from typing import Any
 
@@ -449,7 +450,7 @@ def decoder(
         same = " and ".join(
             f"data.startswith(S[{first + 2 * i}], S[{first + 2 * i + 1}])" for i in range(len(gaps))
         )
-        memo = out.const("shape", [(-1,)])
+        memo = "memo"
         fast = [
             f"    S = {memo}[0]",
             f"    if n == S[0] and {same}:",
@@ -459,7 +460,7 @@ def decoder(
         remember = [f"    {memo}[0] = (n, {', '.join([*body.memo, *gaps])})"]
     main = [
         *out.defs,
-        "def decode(data):",
+        f"def decode(data{', memo=MEMO' if fast else ''}):",
         "    if data.__class__ is not bytes:",
         "        data = bytes(data)",
         "    n = len(data)",
@@ -475,7 +476,21 @@ def decoder(
         *remember,
         f"    return {result}",
     ]
-    return _compile(main, out.consts, {"fallback": fallback})["decode"]
+    return _compile(main, out.consts, {"fallback": fallback, "MEMO": [(None,)]})["decode"]
+
+
+def own(function: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """A copy of a generated codec with a memory of the last shape of its own, for one
+    stream (a publisher, a subscription): the shared codec would keep forgetting between
+    two streams of one type laid out differently (two limbs' JointStates). Anything else
+    is returned as it is."""
+    if not getattr(function, "__defaults__", None):
+        return function
+    copy = types.FunctionType(
+        function.__code__, function.__globals__, function.__name__, ([(None,)],)
+    )
+    copy.__qualname__ = function.__qualname__
+    return copy
 
 
 def _used(lines: list[str], result: str) -> list[str]:
@@ -750,7 +765,7 @@ def encoder(type_name: str, fields: Definitions) -> Callable[[Any], bytes]:
         pieces = [f"E[{first}]"]
         for i, piece in enumerate(body.pieces):
             pieces += [piece, f"E[{first + i + 1}]"]
-        memo = out.const("shape", [(False,)])
+        memo = "memo"
         fast = [
             f"    E = {memo}[0]",
             *(f"    {line}" for line in body.reads),
@@ -760,11 +775,11 @@ def encoder(type_name: str, fields: Definitions) -> Callable[[Any], bytes]:
         end = [f"    {memo}[0] = (True, {', '.join([*body.memo, *gaps])})", *end]
     main = [
         *out.defs,
-        "def encode(message):",
+        f"def encode(message{', memo=MEMO' if fast else ''}):",
         *fast,
         "    parts = [HEADER]",
         "    pos = 4",
         *out.lines,
         *end,
     ]
-    return _compile(main, out.consts, {"ndarray": numpy.ndarray})["encode"]
+    return _compile(main, out.consts, {"ndarray": numpy.ndarray, "MEMO": [(None,)]})["encode"]

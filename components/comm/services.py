@@ -179,8 +179,8 @@ class ServiceServer:
         self._deserialize: Callable[[bytes], Any] = bytes
         self._serialize: Callable[[Any], bytes] = bytes
         if not raw:
-            self._deserialize = reg.deserializer(self.parts.request)
-            self._serialize = reg.serializer(self.parts.response)
+            self._deserialize = reg.deserializer(self.parts.request, stream=True)
+            self._serialize = reg.serializer(self.parts.response, stream=True)
         self._handler = handler
         self._deferred = deferred
         self._reply_options = _urgency(urgent)
@@ -286,8 +286,8 @@ class ServiceClient:
     def __init__(self, node: Node, service: str, srv_type: str, announce: bool = True) -> None:
         _identify(self, node, EntityKind.CLIENT, service, srv_type)
         reg = registry()
-        self._serialize = reg.serializer(self.parts.request)
-        self._deserialize = reg.deserializer(self.parts.response)
+        self._serialize = reg.serializer(self.parts.request, stream=True)
+        self._deserialize = reg.deserializer(self.parts.response, stream=True)
         self._session = node.session
         self._seq = itertools.count(1)
         self._token: Any = None

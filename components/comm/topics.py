@@ -73,7 +73,7 @@ class Publisher:
         self.topic = qualify(topic, node.namespace, node.name)
         self.type_name = normalize_type_name(msg_type)
         reg = registry()
-        self._serialize = reg.serializer(self.type_name)
+        self._serialize = reg.serializer(self.type_name, stream=True)
         self.key = data_key(node.domain, self.topic, self.type_name)
         self.entity = node.entity(
             EntityKind.PUBLISHER,
@@ -198,7 +198,7 @@ class Subscription:
         self.topic = qualify(topic, node.namespace, node.name)
         self.type_name = normalize_type_name(msg_type)
         reg = registry()
-        self._deserialize = reg.deserializer(self.type_name)
+        self._deserialize = reg.deserializer(self.type_name, stream=True)
         self._raw = raw
         self._callback = callback
         self.key = data_key(node.domain, self.topic, self.type_name)

@@ -333,7 +333,7 @@ class RclpyPublisher:
         self.qos = qos or QoS()
         self.topic = qualify(topic, node.namespace, node.name)
         self.type_name = normalize_type_name(msg_type)
-        self._serialize = registry().serializer(self.type_name)
+        self._serialize = registry().serializer(self.type_name, stream=True)
         self._node = node
         self._pub = node.ros.create_publisher(
             message_class(self.type_name), self.topic, qos_profile(self.qos)
@@ -395,7 +395,7 @@ class RclpySubscription:
         self.qos = qos or QoS()
         self.topic = qualify(topic, node.namespace, node.name)
         self.type_name = normalize_type_name(msg_type)
-        self._deserialize = registry().deserializer(self.type_name)
+        self._deserialize = registry().deserializer(self.type_name, stream=True)
         self._node = node
         self._raw = raw
         self._callback = callback
@@ -565,8 +565,8 @@ class RclpyServer:
         self.srv_type = normalize_type_name(srv_type)
         reg = registry()
         self.parts = reg.service(self.srv_type)
-        self._decode = reg.deserializer(self.parts.request)
-        self._encode = reg.serializer(self.parts.response)
+        self._decode = reg.deserializer(self.parts.request, stream=True)
+        self._encode = reg.serializer(self.parts.response, stream=True)
         self._handler = handler
         self._deferred = deferred
         self._node = node
@@ -643,8 +643,8 @@ class RclpyClient:
         self.srv_type = normalize_type_name(srv_type)
         reg = registry()
         self.parts = reg.service(self.srv_type)
-        self._encode = reg.serializer(self.parts.request)
-        self._decode = reg.deserializer(self.parts.response)
+        self._encode = reg.serializer(self.parts.request, stream=True)
+        self._decode = reg.deserializer(self.parts.response, stream=True)
         self._class = service_class(self.srv_type)
         self._node = node
         self._cli = node.ros.create_client(self._class, self.service)
