@@ -33,7 +33,6 @@ count. Big-endian payloads, ``wstring`` and ``float128`` go to ``rosbags``' gene
 
 from __future__ import annotations
 
-import re
 import struct
 import types
 from collections.abc import Callable
@@ -214,6 +213,8 @@ class _Decoder(_Run):
         self.memo: list[str] = []
         self.spans: list[tuple[str, str]] = []
         self.variable = False  # whether any part of the layout depends on the payload
+        self.counts: dict[str, str] = {}  # a count's local -> its memo slot, when not read
+        self.trailing = False  # whether shape (a count, a string) follows the last values
 
     def slot(self, expr: str) -> int:
         """Remember ``expr`` (evaluated at the end of the full path); its memo index."""
@@ -261,12 +262,14 @@ class _Decoder(_Run):
             self.emit(line)
             if size > 0:
                 self.fast.append(line)
-            else:  # only a count or a length: the last payload's
-                self.fast += [f"{t} = S[{self.slot(t)}]" for t in self.targets]
+            else:  # only a count or a length: the last payload's, for what reads it
+                self.counts.update((t, f"S[{self.slot(t)}]") for t in self.targets)
         for line in self.after:
             self.both(line)
         if self.off:
             self.emit(f"pos += {self.off}")
+        if tail or size > 0:
+            self.trailing = tail > 0
         self.fmt, self.targets, self.after, self.off = "<", [], [], 0
 
     def dynamic(self, known: int) -> None:
@@ -333,8 +336,9 @@ class _Decoder(_Run):
             self.emit(f"{target} = frombuffer(data, {dtype}, {length}, pos)")
             self.emit(f"pos += {length} * {size}" if size > 1 else f"pos += {length}")
             self.spans.append((start, f"{start} + {length} * {size}"))
-            at = f"S[{self.slot(start)}]"
-            self.fast.append(f"{target} = frombuffer(data, {dtype}, {length}, {at})")
+            count, at = self.counts.get(length, length), f"S[{self.slot(start)}]"
+            self.fast.append(f"{target} = frombuffer(data, {dtype}, {count}, {at})")
+            self.trailing = False
             self.dynamic(min(4, size))
             return target
         if inner[0] == _BASE:
@@ -442,9 +446,12 @@ def decoder(
     remember: list[str] = []
     if body.fast_ok and body.variable:
         # The gaps between runs of values, from the header to the end of the last field
-        # (the up to 3 bytes after it are never read: the same length, the same count).
+        # (the up to 3 bytes after it are never read: the same length, the same count);
+        # none after values that end the message.
         ends = ["0", *(end for _, end in body.spans)]
         starts = [*(start for start, _ in body.spans), "pos"]
+        if not body.trailing:
+            ends, starts = ends[:-1], starts[:-1]
         gaps = [f"data[{a}:{b}], {a}" for a, b in zip(ends, starts, strict=True)]
         first = len(body.memo) + 1
         same = " and ".join(
@@ -454,7 +461,7 @@ def decoder(
         fast = [
             f"    S = {memo}[0]",
             f"    if n == S[0] and {same}:",
-            *(f"        {line}" for line in _used(body.fast, result)),
+            *(f"        {line}" for line in body.fast),
             f"        return {result}",
         ]
         remember = [f"    {memo}[0] = (n, {', '.join([*body.memo, *gaps])})"]
@@ -491,20 +498,6 @@ def own(function: Callable[[Any], Any]) -> Callable[[Any], Any]:
     )
     copy.__qualname__ = function.__qualname__
     return copy
-
-
-def _used(lines: list[str], result: str) -> list[str]:
-    """``lines`` without the assignments of names nothing after them reads (the counts the
-    shape path takes from the memo only for the sequences that need them)."""
-    kept: list[str] = []
-    needed = set(re.findall(r"\w+", result))
-    for line in reversed(lines):
-        target, _, value = line.partition(" = ")
-        if target.isidentifier() and target not in needed:
-            continue
-        needed.update(re.findall(r"\w+", value if target.isidentifier() else line))
-        kept.append(line)
-    return kept[::-1]
 
 
 def _compile(lines: list[str], consts: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
