@@ -298,3 +298,16 @@ def test_each_stream_remembers_its_own_shape(reg: TypeRegistry) -> None:
         (memo,) = encode.__defaults__
         assert message.name in memo[0] and other.name not in memo[0]
     assert reg.deserializer(JOINT_STATE) not in decoders
+
+
+def test_a_large_payload_is_not_remembered(reg: TypeRegistry) -> None:
+    from components.comm.codec import REMEMBER_AT_MOST
+
+    encode = reg.serializer("std_msgs/msg/String", stream=True)
+    decode = reg.deserializer("std_msgs/msg/String", stream=True)
+    for size in (REMEMBER_AT_MOST, 10):  # a long string is all shape: never kept
+        message = msg("std_msgs/msg/String", data="x" * size)
+        assert decode(encode(message)).data == message.data
+        for codec in (encode, decode):
+            (memo,) = codec.__defaults__
+            assert (memo[0][0] in (None, False)) == (size == REMEMBER_AT_MOST)

@@ -75,6 +75,9 @@ _DTYPES = {
 }
 #: Most elements a sequence may declare (``rosbags``' own bound, for the same answers).
 MAX_SEQUENCE = 1 << 30
+#: The largest payload whose shape a codec remembers: the bytes between values are kept and
+#: copied once more (a long string is all shape), and a large payload's values dominate.
+REMEMBER_AT_MOST = 1 << 16
 #: Zero bytes of each padding length.
 _PADS = tuple(bytes(n) for n in range(8))
 _HEADER = b"\x00\x01\x00\x00"
@@ -464,7 +467,10 @@ def decoder(
             *(f"        {line}" for line in body.fast),
             f"        return {result}",
         ]
-        remember = [f"    {memo}[0] = (n, {', '.join([*body.memo, *gaps])})"]
+        remember = [
+            f"    if n <= {REMEMBER_AT_MOST}:",
+            f"        {memo}[0] = (n, {', '.join([*body.memo, *gaps])})",
+        ]
     main = [
         *out.defs,
         f"def decode(data{', memo=MEMO' if fast else ''}):",
@@ -765,7 +771,12 @@ def encoder(type_name: str, fields: Definitions) -> Callable[[Any], bytes]:
             f"    if E[0] and {' and '.join(body.checks)}:",
             f"        return b''.join(({', '.join(pieces)},))",
         ]
-        end = [f"    {memo}[0] = (True, {', '.join([*body.memo, *gaps])})", *end]
+        end = [
+            "    data = b''.join(parts)",
+            f"    if len(data) <= {REMEMBER_AT_MOST}:",
+            f"        {memo}[0] = (True, {', '.join([*body.memo, *gaps])})",
+            "    return data",
+        ]
     main = [
         *out.defs,
         f"def encode(message{', memo=MEMO' if fast else ''}):",
