@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import getpass
 import os
+import signal
 import socket
 import sys
 import tempfile
@@ -60,6 +61,11 @@ def pytest_configure(config: pytest.Config) -> None:
     modules that import ``pyzeros``), and creates ``./.cydr_cache`` otherwise. Hypothesis
     reads its variable the first time it needs its directory (a test's first example).
     """
+    # A run started in the background of a script (``cmd &`` with no job control) inherits
+    # SIGINT ignored, and so would every process the tests start: the Ctrl-C tests' SIGINT
+    # would be ignored by the very programs they check. The interpreter's default, back.
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     user = os.getuid() if hasattr(os, "getuid") else getpass.getuser()
     if not os.environ.get(HYPOTHESIS_ENV):
         os.environ[HYPOTHESIS_ENV] = str(
