@@ -497,8 +497,9 @@ def own(function: Callable[[Any], Any]) -> Callable[[Any], Any]:
     stream (a publisher, a subscription): the shared codec would keep forgetting between
     two streams of one type laid out differently (two limbs' JointStates). Anything else
     is returned as it is."""
-    if not getattr(function, "__defaults__", None):
-        return function
+    code = getattr(function, "__code__", None)
+    if code is None or code.co_varnames[code.co_argcount - 1 : code.co_argcount] != ("memo",):
+        return function  # no shape path: nothing of its own to remember
     copy = types.FunctionType(
         function.__code__, function.__globals__, function.__name__, ([(None,)],)
     )
