@@ -139,8 +139,33 @@ class _Run:
     off: int
     fmt: str
 
+    def __init__(self, out: _Writer) -> None:
+        self.out = out
+        self.indent = 1
+        self.known = 8  # what (pos - 4) is known to be a multiple of
+        self.off = 0  # bytes since pos, not yet added to it
+        self.fmt = "<"  # the pending run's struct format (from pos)
+        self.functions: dict[str, str] = {}  # element type -> its function
+        # The shape path (see the module docstring): its lines, the full path's expressions
+        # it remembers (memo slot i + 1; slot 0 is the decoder's length, the encoder's
+        # "remembered"), whether the type has one, and whether its layout varies at all.
+        self.fast: list[str] = []
+        self.memo: list[str] = []
+        self.fast_ok = True
+        self.variable = False
+
     def emit(self, line: str) -> None:
         self.out.emit(self.indent, line)
+
+    def slot(self, expr: str) -> int:
+        """Remember ``expr`` (evaluated at the end of the full path); its memo index."""
+        self.memo.append(expr)
+        return len(self.memo)
+
+    def both(self, line: str) -> None:
+        """A line of both paths."""
+        self.emit(line)
+        self.fast.append(line)
 
     def pad_in_run(self, alignment: int) -> bool:
         """Fold the padding to ``alignment`` into the run if its position is known there;
@@ -201,33 +226,14 @@ class _Decoder(_Run):
     """
 
     def __init__(self, out: _Writer, fields: Definitions, classes: Callable[[str], type]):
-        self.out, self.fields, self.classes = out, fields, classes
-        self.indent = 1
-        self.known = 8  # what (pos - 4) is known to be a multiple of
-        self.off = 0  # bytes since pos, not yet added to it
-        self.fmt = "<"  # the pending run's struct format (from pos)
+        super().__init__(out)
+        self.fields, self.classes = fields, classes
         self.targets: list[str] = []
         self.after: list[str] = []  # lines that read fixed arrays of the pending run
-        self.functions: dict[str, str] = {}  # element type -> its decoding function
-        # The shape path: its lines, the full path's expressions it remembers (slot i + 1
-        # of the memo; slot 0 is the length), and where each run of values starts and ends.
-        self.fast: list[str] = []
-        self.fast_ok = True
-        self.memo: list[str] = []
+        # The shape path's runs of values (start, end), and the counts it takes from its memo.
         self.spans: list[tuple[str, str]] = []
-        self.variable = False  # whether any part of the layout depends on the payload
         self.counts: dict[str, str] = {}  # a count's local -> its memo slot, when not read
         self.trailing = False  # whether shape (a count, a string) follows the last values
-
-    def slot(self, expr: str) -> int:
-        """Remember ``expr`` (evaluated at the end of the full path); its memo index."""
-        self.memo.append(expr)
-        return len(self.memo)
-
-    def both(self, line: str) -> None:
-        """A line of both paths."""
-        self.emit(line)
-        self.fast.append(line)
 
     # position bookkeeping
     def align(self, alignment: int) -> None:
@@ -442,7 +448,6 @@ def decoder(
     """
     out = _Writer()
     body = _Decoder(out, fields, classes)
-    body.indent = 1
     result = body.message(type_name)
     body.flush()
     fast: list[str] = []
@@ -528,36 +533,17 @@ class _Encoder(_Run):
     ``pos`` (the absolute position of the end of ``parts``, 4 after the header)."""
 
     def __init__(self, out: _Writer, fields: Definitions) -> None:
-        self.out, self.fields = out, fields
-        self.indent = 1
-        self.known = 8
-        self.off = 0
-        self.fmt = "<"
+        super().__init__(out)
+        self.fields = fields
         self.values: list[str] = []
-        self.functions: dict[str, str] = {}
-        # The shape path: the lines that read the message's fields, what the message must
-        # match (strings, string lists, numeric sequences' shapes; memo slot i + 1 holds what
-        # the full path saw, slot 0 whether it ran), and the pieces of values it writes
-        # between the remembered bytes. A run of only counts and lengths is shape.
-        self.reads: list[str] = []
+        # The shape path's lines read the message's fields; then what the message must match
+        # (strings, string lists, numeric sequences' shapes) and the pieces of values it
+        # writes between the remembered bytes. A run of only counts and lengths is shape.
         self.checks: list[str] = []
-        self.memo: list[str] = []
         self.pieces: list[str] = []
         self.marks: list[str] = []  # the full path's index of each piece in ``parts``
         self.shapes: list[bool] = []  # which of the pending run's values are shape
         self.run_values = False  # whether the pending run holds values, not only shape
-        self.fast_ok = True
-        self.variable = False
-
-    def slot(self, expr: str) -> int:
-        """Remember ``expr`` (evaluated at the end of the full path); its memo index."""
-        self.memo.append(expr)
-        return len(self.memo)
-
-    def both(self, line: str) -> None:
-        """A line that reads the message, in both paths."""
-        self.emit(line)
-        self.reads.append(line)
 
     def piece(self, slow: str, fast: str) -> None:
         """Append a piece of values: ``slow`` in the full path, ``fast`` in the shape path."""
@@ -702,7 +688,7 @@ class _Encoder(_Run):
         self.emit(f"{local} = asarray({expr}, {dtype})")
         if sequence:
             # The shape path takes an array of the type's own dtype and the last length.
-            self.reads.append(f"{local} = {expr}")
+            self.fast.append(f"{local} = {expr}")
             self.checks.append(
                 f"{local}.__class__ is ndarray and {local}.dtype is {dtype} and "
                 f"{local}.shape == E[{self.slot(f'{local}.shape')}]"
@@ -722,7 +708,7 @@ class _Encoder(_Run):
             self.emit(f"pos += {local}.nbytes")
             self.known = min(4, size)
             return
-        self.reads.append(f"{local} = asarray({expr}, {dtype})")
+        self.fast.append(f"{local} = asarray({expr}, {dtype})")
         self.checks.append(f"{local}.shape == ({count},)")
         self.emit(f"if {local}.shape != ({count},):")
         self.emit(f"    raise ValueError(f'shape {{{local}.shape}}, expected ({count},)')")
@@ -768,7 +754,7 @@ def encoder(type_name: str, fields: Definitions) -> Callable[[Any], bytes]:
         memo = "memo"
         fast = [
             f"    E = {memo}[0]",
-            *(f"    {line}" for line in body.reads),
+            *(f"    {line}" for line in body.fast),
             f"    if E[0] and {' and '.join(body.checks)}:",
             f"        return b''.join(({', '.join(pieces)},))",
         ]
