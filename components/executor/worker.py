@@ -32,6 +32,7 @@ from components.assembly import AssemblyError, load_assembly
 from components.build import BuildError, build_component, simulator_plan
 from components.comm.session import SessionConfigError, SessionSettings
 from components.executor.heartbeat import Heartbeat
+from components.motors.emulation import EMULATE_ENV
 
 #: Seconds between GIL hand-overs in a component process (see :func:`main`).
 SWITCH_INTERVAL = 0.0005
@@ -67,7 +68,12 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     # Assembly-wide stand-ins (the simulator) are in no lock file: the launcher names them.
     stand_ins = {k.component_name: k.name for k in kinds.simulators()}
-    options = {"sim": any(name in stand_ins for name in args.component), "speed": args.speed}
+    options = {
+        "sim": any(name in stand_ins for name in args.component),
+        "speed": args.speed,
+        # A rehearsal's robot computer: real backends against emulated hardware.
+        "emulate": os.environ.get(EMULATE_ENV) == "1",
+    }
     _yield_cpu(args.component, stand_ins, assembly)
 
     def build(name: str) -> Any:

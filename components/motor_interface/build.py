@@ -21,7 +21,10 @@ def build(
     """A MotorInterfaceCore on the module's bus (CANopen, Dynamixel...).
 
     ``options`` may override the bus for this run: ``channel`` (e.g. an emulator's) and
-    ``bus_options`` (keys of the backend's options type, over the module data's).
+    ``bus_options`` (keys of the backend's options type, over the module data's). With
+    ``emulate`` set (``MSCTL_EMULATE_HARDWARE=1``, as ``msctl rehearse`` runs a robot
+    computer), the bus's emulated hardware starts first in this process and the real backend
+    opens its channel: the motor loop is the robot's own, only the drives are emulated.
 
     Raises:
         BuildError: If the bus kind is unknown, an option or the channel is invalid for it,
@@ -33,8 +36,13 @@ def build(
     bus = module.bus
     overrides: dict[str, Any] = dict(options.get("bus_options", {}))
     channel = options.get("channel", bus.channel)
+    emulated = None
     try:
         info = backend_info(bus.kind)
+        if options.get("emulate"):
+            emulated = info.load_emulator()(channel, module.motor_specs())
+            channel = emulated.channel
+            overrides = {**emulated.bus_options, **overrides}
         # bus.bitrate / bus.baudrate go through the same typed options as the rest, unless
         # this run overrides them.
         typed = parse_options(
@@ -46,12 +54,16 @@ def build(
         info.check_channel(channel)
         backend = info.load_class()(channel, module.motor_specs(), typed)
     except MotorError as exc:
+        if emulated is not None:
+            emulated.close()
         raise BuildError(f"{plan.name}: bus of module {plan.module}: {exc}") from exc
     # The last stage checks commands against the unit's raw limits itself (defence in depth).
     limits = {j.raw_name: RawLimits.of_joint(j.spec, j.calibration) for j in module.actuated_joints}
     core = MotorInterfaceCore(plan.name, module.slot, backend, limits=limits)
+    # Closed in reverse: the backend leaves its bus before the emulated drives go.
+    resources: list[Any] = [emulated, backend] if emulated is not None else [backend]
     return BuiltComponent(
-        core, interface_for(assembly, module.slot), module.namespace, "motor_interface", [backend]
+        core, interface_for(assembly, module.slot), module.namespace, "motor_interface", resources
     )
 
 

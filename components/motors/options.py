@@ -420,6 +420,9 @@ class BackendInfo:
         channel_rule: What a valid channel name must match (``fullmatch``).
         channel_hint: Says what a channel looks like, for error messages.
         class_path: ``"module:Class"`` of the backend, imported only when a bus is opened.
+        emulator_path: ``"module:function"`` starting emulated hardware for this bus
+            (``(channel, motor specs) -> EmulatedHardware``, see
+            :mod:`components.motors.emulation`); empty when the backend has none.
     """
 
     name: str
@@ -428,6 +431,7 @@ class BackendInfo:
     channel_rule: re.Pattern[str]
     channel_hint: str
     class_path: str
+    emulator_path: str = ""
 
     def parse_options(self, mapping: Mapping[str, Any] | None = None, **bus: Any) -> Any:
         """This backend's typed options (see :func:`parse_options`)."""
@@ -462,7 +466,23 @@ class BackendInfo:
         Raises:
             MotorError: If the module cannot be imported (with the pip hint) or lacks it.
         """
-        module_name, _, class_name = self.class_path.partition(":")
+        return self._load(self.class_path)
+
+    def load_emulator(self) -> Any:
+        """The function that starts emulated hardware for this bus.
+
+        Raises:
+            MotorError: If the backend has no emulator, or it cannot be imported.
+        """
+        if not self.emulator_path:
+            raise MotorError(
+                f"motor backend {self.name!r} has no emulated hardware; "
+                "run it on its robot, or in simulation (`msctl up --sim`)"
+            )
+        return self._load(self.emulator_path)
+
+    def _load(self, path: str) -> Any:
+        module_name, _, class_name = path.partition(":")
         try:
             module = importlib.import_module(module_name)
         except ImportError as exc:
@@ -497,6 +517,7 @@ BACKENDS: dict[str, BackendInfo] = {
         channel_hint="use the CAN interface name (can0, vcan1) or the python-can channel, "
         "without spaces",
         class_path="components.motors.canopen_drive:CanopenBackend",
+        emulator_path="components.motors.emulation:cia402_drives",
     ),
     "dynamixel": BackendInfo(
         name="dynamixel",
@@ -506,6 +527,7 @@ BACKENDS: dict[str, BackendInfo] = {
         channel_hint="use the serial device of the chain: /dev/ttyUSB0, "
         "/dev/serial/by-id/<adapter>, a pty /dev/pts/N, or COMn",
         class_path="components.motors.dynamixel_chain:DynamixelBackend",
+        emulator_path="components.motors.emulation:dynamixel_chain",
     ),
 }
 
