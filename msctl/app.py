@@ -34,6 +34,7 @@ _GROUPS: dict[str, str] = {
     "agent": "msctl.commands.agent",
     "bag": "msctl.commands.bag",
     "net": "msctl.commands.net",
+    "rehearse": "msctl.commands.rehearse",
 }
 _COMMANDS: dict[str, str] = {
     "up": "msctl.commands.up",

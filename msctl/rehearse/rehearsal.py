@@ -1,0 +1,634 @@
+"""One rehearsal: a template's deployment stood up on this machine, and taken down again.
+
+``up`` does what a field team does on real computers, in the same order and with the same
+commands, each computer in its own namespace:
+
+1. resolve the template here to learn its computers (robot computers and ground stations);
+2. one namespace per computer, linked to the simulated access point by the link emulator;
+3. on every computer, ``msctl assemble TEMPLATE`` from its own data (as each real computer
+   resolves for itself);
+4. secure (the default): ``msctl net init`` on the first ground station, and its
+   ``MSCTL_HOME/net`` copied to every computer, as the README tells a user;
+5. ``msctl agent`` on every computer (robot computers with their real motor backends against
+   emulated hardware: ``MSCTL_EMULATE_HARDWARE=1``), each starting its computer's router
+   linked as the generated configs say (plain TCP links only with ``--insecure``);
+6. from the ground station, ``msctl up --all``.
+
+Everything it makes is written down in ``$MSCTL_HOME/rehearse/rehearsal.json`` before it is
+made, and every namespace is named after that directory, so ``down`` removes all of it even
+after the rehearsal itself crashed midway.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from components.paths import state_dir
+from msctl.rehearse.computers import (
+    Computer,
+    RehearseError,
+    describe_processes,
+    environment,
+    kill_all,
+    make_namespace,
+    namespaces,
+    need_privileges,
+    remove_namespace,
+    spawn,
+)
+
+#: The radio subnet every rehearsal uses (each computer's namespace has its own stack, so
+#: two rehearsals never meet).
+SUBNET = "10.77.0.0/24"
+#: Robot computers from .11 up, ground stations from .201 up.
+FIRST_ROBOT, FIRST_STATION = 11, 201
+#: The state file's name under ``$MSCTL_HOME/rehearse``.
+STATE_FILE = "rehearsal.json"
+#: The ports the field uses: each computer has its own network stack, as a real one does.
+LOCAL_PORT, TLS_PORT = 7447, 7448
+#: Seconds a computer's agent has to answer on the fleet after it starts.
+AGENTS_WITHIN = 120.0
+
+
+def rehearsal_dir() -> Path:
+    """``$MSCTL_HOME/rehearse``: the rehearsal's state, logs and its computers' homes."""
+    return state_dir() / "rehearse"
+
+
+def namespace_prefix(root: Path | None = None) -> str:
+    """``msr-<6 hex>-``: the namespaces of the rehearsal kept in ``root`` (named after its
+    path, so rehearsals of two MSCTL_HOMEs never share one, and a crash leaves them findable)."""
+    root = (root or rehearsal_dir()).resolve()
+    return "msr-" + hashlib.sha1(str(root).encode()).hexdigest()[:6] + "-"
+
+
+@dataclass
+class Rehearsal:
+    """What a rehearsal made, as its state file keeps it.
+
+    Attributes:
+        root: Its directory (``$MSCTL_HOME/rehearse``).
+        template: The template rehearsed.
+        uses: The slot=unit choices it was resolved with.
+        secure: Mutual TLS and access control (the field default), else plain TCP links.
+        computers: Its computers, robots first.
+        operator: The operator identity the stations' commands use (``user@station``).
+        emulator_pid: The link emulator's process.
+        seed: The link emulator's seed (the same seed replays the same losses).
+        created: When it was made (epoch seconds).
+    """
+
+    root: Path
+    template: str
+    uses: dict[str, str]
+    secure: bool
+    computers: list[Computer] = field(default_factory=list)
+    operator: str = ""
+    emulator_pid: int | None = None
+    seed: int = 1
+    created: float = field(default_factory=time.time)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state_file(self) -> Path:
+        """Where this rehearsal is written down."""
+        return self.root / STATE_FILE
+
+    @property
+    def control_socket(self) -> Path:
+        """The link emulator's control socket."""
+        return self.root / "links.sock"
+
+    @property
+    def logs(self) -> Path:
+        """Where the agents' and the emulator's output goes."""
+        return self.root / "logs"
+
+    def save(self) -> None:
+        """Write the state file atomically."""
+        from msctl.assembler.store import write_file
+
+        document = {
+            "template": self.template,
+            "uses": self.uses,
+            "secure": self.secure,
+            "operator": self.operator,
+            "emulator_pid": self.emulator_pid,
+            "seed": self.seed,
+            "created": self.created,
+            "computers": [c.to_json() for c in self.computers],
+        }
+        write_file(self.state_file, json.dumps(document, indent=2) + "\n")
+
+    @classmethod
+    def load(cls, root: Path | None = None) -> Rehearsal:
+        """The rehearsal kept in ``root``.
+
+        Raises:
+            RehearseError: If none is there.
+        """
+        root = root or rehearsal_dir()
+        path = root / STATE_FILE
+        try:
+            data = json.loads(path.read_text())
+            return cls(
+                root=root,
+                template=data["template"],
+                uses=dict(data.get("uses", {})),
+                secure=bool(data["secure"]),
+                computers=[Computer.from_json(c) for c in data["computers"]],
+                operator=data.get("operator", ""),
+                emulator_pid=data.get("emulator_pid"),
+                seed=int(data.get("seed", 1)),
+                created=float(data.get("created", 0.0)),
+            )
+        except FileNotFoundError:
+            raise RehearseError(
+                f"no rehearsal in {root}", hint="start one with `msctl rehearse up TEMPLATE`"
+            ) from None
+        except (ValueError, KeyError, TypeError) as exc:
+            raise RehearseError(
+                f"{path} is not a rehearsal's state ({exc})",
+                hint="`msctl rehearse down` removes whatever it can find of it",
+            ) from exc
+
+    def computer(self, name: str) -> Computer:
+        """The computer called ``name``.
+
+        Raises:
+            RehearseError: Naming the computers there are.
+        """
+        for computer in self.computers:
+            if computer.name == name:
+                return computer
+        from msctl.errors import did_you_mean
+
+        near = did_you_mean(name, [c.name for c in self.computers])
+        raise RehearseError(
+            f"the {self.template} rehearsal has no computer {name!r} "
+            f"(its computers: {', '.join(c.name for c in self.computers)})",
+            hint=near or None,
+        )
+
+    @property
+    def stations(self) -> list[Computer]:
+        """The ground stations."""
+        return [c for c in self.computers if c.role == "station"]
+
+    @property
+    def ground(self) -> Computer:
+        """The computer operators work from: the first ground station (else the first robot)."""
+        return (self.stations or self.computers)[0]
+
+    # ------------------------------------------------------------------ running as a computer
+    def env(self, computer: Computer, base: Mapping[str, str] | None = None) -> dict[str, str]:
+        """The environment of a command run as ``computer``: its host name and home, and on a
+        secure ground station the operator's identity, so `msctl` commands reach the fleet."""
+        extra: dict[str, str] = {}
+        if self.secure and computer.role == "station" and self.operator:
+            extra["MSCTL_IDENTITY"] = self.operator
+        return environment(computer, extra, base)
+
+    def agent_env(self, computer: Computer) -> dict[str, str]:
+        """The environment ``msctl agent`` runs with on ``computer`` (a systemd unit's)."""
+        extra = {"MSCTL_ZENOH_CONNECT": f"tcp/localhost:{LOCAL_PORT}"}
+        if self.secure:
+            extra["MSCTL_SECURE"] = "1"
+        else:
+            extra.update(plain_links(self, computer))
+        if computer.role == "robot":
+            from components.motors.emulation import EMULATE_ENV
+
+            extra[EMULATE_ENV] = "1"
+        return environment(computer, extra)
+
+    def run(
+        self, computer: Computer, argv: Sequence[str], timeout: float = 120.0
+    ) -> subprocess.CompletedProcess[str]:
+        """Run ``argv`` as ``computer`` to its end; its output captured."""
+        from msctl.rehearse.computers import exec_argv
+
+        return subprocess.run(
+            exec_argv(computer, argv),
+            env=self.env(computer),
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            stdin=subprocess.DEVNULL,
+            check=False,
+        )
+
+    def start_agent(self, computer: Computer) -> int:
+        """Start ``msctl agent`` on ``computer``, as systemd does at boot; its pid."""
+        argv = [sys.executable, "-m", "msctl", "agent"]
+        process = spawn(
+            computer, argv, self.agent_env(computer), self.logs / f"{computer.name}.log"
+        )
+        return process.pid
+
+
+def plain_links(rehearsal: Rehearsal, computer: Computer) -> dict[str, str]:
+    """The router settings of an insecure rehearsal: robots link to every station over plain
+    TCP (the README's `--insecure` field setup), stations listen for them."""
+    stations = [c.name for c in rehearsal.stations]
+    if computer.role == "station" or not stations:
+        # A station-less assembly: robots link to the first robot's router.
+        first = rehearsal.computers[0].name
+        if computer.role == "station" or computer.name == first:
+            return {"MSCTL_ROUTER_LISTEN": f"tcp/0.0.0.0:{TLS_PORT}"}
+        stations = [first]
+    return {"MSCTL_ROUTER_CONNECT": ",".join(f"tcp/{s}:{TLS_PORT}" for s in stations)}
+
+
+# --------------------------------------------------------------------------- planning
+def plan_computers(
+    assembly: Any, root: Path, profile: str, per_host: Mapping[str, str]
+) -> list[Computer]:
+    """One :class:`Computer` per host of the resolved assembly: robots, then stations."""
+    robots = list(dict.fromkeys(m.host for m in assembly.modules))
+    stations = [h for h in assembly.hosts if h not in robots]
+    unknown = sorted(set(per_host) - set(robots) - set(stations))
+    if unknown:
+        raise RehearseError(
+            f"--link names {', '.join(unknown)}, not a computer of {assembly.template} "
+            f"(its computers: {', '.join([*robots, *stations])})"
+        )
+    prefix = namespace_prefix(root)
+    computers = []
+    for role, names, first in (
+        ("robot", robots, FIRST_ROBOT),
+        ("station", stations, FIRST_STATION),
+    ):
+        for index, name in enumerate(names):
+            computers.append(
+                Computer(
+                    name=name,
+                    role=role,
+                    netns=(prefix + name)[:48],
+                    address=f"10.77.0.{first + index}",
+                    home=root / "computers" / name,
+                    profile=per_host.get(name, profile),
+                )
+            )
+    return computers
+
+
+def parse_links(links: Sequence[str]) -> tuple[str | None, dict[str, str]]:
+    """``--link`` values: ``PROFILE`` for every link, ``HOST=PROFILE`` for one.
+
+    Raises:
+        RehearseError: If two values give every link a profile.
+    """
+    every: str | None = None
+    per_host: dict[str, str] = {}
+    for value in links:
+        host, sep, profile = value.partition("=")
+        if not sep:
+            if every is not None and every != value:
+                raise RehearseError(
+                    f"--link {every} and --link {value} both set every link",
+                    hint="give one PROFILE, and HOST=PROFILE for the links that differ",
+                )
+            every = value
+        elif not host or not profile:
+            raise RehearseError(f"--link {value!r}: write PROFILE or HOST=PROFILE")
+        else:
+            per_host[host] = profile
+    return every, per_host
+
+
+# --------------------------------------------------------------------------- up
+@dataclass
+class Progress:
+    """Where ``up`` says what it does (a rich status line in the CLI, a list in tests)."""
+
+    say: Callable[[str], None] = lambda _line: None
+    step: Callable[[str], None] = lambda _line: None
+
+
+def up(
+    template: str,
+    uses: Mapping[str, str],
+    links: Sequence[str],
+    secure: bool,
+    seed: int = 1,
+    bring_up: bool = True,
+    progress: Progress | None = None,
+    timeout: float = 180.0,
+) -> Rehearsal:
+    """Stand the template's deployment up on this machine (see the module's docstring).
+
+    Raises:
+        RehearseError: If it cannot be made (privileges, a rehearsal already there, a
+            profile unknown); whatever was made is taken down again first.
+    """
+    from components.assembly import from_document
+    from msctl.assembler import resolve
+    from msctl.rehearse import profiles as link_profiles
+
+    progress = progress or Progress()
+    need_privileges()
+    root = rehearsal_dir()
+    if (root / STATE_FILE).exists() or _leftover_namespaces(root):
+        raise RehearseError(
+            f"a rehearsal is already in {root}",
+            hint="see it with `msctl rehearse status`; `msctl rehearse down` removes it",
+        )
+    every, per_host = parse_links(links)
+    known = link_profiles.load_profiles()
+    for name in {every or "lan", *per_host.values()}:
+        if name not in known:
+            from msctl.errors import did_you_mean
+
+            raise RehearseError(
+                f"unknown link profile {name!r} (known: {', '.join(sorted(known))})",
+                hint=did_you_mean(name, known) or "add it to a profiles file (MSCTL_LINK_PROFILES)",
+            )
+    resolution = resolve(template, dict(uses))
+    assembly = from_document(resolution.document)
+    rehearsal = Rehearsal(
+        root=root,
+        template=assembly.template,
+        uses=dict(assembly.units),
+        secure=secure,
+        seed=seed,
+        computers=plan_computers(assembly, root, every or "lan", per_host),
+    )
+    root.mkdir(parents=True, exist_ok=True)
+    rehearsal.save()  # before anything is made: `down` finds it all after a crash
+    try:
+        _make(rehearsal, progress, timeout)
+        if bring_up:
+            progress.step(f"{rehearsal.ground.name}: msctl up --all")
+            _bring_up(rehearsal, timeout)
+    except BaseException:
+        progress.say("[red]rehearsal failed; taking down what was made[/]")
+        down(root)
+        raise
+    return rehearsal
+
+
+def _make(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
+    computers = rehearsal.computers
+    progress.step(f"{len(computers)} computers: network namespaces")
+    for computer in computers:
+        make_namespace(computer, computers)
+        computer.home.mkdir(parents=True, exist_ok=True)
+    progress.step("radio links (link emulator)")
+    rehearsal.emulator_pid = _start_emulator(rehearsal)
+    rehearsal.save()
+    progress.step(f"msctl assemble {rehearsal.template} on every computer")
+    uses = [a for slot, unit in rehearsal.uses.items() for a in ("--use", f"{slot}={unit}")]
+    _on_every(rehearsal, ["msctl", "assemble", rehearsal.template, *uses], timeout)
+    if rehearsal.secure:
+        ground = rehearsal.ground
+        progress.step(f"{ground.name}: msctl net init; its net/ copied to every computer")
+        from components.claims import default_holder
+
+        holder = default_holder().split("@")[0] + "@" + ground.name
+        done = rehearsal.run(ground, ["msctl", "net", "init", "--operator", holder], timeout)
+        _check(done, ground, "msctl net init")
+        rehearsal.operator = holder
+        rehearsal.save()
+        for computer in computers:
+            if computer is not ground:
+                shutil.copytree(ground.home / "net", computer.home / "net", dirs_exist_ok=True)
+    progress.step("msctl agent on every computer")
+    for computer in computers:
+        rehearsal.start_agent(computer)
+    progress.step("waiting for every agent to answer from the ground station")
+    _wait_for_agents(rehearsal, min(timeout, AGENTS_WITHIN))
+
+
+def _on_every(rehearsal: Rehearsal, argv: list[str], timeout: float) -> None:
+    """Run ``argv`` on every computer at once; the first failure raises, naming its host."""
+    from msctl.launcher.fleet import at_once
+
+    results = at_once(lambda c: (c, rehearsal.run(c, argv, timeout)), rehearsal.computers)
+    for computer, done in results:
+        _check(done, computer, " ".join(argv))
+
+
+def _check(done: subprocess.CompletedProcess[str], computer: Computer, what: str) -> None:
+    if done.returncode != 0:
+        lines = (done.stderr or done.stdout).strip().splitlines()
+        raise RehearseError(
+            f"`{what}` failed on {computer.name} ({done.returncode}): "
+            f"{lines[-1] if lines else 'no output'}"
+        )
+
+
+def _start_emulator(rehearsal: Rehearsal) -> int:
+    """The access point: one emulator process for every computer's link; waits until ready."""
+    spec = {
+        "control": str(rehearsal.control_socket),
+        "ready": str(rehearsal.root / "links.ready"),
+        "seed": rehearsal.seed,
+        "profiles_file": os.environ.get("MSCTL_LINK_PROFILES") or None,
+        "subnet": SUBNET,
+        "hosts": [
+            {
+                "name": c.name,
+                "netns": c.netns,
+                "address": c.address,
+                "profile": c.profile,
+                "device": "rh0",
+            }
+            for c in rehearsal.computers
+        ],
+    }
+    spec_file = rehearsal.root / "links.json"
+    spec_file.write_text(json.dumps(spec, indent=2))
+    ready = Path(spec["ready"])
+    ready.unlink(missing_ok=True)
+    rehearsal.logs.mkdir(parents=True, exist_ok=True)
+    with open(rehearsal.logs / "links.log", "ab") as log:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "msctl.rehearse.emulator", str(spec_file)],
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    deadline = time.monotonic() + 30.0
+    while not ready.exists():
+        if process.poll() is not None:
+            tail = (rehearsal.logs / "links.log").read_text().strip().splitlines()[-1:]
+            raise RehearseError(
+                f"the link emulator exited ({process.returncode}): {tail[0] if tail else ''}",
+                hint=f"see {rehearsal.logs / 'links.log'}",
+            )
+        if time.monotonic() > deadline:
+            process.kill()
+            raise RehearseError("the link emulator was not ready within 30 s")
+        time.sleep(0.05)
+    return process.pid
+
+
+def _wait_for_agents(rehearsal: Rehearsal, timeout: float) -> None:
+    """Until the ground station sees every computer's agent (its request service)."""
+    from msctl.launcher.control import host_namespace
+
+    ground = rehearsal.ground
+
+    wanted = {f"{host_namespace(c.name)}/request" for c in rehearsal.computers}
+    deadline = time.monotonic() + timeout
+    missing = wanted
+    while True:
+        done = rehearsal.run(ground, ["msctl", "service", "list", "--json"], timeout=30.0)
+        if done.returncode == 0:
+            try:
+                listed = json.loads(done.stdout)
+            except ValueError:
+                listed = []
+            names = {s["name"] if isinstance(s, dict) else s for s in listed}
+            missing = wanted - names
+            if not missing:
+                return
+        for computer in rehearsal.computers:
+            if not describe_processes(computer.netns):
+                raise RehearseError(
+                    f"the agent of {computer.name} exited",
+                    hint=f"see {rehearsal.logs / (computer.name + '.log')}",
+                )
+        if time.monotonic() > deadline:
+            raise RehearseError(
+                f"{ground.name} does not see the agents of "
+                f"{', '.join(sorted(m.split('/')[2] for m in missing))} after {timeout:g} s",
+                hint=f"see the logs in {rehearsal.logs}",
+            )
+        time.sleep(0.5)
+
+
+def _bring_up(rehearsal: Rehearsal, timeout: float) -> None:
+    ground = rehearsal.ground
+    argv = ["msctl", "up", "--all", "--timeout", f"{timeout:g}"]
+    if not rehearsal.secure:
+        argv.append("--insecure")
+    done = rehearsal.run(ground, argv, timeout=timeout + 30.0)
+    _check(done, ground, " ".join(argv))
+
+
+# --------------------------------------------------------------------------- down
+def _leftover_namespaces(root: Path) -> list[str]:
+    prefix = namespace_prefix(root)
+    return [n for n in namespaces() if n.startswith(prefix)]
+
+
+def down(root: Path | None = None) -> list[str]:
+    """Remove everything the rehearsal in ``root`` made: every process of its computers,
+    the link emulator, the namespaces and their files, its directory. Works from what is
+    left after a crash (the namespaces are named after ``root``). Returns what it removed.
+    """
+    need_privileges()
+    root = root or rehearsal_dir()
+    removed: list[str] = []
+    try:
+        rehearsal: Rehearsal | None = Rehearsal.load(root)
+    except RehearseError:
+        rehearsal = None
+    names = {c.netns for c in rehearsal.computers} if rehearsal else set()
+    names |= set(_leftover_namespaces(root))
+    from msctl.launcher.fleet import at_once
+
+    # Every computer's processes at once: each gets its SIGTERM grace in parallel.
+    counts = at_once(kill_all, sorted(names))
+    for netns, count in zip(sorted(names), counts, strict=True):
+        removed.append(f"{netns} ({count} processes)")
+    if rehearsal is not None and rehearsal.emulator_pid:
+        _stop_pid(rehearsal.emulator_pid, "msctl.rehearse.emulator")
+    for netns in sorted(names):
+        remove_namespace(netns)
+    if root.exists():
+        shutil.rmtree(root, ignore_errors=True)
+    return removed
+
+
+def _stop_pid(pid: int, marker: str) -> None:
+    """SIGTERM, then SIGKILL, ``pid`` if it still runs ``marker`` (never a reused pid)."""
+    import psutil
+
+    try:
+        process = psutil.Process(pid)
+        if marker not in " ".join(process.cmdline()):
+            return
+        process.terminate()
+        process.wait(5.0)
+    except psutil.TimeoutExpired:
+        process.kill()
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        pass
+
+
+# --------------------------------------------------------------------------- while it runs
+def link_request(rehearsal: Rehearsal, request: dict[str, Any]) -> dict[str, Any]:
+    """Ask the link emulator; its answer.
+
+    Raises:
+        RehearseError: If it is not running, or refused the request.
+    """
+    from msctl.rehearse.emulator import control
+
+    try:
+        answer = control(rehearsal.control_socket, request)
+    except Exception as exc:
+        raise RehearseError(
+            f"the link emulator does not answer: {exc}",
+            hint="`msctl rehearse down`, then up again",
+        ) from exc
+    if not answer.get("ok", True):
+        raise RehearseError(str(answer.get("error", answer)))
+    return answer
+
+
+def reboot(rehearsal: Rehearsal, name: str, after: float = 0.0) -> int:
+    """Kill every process of computer ``name`` at once (a power cut), then, ``after``
+    seconds later, start its agent again as systemd would at boot. Returns how many
+    processes it killed."""
+    computer = rehearsal.computer(name)
+    killed = kill_all(computer.netns, grace=0.0)
+    if after > 0:
+        time.sleep(after)
+    rehearsal.start_agent(computer)
+    return killed
+
+
+def status(rehearsal: Rehearsal) -> dict[str, Any]:
+    """Computers, addresses, processes and each link's profile and counters."""
+    try:
+        links = link_request(rehearsal, {"op": "status"}).get("hosts", {})
+        emulator = "running"
+    except RehearseError as exc:
+        links, emulator = {}, f"not answering: {exc}"
+    computers = []
+    for computer in rehearsal.computers:
+        computers.append(
+            {
+                "name": computer.name,
+                "role": computer.role,
+                "netns": computer.netns,
+                "address": computer.address,
+                "home": str(computer.home),
+                "processes": describe_processes(computer.netns),
+                "link": links.get(computer.name),
+            }
+        )
+    return {
+        "template": rehearsal.template,
+        "secure": rehearsal.secure,
+        "operator": rehearsal.operator,
+        "root": str(rehearsal.root),
+        "seed": rehearsal.seed,
+        "emulator": emulator,
+        "computers": computers,
+    }
