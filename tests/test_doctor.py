@@ -83,6 +83,19 @@ def test_missing_serial_port_and_can_interface(tmp_path: Path) -> None:
     assert {f.status for f in simulated} == {doctor.OK}
 
 
+def test_emulated_buses_need_no_device(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # A rehearsal's robot computer (MSCTL_EMULATE_HARDWARE=1) has no CAN interface or serial
+    # port: its motor interface emulates the bus in its own process.
+    modules = [
+        SimpleNamespace(
+            slot="wheel1", host="robot1", bus=SimpleNamespace(channel="can0", bitrate=None)
+        )
+    ]
+    monkeypatch.setenv("MSCTL_EMULATE_HARDWARE", "1")
+    found = doctor.devices("robot1", SimpleNamespace(modules=modules), False, sys_root=tmp_path)
+    assert [(f.status, "emulated" in f.detail) for f in found] == [(doctor.OK, True)]
+
+
 def test_hosts_on_another_lock_disagree() -> None:
     rows = [
         doctor.Finding("robot1", "assembly lock", doctor.OK, "", "aaaa"),
