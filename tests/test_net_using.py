@@ -92,13 +92,28 @@ def test_identity_settings_name_what_is_missing(
 
 
 def test_embedded_router_listens_on_loopback_unless_told(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("MSCTL_SECURE", raising=False)
-    monkeypatch.delenv("MSCTL_ROUTER_LISTEN", raising=False)
+    for name in ("MSCTL_SECURE", "MSCTL_ROUTER_LISTEN", "MSCTL_ROUTER_CONNECT"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("MSCTL_HOST", "hl-limb-01")
     assert router_argv("tcp/localhost:7447") == ["router", "--listen", "tcp/127.0.0.1:7447"]
+    # The same port on every interface covers loopback: it replaces the loopback listener
+    # (one process cannot bind both), another port is added beside it.
     monkeypatch.setenv("MSCTL_ROUTER_LISTEN", "tcp/0.0.0.0:7447")
-    assert router_argv("tcp/localhost:7447")[-2:] == ["--listen", "tcp/0.0.0.0:7447"]
+    assert router_argv("tcp/localhost:7447") == ["router", "--listen", "tcp/0.0.0.0:7447"]
+    monkeypatch.setenv("MSCTL_ROUTER_LISTEN", "tcp/[::]:7447, tcp/0.0.0.0:7448")
+    assert router_argv("tcp/127.0.0.1:7447") == [
+        "router", "--listen", "tcp/[::]:7447", "--listen", "tcp/0.0.0.0:7448"
+    ]  # fmt: skip
+    monkeypatch.setenv("MSCTL_ROUTER_LISTEN", "tcp/0.0.0.0:7448")
+    monkeypatch.setenv("MSCTL_ROUTER_CONNECT", "tcp/ground1:7448,tcp/ground2:7448")
+    assert router_argv("tcp/localhost:7447") == [
+        "router", "--listen", "tcp/127.0.0.1:7447", "--listen", "tcp/0.0.0.0:7448",
+        "--connect", "tcp/ground1:7448", "--connect", "tcp/ground2:7448",
+    ]  # fmt: skip
+    monkeypatch.delenv("MSCTL_ROUTER_LISTEN")
+    monkeypatch.delenv("MSCTL_ROUTER_CONNECT")
     monkeypatch.setenv("MSCTL_SECURE", "1")
-    assert router_argv("tcp/localhost:7447") == ["router", "--secure"]
+    assert router_argv("tcp/localhost:7447") == ["router", "--secure", "--host", "hl-limb-01"]
 
 
 def test_up_all_refuses_agents_over_plain_tcp(tmp_path: Path) -> None:

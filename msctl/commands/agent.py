@@ -33,6 +33,11 @@ SYSTEM_UNIT_DIR = Path("/etc/systemd/system")
 #: Passed from the installing shell into the unit, so the agent joins the same network.
 _ENV_PREFIXES = (
     "MSCTL_ZENOH_",
+    # Where its router listens and links, and whether it is secure: without them in the
+    # unit, the agent started at boot would be a loopback-only router no station reaches.
+    "MSCTL_ROUTER_",
+    "MSCTL_SECURE",
+    "MSCTL_NET_TLS_PORT",
     "MSCTL_HOME",
     "MSCTL_DOMAIN",
     "ROS_DOMAIN_ID",
@@ -55,7 +60,15 @@ def run(
         "(env MSCTL_SECURE).",
     ),
 ) -> None:
-    """Run the agent: idle until `msctl up --all` sends it an assembly; Ctrl-C stops all."""
+    """Run the agent: idle until `msctl up --all` sends it an assembly; Ctrl-C stops all.
+
+    Unless a router already answers on MSCTL_ZENOH_CONNECT (default tcp/localhost:7447), the
+    agent starts this computer's router: on loopback only, plus MSCTL_ROUTER_LISTEN
+    (comma-separated endpoints, e.g. tcp/0.0.0.0:7448; one on the same port as the loopback
+    one replaces it), linked to MSCTL_ROUTER_CONNECT (comma-separated, e.g. tcp/ground1:7448).
+    Plain TCP beyond this computer is a loud, explicit choice; with --secure the router takes
+    its TLS links and access control from `msctl net` instead.
+    """
     if secure:
         import os
 
@@ -84,6 +97,8 @@ def run(
     try:
         try:
             agent.start()
+        except MsctlError:
+            raise  # its own line says what and how to fix it
         except RuntimeError as exc:
             raise MsctlError(
                 str(exc), hint="free the port or point MSCTL_ZENOH_CONNECT at the router"

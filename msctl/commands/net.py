@@ -30,7 +30,7 @@ def init(
         None,
         "--host",
         help="A computer to make an identity for (repeatable; default: every "
-        "host of the resolved assembly).",
+        "host of the resolved assembly, and this computer: MSCTL_HOST or the hostname).",
     ),
     operator: list[str] = typer.Option(
         None,
@@ -39,10 +39,16 @@ def init(
         "you, as user@host like claims).",
     ),
 ) -> None:
-    """Create the fleet CA (once) and an identity per computer and operator."""
+    """Create the fleet CA (once) and an identity per computer and operator.
+
+    By default the computers are the resolved assembly's and this one: a laptop that runs
+    the whole assembly simulated (`msctl up --secure` off-robot) is no host of the assembly,
+    and its router needs an identity of its own.
+    """
     from components.assembly import AssemblyError, load_assembly
     from components.claims import default_holder
     from msctl.console import err
+    from msctl.launcher.plan import this_host
     from msctl.net import pki
 
     hosts = list(host or [])
@@ -55,6 +61,17 @@ def init(
             raise InputError(
                 f"no hosts to make identities for: {exc}", hint="or name them with --host"
             ) from exc
+        here = this_host()
+        try:
+            hosts = list(dict.fromkeys([*hosts, pki.check_name(here, "this computer")]))
+        except pki.PkiError as exc:
+            # The fleet's identities do not wait on a host name a certificate cannot carry.
+            err.print(
+                f"no identity for this computer: {exc} (set MSCTL_HOST)",
+                style="yellow",
+                markup=False,
+                highlight=False,
+            )
     operators = list(operator or [default_holder()])
     with err.status(f"signing {len(hosts) + len(operators)} identities with the fleet CA"):
         try:

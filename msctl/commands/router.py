@@ -1,4 +1,10 @@
-"""``msctl router``: a Zenoh router like rmw_zenoh's ``rmw_zenohd`` (tcp port 7447)."""
+"""``msctl router``: a Zenoh router like rmw_zenoh's ``rmw_zenohd`` (tcp port 7447).
+
+Its settings that cannot work (a port another process holds, an address that is not this
+computer's, an identity the fleet never made) fail before it opens, as an :class:`InputError`
+(exit code 2): whoever supervises it (``msctl up``, ``msctl agent``) then knows a restart
+would fail the same way (:data:`msctl.launcher.run.ROUTER_FINAL_EXITS`).
+"""
 
 from __future__ import annotations
 
@@ -15,16 +21,26 @@ from msctl.errors import InputError, NetworkError
 
 COMMAND_SETTINGS = {"help": "Run a Zenoh router (default tcp/[::]:7447, as rmw_zenohd)."}
 
+#: The admin space a plain router serves, read-only: `msctl up --all` reads every router's
+#: links there (``@/<zid>/router``) to refuse commanding agents over plain TCP unawares.
+#: rmw_zenohd's default config serves it too. A secure router's access control denies it.
+ADMIN_SPACE = {"adminspace/enabled": True, "adminspace/permissions": {"read": True, "write": False}}
+
 
 def command(
     listen: list[str] = typer.Option(
         None,
         "--listen",
         "-l",
-        help="Endpoint to listen on (repeatable). Default tcp/[::]:7447, like rmw_zenohd.",
+        help="Endpoint to listen on (repeatable). Default tcp/[::]:7447, like rmw_zenohd. "
+        "With --secure: a tls/ endpoint in place of the generated TLS listener.",
     ),
     connect: list[str] = typer.Option(
-        None, "--connect", "-c", help="Another router to link to (repeatable), e.g. a base station."
+        None,
+        "--connect",
+        "-c",
+        help="Another router to link to (repeatable), e.g. a base station. With --secure: "
+        "tls/ endpoints in place of the links the assembly gives.",
     ),
     duration: float = typer.Option(
         None, "--for", help="Stop after this many seconds (default: until Ctrl-C)."
@@ -38,6 +54,13 @@ def command(
     host: str = typer.Option(
         None, "--host", help="With --secure: act as this computer (default MSCTL_HOST)."
     ),
+    whole_assembly: bool = typer.Option(
+        None,
+        "--whole-assembly/--own-part",
+        help="With --secure: this computer runs the whole assembly (`msctl up` off-robot), so "
+        "its components write every module's inputs and it links to no other router; or only "
+        "its own part. Default: the whole assembly when it is none of the assembly's hosts.",
+    ),
     config_file: Path = typer.Option(
         None, "--config", help="Run from this json5 Zenoh config (e.g. `msctl net config -o`)."
     ),
@@ -50,22 +73,39 @@ def command(
         router_settings,
     )
     from msctl.console import err
+    from msctl.net import endpoints as net_endpoints
 
     endpoints = tuple(listen) if listen else DEFAULT_ROUTER_LISTEN
+    connect = list(connect or [])
+    extra: dict[str, Any] = {}
     if secure or config_file is not None:
-        config_file = config_file or _secure_config(host)
+        if config_file is None:
+            config_file = _secure_config(host, whole_assembly, list(listen or []), connect or None)
         endpoints, connect = _endpoints_of(config_file)
+    else:
+        extra = dict(ADMIN_SPACE)
+        warning = plain_exposure(endpoints, connect)
+        if warning:
+            err.print(f"[bold yellow]warning:[/] {warning}", highlight=False)
+    for endpoint in endpoints:
+        try:
+            net_endpoints.check_listen(endpoint, setting="--listen")
+        except net_endpoints.EndpointError as exc:
+            raise InputError(str(exc)) from None
     try:
-        settings = router_settings(listen=endpoints, config_file=config_file)
+        settings = router_settings(listen=endpoints, config_file=config_file, extra=extra)
         if connect:
             settings = settings._replace(connect=tuple(connect))
         session = open_session(settings)
     except SessionConfigError as exc:
-        raise NetworkError(
-            str(exc),
-            hint="another router (rmw_zenohd or msctl router) may already hold the port; "
-            "use it, or pass --listen tcp/[::]:7448",
-        ) from exc
+        # The bind check passed a moment ago: another process took a port since, or Zenoh
+        # refused something else. Say which endpoint in one line when it can be told.
+        for endpoint in endpoints:
+            try:
+                net_endpoints.check_listen(endpoint, setting="--listen")
+            except net_endpoints.EndpointError as taken:
+                raise InputError(str(taken)) from None
+        raise NetworkError(str(exc)) from exc
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -87,51 +127,67 @@ def command(
         err.print("router stopped")
 
 
-def _secure_config(host: str | None) -> Path:
-    """Write this computer's generated router config under MSCTL_HOME/net; its path."""
-    import os
-    import socket
+def plain_exposure(listen: Any, connect: Any) -> str:
+    """The warning for a plain (not TLS) router open beyond this computer, or ``""``.
 
-    from components.assembly import AssemblyError, load_assembly
+    Args:
+        listen: Endpoints it listens on.
+        connect: Endpoints it links to.
+    """
+    from msctl.net.endpoints import EndpointError, parse
+
+    def exposed(texts: Any) -> list[str]:
+        found = []
+        for text in texts:
+            try:
+                endpoint = parse(text)
+            except EndpointError:
+                continue  # Zenoh says what is wrong with it
+            if endpoint.leaves_computer and not endpoint.encrypted:
+                found.append(text)
+        return found
+
+    listening, linking = exposed(listen), exposed(connect)
+    if not listening and not linking:
+        return ""
+    where = "; ".join(
+        part
+        for part in (
+            f"listens on {', '.join(listening)}" if listening else "",
+            f"links to {', '.join(linking)}" if linking else "",
+        )
+        if part
+    )
+    return (
+        f"this router {where} over plain TCP: anyone on that network can command joints, halt "
+        "modules and stop runs through it; outside a network you trust, secure the fleet "
+        "(`msctl net init`, then MSCTL_SECURE=1)"
+    )
+
+
+def _secure_config(
+    host: str | None,
+    whole_assembly: bool | None,
+    listen: list[str],
+    connect: list[str] | None,
+) -> Path:
+    """Write this computer's generated router config under MSCTL_HOME/net; its path."""
+    from components.assembly import AssemblyError
+    from msctl.console import err
+    from msctl.launcher.plan import this_host
     from msctl.net import config as netconfig
     from msctl.net import pki
 
-    host = host or os.environ.get("MSCTL_HOST") or socket.gethostname()
-    if not pki.initialised():
-        raise InputError(
-            f"--secure: the fleet has no certificate authority in {pki.net_dir()}",
-            hint="run `msctl net init` (then copy MSCTL_HOME/net to every computer)",
-        )
+    host = host or this_host()
     try:
-        assembly = load_assembly()
-        document = netconfig.router_config(
-            assembly, host, ports=_ports(), off_robot=host not in assembly.hosts
+        target, notes = netconfig.this_computer_router(
+            host, whole_assembly, listen=listen, connect=connect
         )
     except (AssemblyError, netconfig.NetConfigError, pki.PkiError) as exc:
         raise InputError(f"--secure: {exc}") from exc
-    target = pki.net_dir() / f"router-{host}.json5"
-    target.write_text(netconfig.dumps(document))
+    for note in notes:
+        err.print(f"[yellow]{note}[/]", highlight=False)
     return target
-
-
-def _ports() -> Any:
-    """The router's ports: loopback where this computer's sessions connect
-    (MSCTL_ZENOH_CONNECT, default 7447), TLS from MSCTL_NET_TLS_PORT (default 7448)."""
-    import os
-
-    from components.comm.session import SessionSettings
-    from msctl.net.config import LOCAL_PORT, TLS_PORT, Ports
-
-    local = LOCAL_PORT
-    for endpoint in SessionSettings.from_env(mode="router").connect:
-        protocol, _, address = endpoint.partition("/")
-        if protocol == "tcp" and address.startswith(("127.", "localhost")):
-            local = int(address.rsplit(":", 1)[1])
-    try:
-        tls = int(os.environ.get("MSCTL_NET_TLS_PORT") or TLS_PORT)
-    except ValueError:
-        raise InputError("MSCTL_NET_TLS_PORT must be a port number") from None
-    return Ports(local=local, tls=tls)
 
 
 def _endpoints_of(config_file: Path) -> tuple[tuple[str, ...], list[str]]:

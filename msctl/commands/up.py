@@ -75,7 +75,14 @@ def command(
         "killed and restarted [env MSCTL_KILL_UNRESPONSIVE_AFTER].",
     ),
 ) -> None:
-    """Start the components of this computer, wait until every one is healthy, then run."""
+    """Start the components of this computer, wait until every one is healthy, then run.
+
+    Unless a router answers on MSCTL_ZENOH_CONNECT, the run starts this computer's router:
+    on loopback only, plus MSCTL_ROUTER_LISTEN (comma-separated endpoints; one on the same
+    port as the loopback one replaces it), linked to MSCTL_ROUTER_CONNECT (comma-separated);
+    plain TCP beyond this computer is warned of. --secure (MSCTL_SECURE=1): mutual TLS and
+    access control from `msctl net` instead.
+    """
     from msctl.launcher import state
     from msctl.launcher.plan import plan_host, this_host
 
@@ -128,6 +135,8 @@ def command(
                 hint="use --host to act as one of its computers, or --sim to run it all here",
             )
         if detach and os.environ.get(_DAEMON_ENV) != "1":
+            # Said here, before detaching: the detached supervisor's own lines go to its log.
+            _check_router(plan)
             _detach(plan, sim, duration, host, speed, timeout, kill_unresponsive, lock)
             return
         _run_foreground(assembly, plan, duration, speed, timeout, kill_unresponsive, server)
@@ -135,6 +144,29 @@ def command(
         if server is not None:
             server.close()  # after the run's workers (idempotent), or unused: a refusal
         lock.release()
+
+
+def _check_router(plan: Any) -> None:
+    """The router the run will start, checked now: a setting that cannot work (a port taken,
+    an address not this computer's, an identity missing) fails here in one line, and what
+    to warn of (plain TCP beyond this computer, an identity made) is said.
+
+    Raises:
+        RouterStartError: Naming the endpoint, file or host, and the fix.
+    """
+    from rich.markup import escape
+
+    from components.comm.session import SessionSettings
+    from msctl.console import err
+    from msctl.launcher.run import EmbeddedRouter, router_reachable
+
+    settings = SessionSettings.from_env()
+    if not settings.connect:
+        return
+    router = EmbeddedRouter.from_env(settings.connect[0], plan.host, plan.off_robot)
+    lines = [router.not_applied()] if router_reachable(router.endpoint) else router.check()
+    for line in filter(None, lines):
+        err.print(f"[bold yellow]{escape(line)}[/]", highlight=False)
 
 
 def _early_forkserver() -> Any:

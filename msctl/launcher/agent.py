@@ -55,8 +55,9 @@ from msctl.launcher.control import (
 )
 from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
 from msctl.launcher.run import (
+    EmbeddedRouter,
     Launch,
-    listen_endpoint_for,
+    RouterStartError,
     router_reachable,
     start_router,
     wait_for_router,
@@ -246,6 +247,10 @@ class Agent:
 
         if self.endpoint and not router_reachable(self.endpoint):
             self._start_router()
+        elif self.endpoint:
+            note = EmbeddedRouter.from_env(self.endpoint, self.host).not_applied()
+            if note:
+                self.log(note)
         self._refuse_a_second_supervisor()
         self.session = open_session(self.settings._replace(mode="peer"))
         self.node = Node(
@@ -287,14 +292,31 @@ class Agent:
             )
 
     def _start_router(self) -> None:
-        # A robot computer is where the field's router runs: the agent brings one up, as
-        # `msctl up` would, so the ground station can reach this computer over the radio.
-        router = start_router(self.router, self.endpoint)
+        """Start this computer's router, the field's router of this computer.
+
+        A robot computer or a ground station is where the field's router runs: the agent
+        brings one up, as `msctl up` would, so the other computers reach this one over the
+        radio (``MSCTL_ROUTER_LISTEN``, ``MSCTL_ROUTER_CONNECT``, or ``MSCTL_SECURE=1``'s
+        generated links). It serves this computer's own part of any assembly, never the
+        whole of one (``up --all`` sends each agent its part).
+
+        Raises:
+            RouterStartError: A setting that cannot work, at once, in one line.
+            RuntimeError: It did not answer in time.
+        """
+        embedded = EmbeddedRouter.from_env(self.endpoint, self.host, whole_assembly=False)
+        router = start_router(self.router, embedded, say=self.log)
         try:
             wait_for_router(self.router, router, self.endpoint)
+        except RouterStartError:
+            raise
         except RuntimeError as exc:
             raise RuntimeError(f"no router at {self.endpoint}, and the agent's own: {exc}") from exc
-        self.log(f"started a router listening on {listen_endpoint_for(self.endpoint)}")
+        linked = f", linked to {', '.join(embedded.connect)}" if embedded.connect else ""
+        if embedded.secure:
+            self.log(f"started its secure router (mutual TLS, access control){linked}")
+        else:
+            self.log(f"started a router listening on {', '.join(embedded.plain_listen())}{linked}")
 
     def step(self) -> None:
         """One turn: answer queued requests, then let the run (if any) watch its processes."""

@@ -295,25 +295,76 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
 #: Hosts whose links never leave the computer: plain TCP to them is not exposed.
 _LOOPBACK = ("127.", "localhost", "[::1]")
 
+#: What to do about plain links, in every refusal.
+_SECURE_THE_FLEET = (
+    "run `msctl net init`, copy MSCTL_HOME/net to every computer, start the agents with "
+    "MSCTL_SECURE=1 and set MSCTL_IDENTITY to your operator name; or pass --insecure on a "
+    "network you trust"
+)
+
 
 def refuse_plain_links() -> None:
     """Refuse to send agents requests over a link that leaves the computer unencrypted.
 
     Anyone on the network could send the same requests over such a link (``up``, ``down``,
-    ``stop``). Loopback links are fine: they never leave the computer.
+    ``stop``). Loopback links are fine: they never leave the computer. Two places are
+    looked at: this command's own endpoints, and the links of the routers it reaches (their
+    admin space, ``@/<zid>/router``): a command on loopback to a router that links to the
+    robots over plain TCP sends its requests across the network all the same.
 
     Raises:
-        InputError: Naming the endpoint, how to secure the fleet, and ``--insecure``.
+        InputError: Naming the endpoint or link, how to secure the fleet, and ``--insecure``.
     """
     from components.comm.session import SessionSettings
 
-    for endpoint in SessionSettings.from_env().connect:
+    settings = SessionSettings.from_env()
+    for endpoint in settings.connect:
         protocol, _, address = endpoint.partition("/")
         if protocol != "tls" and not address.startswith(_LOOPBACK):
             raise InputError(
                 f"msctl up --all would command the agents over {endpoint}, which is not TLS: "
                 "anyone on that network could do the same",
-                hint="run `msctl net init`, copy MSCTL_HOME/net to every computer, start the "
-                "agents with MSCTL_SECURE=1 and set MSCTL_IDENTITY to your operator name; or "
-                "pass --insecure on a network you trust",
+                hint=_SECURE_THE_FLEET,
             )
+    _refuse_plain_router_links(settings)
+
+
+def _refuse_plain_router_links(settings: Any) -> None:
+    """The routers' side of :func:`refuse_plain_links`.
+
+    A router that does not describe itself (its admin space off, as in a router that is not
+    msctl's; a secure router's access control denies the question) cannot be judged: over
+    plain TCP, that is said, and the command goes on as before.
+    """
+    from rich.markup import escape
+
+    from components.comm.session import SessionConfigError, SessionSettings, open_session
+    from msctl.console import err
+    from msctl.net.endpoints import plain_links, router_documents
+
+    try:
+        session = open_session(SessionSettings.joining())
+    except SessionConfigError:
+        return  # no router: `up --all` says so itself, naming the endpoint
+    try:
+        documents = router_documents(session)
+    finally:
+        session.close()
+    if documents is None:
+        if not all(e.startswith("tls/") for e in settings.connect):
+            where = escape(", ".join(settings.connect))
+            err.print(
+                f"[yellow]warning:[/] the router at {where} does not say "
+                "what it links to (its admin space is off): if it links to other computers over "
+                "plain TCP, the agents' requests cross that network unencrypted",
+                highlight=False,
+            )
+        return
+    found = plain_links(documents)
+    if found:
+        also = f" (and {len(found) - 1} more)" if len(found) > 1 else ""
+        raise InputError(
+            f"msctl up --all would command the agents through a router link that is not TLS: "
+            f"{found[0]}{also}; anyone on that network could do the same",
+            hint=_SECURE_THE_FLEET,
+        )

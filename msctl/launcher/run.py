@@ -7,12 +7,13 @@ supervisor is never touched from two threads.
 
 from __future__ import annotations
 
+import json
 import os
 import queue
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,6 +21,7 @@ from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionConfigError, SessionSettings, open_session
 from components.ros import rclpy_available
+from msctl.errors import MsctlError
 from msctl.launcher import boot, forkserver, state
 from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
 from msctl.launcher.plan import HostPlan, ProcessPlan
@@ -105,29 +107,221 @@ def doctor_payload(host: str, session: Any, settings: Any) -> dict[str, Any]:
     return {"host": host, "findings": [dataclasses.asdict(f) for f in found]}
 
 
-def router_argv(connect_endpoint: str) -> list[str]:
-    """``msctl router``'s arguments for the embedded router.
+#: ``msctl router``'s exit codes after which a restart would fail the same way: 2 is its
+#: :class:`~msctl.errors.InputError` (a port another process holds, an address that is not
+#: this computer's, an identity missing). The router is FAILED at once, never restarted five
+#: times in a minute.
+ROUTER_FINAL_EXITS = {2: "its settings cannot work as they are"}
 
-    ``MSCTL_SECURE=1`` runs the router from the config ``msctl net config`` generates for
-    this computer (mutual TLS, access control); otherwise it listens where
-    :func:`listen_endpoint_for` says plus every endpoint in ``MSCTL_ROUTER_LISTEN``
-    (comma-separated, e.g. ``tcp/0.0.0.0:7447`` on a trusted field network).
+
+class RouterStartError(MsctlError):
+    """The embedded router cannot start; the message is its own one line (what, and the fix)."""
+
+    exit_code = 2
+
+
+def _env_endpoints(variable: str, environ: Mapping[str, str]) -> tuple[str, ...]:
+    return tuple(e.strip() for e in environ.get(variable, "").split(",") if e.strip())
+
+
+@dataclass(frozen=True)
+class EmbeddedRouter:
+    """The router ``msctl up`` and ``msctl agent`` start for this computer when none answers.
+
+    Attributes:
+        endpoint: Where this computer's sessions reach it (``MSCTL_ZENOH_CONNECT``'s first).
+        host: This computer (the run's host: ``msctl up --host`` too).
+        whole_assembly: It serves a run of the whole assembly (``msctl up`` off-robot): with
+            ``secure``, its access control lets this computer's components write every
+            module's inputs. ``None``: decided by whether the host is one of the assembly's.
+        secure: Mutual TLS and access control from ``msctl net`` (``MSCTL_SECURE=1``).
+        listen: ``MSCTL_ROUTER_LISTEN``: more endpoints to listen on (secure: TLS ones, in
+            place of the generated TLS listener).
+        connect: ``MSCTL_ROUTER_CONNECT``: routers to link to (secure: TLS ones, in place of
+            the links the assembly gives).
     """
-    if os.environ.get("MSCTL_SECURE") == "1":
-        return ["router", "--secure"]
-    argv = ["router", "--listen", listen_endpoint_for(connect_endpoint)]
-    for extra in filter(None, os.environ.get("MSCTL_ROUTER_LISTEN", "").split(",")):
-        argv += ["--listen", extra.strip()]
-    return argv
+
+    endpoint: str
+    host: str
+    whole_assembly: bool | None = None
+    secure: bool = False
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+
+    @classmethod
+    def from_env(
+        cls,
+        endpoint: str,
+        host: str | None = None,
+        whole_assembly: bool | None = None,
+        environ: Mapping[str, str] | None = None,
+    ) -> EmbeddedRouter:
+        """The router for ``endpoint`` as the environment sets it up (see the attributes)."""
+        from msctl.launcher.plan import this_host
+
+        env = os.environ if environ is None else environ
+        return cls(
+            endpoint,
+            host or this_host(),
+            whole_assembly,
+            env.get("MSCTL_SECURE") == "1",
+            _env_endpoints("MSCTL_ROUTER_LISTEN", env),
+            _env_endpoints("MSCTL_ROUTER_CONNECT", env),
+        )
+
+    def plain_listen(self) -> list[str]:
+        """A plain router's listeners: loopback where ``endpoint`` reaches it, and each of
+        ``MSCTL_ROUTER_LISTEN``. One of those that covers the loopback one (the same port on
+        a wildcard address, ``tcp/0.0.0.0:7447``) replaces it: one process cannot bind both,
+        and the wildcard takes loopback connections too."""
+        from msctl.net.endpoints import covers
+
+        local = listen_endpoint_for(self.endpoint)
+        extra = list(dict.fromkeys(self.listen))
+        if local in extra or any(covers(e, local) for e in extra):
+            return extra
+        return [local, *extra]
+
+    def argv(self) -> list[str]:
+        """``msctl router``'s arguments."""
+        if self.secure:
+            argv = ["router", "--secure", "--host", self.host]
+            if self.whole_assembly is not None:
+                argv.append("--whole-assembly" if self.whole_assembly else "--own-part")
+        else:
+            argv = ["router"]
+            for endpoint in self.plain_listen():
+                argv += ["--listen", endpoint]
+        for endpoint in self.listen if self.secure else ():
+            argv += ["--listen", endpoint]
+        for endpoint in self.connect:
+            argv += ["--connect", endpoint]
+        return argv
+
+    def not_applied(self) -> str:
+        """What the operator asked of this router that a router already answering on
+        ``endpoint`` (used as it is) does not do, as a warning line, or ``""``."""
+        asked = [
+            name
+            for name, given in (
+                ("MSCTL_SECURE", self.secure),
+                ("MSCTL_ROUTER_LISTEN", self.listen),
+                ("MSCTL_ROUTER_CONNECT", self.connect),
+            )
+            if given
+        ]
+        if not asked:
+            return ""
+        return (
+            f"warning: a router already answers on {self.endpoint} and is used as it is: "
+            f"{', '.join(asked)} apply only to a router msctl starts; stop that one first "
+            "(`msctl down`, or the agent or router holding it) to have them"
+        )
+
+    def check(self) -> list[str]:
+        """What would make the router fail at once, raised now; what to warn of, returned.
+
+        Runs in the process that starts the router, so a setting that cannot work fails in
+        well under a second with its one line (the endpoint or identity, and the fix), and
+        a detached ``msctl up`` says it before it detaches. The secure config is generated
+        here as the router will generate it (an identity is made for a computer running the
+        whole assembly, once).
+
+        Returns:
+            Lines for the operator: a plain router open beyond this computer, an identity
+            made.
+
+        Raises:
+            RouterStartError: Naming the endpoint, file or host at fault, and the fix.
+        """
+        from components.assembly import AssemblyError
+        from msctl.commands.router import plain_exposure
+        from msctl.net import config as netconfig
+        from msctl.net import endpoints, pki
+
+        notes: list[str] = []
+        listen: list[tuple[str, str]]  # (endpoint, the setting it comes from)
+        try:
+            if self.secure:
+                path, notes = netconfig.this_computer_router(
+                    self.host,
+                    self.whole_assembly,
+                    listen=self.listen,
+                    connect=self.connect or None,
+                )
+                document = json.loads(path.read_text())
+                listen = [
+                    (e, "MSCTL_ZENOH_CONNECT" if e.startswith("tcp/") else "MSCTL_NET_TLS_PORT")
+                    for e in document["listen"]["endpoints"]
+                ]
+            else:
+                for text in self.connect:
+                    endpoints.parse(text)
+                local = listen_endpoint_for(self.endpoint)
+                listen = [
+                    (e, "MSCTL_ZENOH_CONNECT" if e == local else "MSCTL_ROUTER_LISTEN")
+                    for e in self.plain_listen()
+                ]
+                warning = plain_exposure(self.plain_listen(), self.connect)
+                if warning:
+                    notes.append(f"warning: {warning}")
+            for text, setting in listen:
+                endpoints.check_listen(text, setting)
+        except endpoints.EndpointError as exc:
+            raise RouterStartError(f"this computer's router: {exc}") from None
+        except (AssemblyError, netconfig.NetConfigError, pki.PkiError) as exc:
+            raise RouterStartError(f"this computer's secure router (--secure): {exc}") from None
+        return notes
 
 
-def start_router(supervisor: Supervisor, endpoint: str) -> ManagedProcess:
-    """Start an embedded router (``msctl router``) as a supervised process for ``endpoint``."""
-    router = supervisor.add(ROUTER_PROCESS, boot.argv("msctl", *router_argv(endpoint)))
+def router_argv(connect_endpoint: str) -> list[str]:
+    """``msctl router``'s arguments for the embedded router, as the environment sets it up
+    (see :class:`EmbeddedRouter`)."""
+    return EmbeddedRouter.from_env(connect_endpoint).argv()
+
+
+def start_router(
+    supervisor: Supervisor,
+    endpoint: str | EmbeddedRouter,
+    say: Callable[[str], None] | None = None,
+) -> ManagedProcess:
+    """Start an embedded router (``msctl router``) as a supervised process.
+
+    Its settings are checked first (:meth:`EmbeddedRouter.check`): one that cannot work
+    raises here, and one that fails the router anyway later makes it FAILED at once
+    (:data:`ROUTER_FINAL_EXITS`), not restarted.
+
+    Args:
+        supervisor: Who supervises it.
+        endpoint: The router, or where this computer's sessions reach it (its settings then
+            come from the environment).
+        say: Where the check's warnings go (a plain router open beyond this computer).
+
+    Raises:
+        RouterStartError: A setting that cannot work (named, with the fix).
+    """
+    router = endpoint if isinstance(endpoint, EmbeddedRouter) else EmbeddedRouter.from_env(endpoint)
+    for line in router.check():
+        if say is not None:
+            say(line)
+    process = supervisor.add(
+        ROUTER_PROCESS,
+        boot.argv("msctl", *router.argv()),
+        final_exits=ROUTER_FINAL_EXITS,
+    )
     # Stopped while it still starts, it ends quietly (msctl.launcher.boot).
     with boot.held_sigint():
-        supervisor.start(router.name)
-    return router
+        supervisor.start(process.name)
+    return process
+
+
+def router_error_line(router: ManagedProcess) -> str:
+    """The router's own last error line, whole (``last_error`` keeps only its tail)."""
+    for line in reversed(list(router.log.tail)):
+        text = line.strip()
+        if text.startswith("error:"):
+            return text.removeprefix("error:").strip()
+    return router.last_error or "no answer"
 
 
 def wait_for_router(
@@ -159,6 +353,9 @@ def wait_for_router(
             return False
         with boot.held_sigint():  # it may restart the router
             supervisor.poll()
+        if router.state is ProcessState.FAILED and router.restarts == 0:
+            # It said why in one line, and a restart would say it again.
+            raise RouterStartError(f"the embedded router cannot start: {router_error_line(router)}")
         if router.state is ProcessState.FAILED or time.monotonic() > deadline:
             raise RuntimeError(
                 f"the embedded router could not listen on {endpoint}: "
@@ -263,8 +460,22 @@ class Launch:
         if self._stop:
             return
         self._start_forkserver()
-        if self.endpoint and not router_reachable(self.endpoint):
-            router = start_router(self.supervisor, self.endpoint)
+        reached = bool(self.endpoint) and router_reachable(self.endpoint)
+        if reached and self.serve_control:
+            # An agent's run uses the agent's router, which was started as asked.
+            note = EmbeddedRouter.from_env(self.endpoint, self.plan.host).not_applied()
+            if note:
+                self.events.append(note)
+        if self.endpoint and not reached:
+            # An agent's run (no control of its own) has the agent's router, which serves the
+            # host's own part: a router started here for it must too. A run of its own
+            # off-robot runs the whole assembly, and its router's access control says so.
+            embedded = EmbeddedRouter.from_env(
+                self.endpoint,
+                self.plan.host,
+                whole_assembly=self.plan.off_robot and self.serve_control,
+            )
+            router = start_router(self.supervisor, embedded, say=self.events.append)
             self.started_router = True
         # No scouting delay: Zenoh's default (0.5 s) waits in open for peers the launcher
         # does not need before its router.

@@ -28,7 +28,7 @@ deny each guarded key to every subject not allowed to write it.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -162,6 +162,33 @@ def guarded_inputs(assembly: ResolvedAssembly) -> list[GuardedInput]:
         else:
             guarded.append(GuardedInput(topic, frozenset(writers or {host}), why="its publishers"))
     return guarded
+
+
+def placed(guarded: list[GuardedInput], placement: Mapping[str, str]) -> list[GuardedInput]:
+    """The same inputs, each writer computer replaced by the one that actually runs its part.
+
+    Args:
+        guarded: Inputs with writers where the template places the components.
+        placement: Template computer -> the computer that runs its part (``msctl up``
+            off-robot: every one of them -> this computer).
+    """
+    return [
+        GuardedInput(
+            g.topic, frozenset(placement.get(h, h) for h in g.hosts), g.operators, g.stations, g.why
+        )
+        for g in guarded
+    ]
+
+
+def placed_principals(fleet: FleetPrincipals, placement: Mapping[str, str]) -> FleetPrincipals:
+    """The computers of ``fleet`` where ``placement`` runs them: a computer that runs robot
+    parts is a robot computer, and a station is left a station only if it runs no robot part
+    (its ACL then follows the robot rules: its own components write the modules' inputs)."""
+    robots = list(dict.fromkeys(placement.get(h, h) for h in fleet.robots))
+    stations = [
+        s for s in dict.fromkeys(placement.get(h, h) for h in fleet.stations) if s not in robots
+    ]
+    return FleetPrincipals(robots, stations, list(fleet.operators), list(fleet.enclaves))
 
 
 def _qualify(name: str, base: str) -> str:

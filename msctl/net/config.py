@@ -11,12 +11,15 @@ scouting is off everywhere.
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from components.assembly import ResolvedAssembly
 from msctl.net import acl, pki
+from msctl.net.endpoints import EndpointError, parse
 
 #: Where a router takes its own computer's components (rmw_zenohd's port, loopback only).
 LOCAL_PORT = 7447
@@ -63,10 +66,14 @@ def tls_block(identity: pki.Identity, home: Path | None) -> dict[str, Any]:
     """``transport/link/tls`` for an identity: the same key serves listening and connecting."""
     for path in (identity.cert, identity.key):
         if not path.is_file():
-            raise NetConfigError(
-                f"identity {identity.common_name!r} has no {path.name} at {path}: run "
-                f"`msctl net init` (hosts) or `msctl net add-operator NAME` (operators)"
+            name = identity.common_name
+            fix = (
+                f"run `msctl net add-operator {name.removeprefix(pki.OPERATOR_PREFIX)}`"
+                if identity.role == "operator"
+                else f"run `msctl net init --host {name}` where the fleet CA is, then copy "
+                "MSCTL_HOME/net to this computer"
             )
+            raise NetConfigError(f"identity {name!r} has no {path.name} at {path}: {fix}")
     return {
         "root_ca_certificate": str(pki.ca_cert(home)),
         "listen_private_key": str(identity.key),
@@ -96,25 +103,34 @@ def router_config(
     ports: Ports | None = None,
     domain: int = 0,
     off_robot: bool = False,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """The Zenoh config of ``host``'s router.
 
-    ``off_robot``: ``host`` runs the whole assembly simulated (``msctl up`` off-robot), so
-    its own components write every module's inputs.
+    Args:
+        assembly: The resolved assembly.
+        host: The computer whose router it is.
+        home: MSCTL_HOME (default: the environment's).
+        ports: Ports and addresses (tests move them).
+        domain: ROS domain.
+        off_robot: ``host`` runs the whole assembly (``msctl up`` off-robot, simulated): its
+            own components write every module's inputs, whichever computer the template
+            places them on, and it links to no other router.
+        listen: TLS endpoints to listen on in place of ``tls/0.0.0.0:<TLS port>``
+            (``MSCTL_ROUTER_LISTEN``, e.g. one interface only).
+        connect: TLS endpoints to link to in place of the links the topology gives
+            (``MSCTL_ROUTER_CONNECT``, e.g. addresses where host names do not resolve).
 
     Raises:
-        NetConfigError: If ``host`` is not in the assembly, or has no identity.
+        NetConfigError: If ``host`` is not in the assembly (and does not run all of it), has
+            no identity, or an endpoint given is not TLS.
     """
-    if off_robot:
-        # One computer runs every module (simulated): it is every module's own computer.
-        assembly_guarded = [
-            acl.GuardedInput(g.topic, frozenset({host}), g.operators, g.stations, g.why)
-            for g in acl.guarded_inputs(assembly)
-        ]
-    elif host not in assembly.hosts:
+    if not off_robot and host not in assembly.hosts:
         raise NetConfigError(
             f"host {host!r} runs nothing in assembly {assembly.template!r} "
-            f"(its hosts: {', '.join(assembly.hosts)})"
+            f"(its hosts: {', '.join(assembly.hosts)}): set MSCTL_HOST to one of them, or "
+            "run the whole assembly here with `msctl up`"
         )
     ports = ports or Ports()
     revoked = pki.revoked_names(home)
@@ -122,30 +138,139 @@ def router_config(
     operators = [cn for cn in names if pki.role_of(cn) == "operator"]
     enclaves = [cn for cn in names if pki.role_of(cn) == "ros enclave"]
     fleet = acl.principals(assembly, operators, enclaves)
+    guarded = acl.guarded_inputs(assembly)
     if off_robot:
-        fleet.robots = [host]
-    if not off_robot:
-        assembly_guarded = acl.guarded_inputs(assembly)
+        # Access control follows where the components run, not where the template puts
+        # them: here, every computer's part runs on this one, so it is every module's own
+        # computer (the station's too, when this computer is named as the station).
+        placement = {other: host for other in assembly.hosts}
+        guarded = acl.placed(guarded, placement)
+        fleet = acl.placed_principals(fleet, placement)
     identity = pki.read_identity(host, home)
-    # Off-robot the whole assembly is simulated here: linking to the real robots' routers
-    # would mix simulated and real data on the same topics.
-    linked = [] if off_robot else links(assembly, host)
+    tls_listen = list(_tls_only(listen, "MSCTL_ROUTER_LISTEN")) or [
+        f"tls/0.0.0.0:{ports.tls_port(host)}"
+    ]
+    if connect is not None:
+        linked = list(_tls_only(connect, "MSCTL_ROUTER_CONNECT"))
+    elif off_robot:
+        # Off-robot the whole assembly is simulated here: linking to the real robots'
+        # routers would mix simulated and real data on the same topics.
+        linked = []
+    else:
+        linked = [f"tls/{ports.address(o)}:{ports.tls_port(o)}" for o in links(assembly, host)]
     return {
         "mode": "router",
-        "listen": {
-            "endpoints": [
-                f"tcp/127.0.0.1:{ports.local_port(host)}",
-                f"tls/0.0.0.0:{ports.tls_port(host)}",
-            ]
-        },
-        "connect": {
-            "endpoints": [f"tls/{ports.address(other)}:{ports.tls_port(other)}" for other in linked]
-        },
+        "listen": {"endpoints": [f"tcp/127.0.0.1:{ports.local_port(host)}", *tls_listen]},
+        "connect": {"endpoints": linked},
         "scouting": {"multicast": {"enabled": False}, "delay": 0},
         "timestamping": {"enabled": True},
         "transport": {"link": {"tls": tls_block(identity, home)}},
-        "access_control": acl.router_acl(host, fleet, assembly_guarded, domain),
+        "access_control": acl.router_acl(host, fleet, guarded, domain),
     }
+
+
+def _tls_only(endpoints: Sequence[str], setting: str) -> list[str]:
+    """``endpoints`` if each is TLS; a plain one beside a secure router would let anyone in.
+
+    The access control takes every plain TCP link as this computer's own components (subject
+    ``local``): a plain listener beyond loopback would give the network their rights.
+
+    Raises:
+        NetConfigError: Naming the endpoint and the setting.
+    """
+    for text in endpoints:
+        try:
+            endpoint = parse(text)
+        except EndpointError as exc:
+            raise NetConfigError(f"{setting}: {exc}") from None
+        if endpoint.protocol != "tls":
+            raise NetConfigError(
+                f"{setting}={text}: a secure router takes other computers over mutual TLS "
+                f"only; write it as tls/{text.partition('/')[2] or 'HOST:7448'}, or drop "
+                "--secure (MSCTL_SECURE) for a plain TCP network you trust"
+            )
+    return list(endpoints)
+
+
+def ports_from_env(environ: Mapping[str, str] | None = None) -> Ports:
+    """This computer's router ports: loopback where its sessions connect
+    (``MSCTL_ZENOH_CONNECT``, default 7447), TLS from ``MSCTL_NET_TLS_PORT`` (default 7448).
+
+    Raises:
+        NetConfigError: If ``MSCTL_NET_TLS_PORT`` is not a port number.
+    """
+    env = os.environ if environ is None else environ
+    local = LOCAL_PORT
+    for text in filter(None, (e.strip() for e in env.get("MSCTL_ZENOH_CONNECT", "").split(","))):
+        endpoint = parse(text)
+        if endpoint.protocol == "tcp" and endpoint.loopback and endpoint.port:
+            local = endpoint.port
+            break
+    value = env.get("MSCTL_NET_TLS_PORT") or str(TLS_PORT)
+    if not value.isdigit() or not 0 < int(value) < 65536:
+        raise NetConfigError(f"MSCTL_NET_TLS_PORT={value!r} is not a port number (1-65535)")
+    return Ports(local=local, tls=int(value))
+
+
+def this_computer_router(
+    host: str,
+    off_robot: bool | None = None,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] | None = None,
+    home: Path | None = None,
+    ports: Ports | None = None,
+) -> tuple[Path, list[str]]:
+    """Write the config of this computer's secure router under ``MSCTL_HOME/net``.
+
+    Args:
+        host: This computer (``MSCTL_HOST`` or the hostname).
+        off_robot: It runs the whole assembly (``msctl up`` off-robot); ``None``: when it is
+            none of the assembly's computers (a standalone ``msctl router --secure``, an agent).
+        listen: TLS endpoints in place of the generated TLS listener.
+        connect: TLS endpoints in place of the generated links.
+        home: MSCTL_HOME (default: the environment's).
+        ports: Ports (default: :func:`ports_from_env`).
+
+    Off-robot, a computer the fleet has no identity for gets one from the fleet CA here: a
+    laptop that simulates the assembly is no computer ``msctl net init`` was told about.
+
+    Returns:
+        The config file, and lines worth telling the operator (an identity made).
+
+    Raises:
+        NetConfigError: No fleet CA, a host with no part and no identity, a non-TLS endpoint.
+        components.assembly.AssemblyError: No resolved assembly.
+    """
+    from components.assembly import load_assembly
+
+    if not pki.initialised(home):
+        raise NetConfigError(
+            f"the fleet has no certificate authority in {pki.net_dir(home)}: run "
+            "`msctl net init` (then copy MSCTL_HOME/net to every computer)"
+        )
+    assembly = load_assembly()
+    if off_robot is None:
+        off_robot = host not in assembly.hosts
+    notes = []
+    identity = pki.read_identity(pki.check_name(host, "this computer's name (MSCTL_HOST)"), home)
+    if off_robot and not identity.cert.is_file():
+        pki.issue(host, home=home)
+        notes.append(
+            f"made an identity for {host} (this computer, running the whole assembly) with "
+            f"the fleet CA in {pki.net_dir(home)}"
+        )
+    document = router_config(
+        assembly,
+        host,
+        home=home,
+        ports=ports or ports_from_env(),
+        off_robot=off_robot,
+        listen=listen,
+        connect=connect,
+    )
+    target = pki.net_dir(home) / f"router-{host}.json5"
+    target.write_text(dumps(document))
+    return target, notes
 
 
 def component_config(host: str, ports: Ports | None = None) -> dict[str, Any]:
