@@ -317,9 +317,14 @@ def test_set_profile_keeps_counters_and_applies_the_new_figures() -> None:
     assert direction.outage(10.7) is not None  # a scripted outage outlives a profile change
     assert direction.offer(100, 12.0) is None
     assert direction.dropped["loss"] == 1
-    direction.set_profile(DirectionProfile(), 13.0)
-    assert direction.offer(100, 13.0) == 13.0
-    assert direction.mean_delay == pytest.approx(100 * 0.05 / 101)
+    # The applied figures start again with each profile, the counters do not.
+    assert direction.loss_fraction == 1.0
+    direction.set_profile(DirectionProfile(delay_ms=20), 13.0)
+    assert direction.loss_fraction == 0.0 and direction.mean_delay == 0.0
+    assert direction.offer(100, 13.0) == pytest.approx(13.02)
+    assert direction.mean_delay == pytest.approx(0.02)
+    assert direction.delivered == 101 and direction.delayed == 101
+    assert direction.status(14.0)["applied"]["for_s"] == pytest.approx(1.0)
 
 
 def test_status_is_json_and_compares_asked_with_applied() -> None:

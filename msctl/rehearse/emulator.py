@@ -835,7 +835,7 @@ class _Emulator:
 
 def _outage(host: _Host, now: float) -> dict[str, Any] | None:
     outage = host.link.up.outage(now)
-    return None if outage is None else outage.as_dict()
+    return None if outage is None else outage.as_dict(now)
 
 
 def serve(spec: Spec) -> None:

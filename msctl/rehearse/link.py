@@ -297,13 +297,34 @@ class Outage:
     until: float | None
     cause: str
 
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-ready."""
-        return {"since": self.since, "until": self.until, "cause": self.cause}
+    def as_dict(self, now: float | None = None) -> dict[str, Any]:
+        """JSON-ready; with ``now``, also how long it has lasted and how long is left."""
+        out: dict[str, Any] = {"since": self.since, "until": self.until, "cause": self.cause}
+        if now is not None:
+            out["down_for_s"] = now - self.since
+            out["left_s"] = None if self.until is None else max(0.0, self.until - now)
+        return out
+
+
+@dataclass(slots=True)
+class _Applied:
+    """What a direction did since its profile was set: the figures to compare with it."""
+
+    since: float
+    reached: int = 0  # packets that reached the loss stage (offered while up)
+    lost: int = 0
+    bursts: int = 0
+    delivered: int = 0
+    delay_sum: float = 0.0
+    delay_max: float = 0.0
 
 
 class LinkDirection:
     """One direction of a link: offered packets, when they leave or why they are dropped.
+
+    The counters run from the start; the applied figures (:attr:`mean_delay`,
+    :attr:`loss_fraction`, :attr:`mean_burst`) cover the packets offered since the profile
+    in force was set, so that they compare with what it asks.
 
     Attributes:
         profile: The profile in force.
@@ -345,9 +366,7 @@ class LinkDirection:
         self.delivered_bytes = 0
         self.dropped = dict.fromkeys(DROP_REASONS, 0)
         self.delayed = 0
-        self._delay_sum = 0.0
-        self._delay_max = 0.0
-        self._bursts = 0
+        self._applied = _Applied(since=now)
         self._in_burst = False
         self._last_leave = -math.inf
         # Scripted outage: [since, until or None] while down.
@@ -372,6 +391,8 @@ class LinkDirection:
         """
         now = self._tick(now)
         self._apply(profile, now, keep_state=True)
+        self._applied = _Applied(since=now)
+        self._in_burst = False
 
     def _apply(self, profile: DirectionProfile, now: float, keep_state: bool) -> None:
         old_rate = self.profile.rate_kbit if keep_state else None
@@ -485,11 +506,14 @@ class LinkDirection:
         if self._scripted is not None or self._random_down:
             self.dropped["outage"] += 1
             return None
+        applied = self._applied
+        applied.reached += 1
         if self._lose():
             self.dropped["loss"] += 1
+            applied.lost += 1
             if not self._in_burst:
                 self._in_burst = True
-                self._bursts += 1
+                applied.bursts += 1
             return None
         self._in_burst = False
         leave = now
@@ -516,12 +540,13 @@ class LinkDirection:
         self._last_leave = leave
         self.delivered += 1
         self.delivered_bytes += size_bytes
+        applied.delivered += 1
         added = leave - now
         if added > 0:
             self.delayed += 1
-            self._delay_sum += added
-            if added > self._delay_max:
-                self._delay_max = added
+            applied.delay_sum += added
+            if added > applied.delay_max:
+                applied.delay_max = added
         return leave
 
     def _lose(self) -> bool:
@@ -541,7 +566,8 @@ class LinkDirection:
         """Count a packet this direction let through as dropped after all.
 
         For the emulator, when the receiving device refuses a packet the link delivered
-        (its queue is full): the counters then say what the receiver saw.
+        (its queue is full): the counters then say what the receiver saw. The applied
+        figures, which describe the link's own decisions, are not changed.
 
         Args:
             size_bytes: The packet's size.
@@ -564,19 +590,24 @@ class LinkDirection:
 
     @property
     def mean_delay(self) -> float:
-        """Mean delay added to the packets let through, seconds (0 before any)."""
-        return self._delay_sum / self.delivered if self.delivered else 0.0
+        """Mean delay added to the packets let through since the profile was set, seconds
+        (0 before any)."""
+        applied = self._applied
+        return applied.delay_sum / applied.delivered if applied.delivered else 0.0
 
     @property
     def loss_fraction(self) -> float:
-        """Packets lost (``loss``) over the packets that reached the loss stage (0 before any)."""
-        reached = self.packets - self.dropped["outage"]
-        return self.dropped["loss"] / reached if reached else 0.0
+        """Packets lost (``loss``) over the packets that reached the loss stage (offered
+        while up) since the profile was set (0 before any)."""
+        applied = self._applied
+        return applied.lost / applied.reached if applied.reached else 0.0
 
     @property
     def mean_burst(self) -> float:
-        """Mean length of a run of consecutive ``loss`` drops, packets (0 before any)."""
-        return self.dropped["loss"] / self._bursts if self._bursts else 0.0
+        """Mean length of a run of consecutive ``loss`` drops since the profile was set,
+        packets (0 before any)."""
+        applied = self._applied
+        return applied.lost / applied.bursts if applied.bursts else 0.0
 
     def status(self, now: float) -> dict[str, Any]:
         """The counters, the figures asked and the figures applied, JSON-ready."""
@@ -589,11 +620,14 @@ class LinkDirection:
             "dropped": dict(self.dropped),
             "delayed": self.delayed,
             "queued_bytes": self.queued_bytes(now),
-            "outage": None if outage is None else outage.as_dict(),
+            "outage": None if outage is None else outage.as_dict(now),
             "asked": self.profile.asked(),
             "applied": {
+                "for_s": now - self._applied.since,
+                "packets": self._applied.reached,
+                "delivered": self._applied.delivered,
                 "mean_delay_ms": self.mean_delay * 1000.0,
-                "max_delay_ms": self._delay_max * 1000.0,
+                "max_delay_ms": self._applied.delay_max * 1000.0,
                 "loss_fraction": self.loss_fraction,
                 "mean_burst": self.mean_burst,
             },
