@@ -11,55 +11,146 @@ from __future__ import annotations
 import sys
 
 
-def show_ps(json_output: bool = False, timeout: float = 5.0) -> None:
-    """Print every component on every reachable host (and this computer's from its state
-    file): a table, or one JSON document.
+def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = False) -> None:
+    """Print every component on every host that answers (and this computer's from its state
+    file): a table, or one JSON document; then fail if a host that was asked did not answer.
+
+    The hosts asked: every supervisor the graph shows, and with ``all_hosts`` every host of
+    the resolved assembly's plan as well. A host that should have answered and did not is a
+    row ``unreachable`` (or ``refused``) in the table and an entry of the document's
+    ``unreachable`` list, with why. A plan host that was not asked (no ``all_hosts``, and no
+    supervisor of it on the graph) is named on stderr and in that list with ``asked``
+    false, and does not fail the command: plain ``ps`` lists what the graph shows.
 
     Args:
         json_output: Print one JSON document instead of a table.
         timeout: Seconds to wait for the hosts (asked at once).
+        all_hosts: Ask every host of the plan, even those the graph does not show.
+
+    Raises:
+        MsctlError: Exit status 1, naming every host that was asked and did not answer and
+            what to check, after the listing is printed.
     """
     from msctl.console import print_json
-    from msctl.launcher.fleet import fleet_state
+    from msctl.launcher.fleet import NO_NETWORK, REFUSED, describe, fleet_state
 
-    documents, notes = fleet_state(timeout)
+    fleet = fleet_state(timeout, every_host=all_hosts)
+    documents = fleet.documents
     # A supervisor that cannot write its logs or state file (a full disk) says so here.
-    notes = [*notes, *(f"{d['host']}: {fault}" for d in documents for fault in d.get("faults", []))]
+    notes = [
+        *fleet.notes,
+        *(f"{d['host']}: {fault}" for d in documents for fault in d.get("faults", [])),
+    ]
     rows = [
         {**c, "host": d["host"], "template": d.get("template")}
         for d in documents
         for c in d.get("components", [])
     ]
+    failed = [s for s in fleet.silent if s.asked]
+    not_asked = [s for s in fleet.silent if not s.asked]
     if json_output:
-        print_json({"components": rows, "hosts": [d["host"] for d in documents], "notes": notes})
-        return
-    if notes:
-        from msctl.console import err
-
+        print_json(
+            {
+                "components": rows,
+                "hosts": [d["host"] for d in documents],
+                "unreachable": [s._asdict() for s in fleet.silent],
+                "notes": notes,
+            }
+        )
+    else:
         for note in notes:
-            err.print(f"[yellow]{note}[/]", highlight=False)
-    if not rows:
-        sys.stderr.write("nothing is running (start with `msctl up dragon`)\n")
-        return
-    from msctl.console import print_table
+            _warn(note)
+        if rows or failed:
+            from msctl.console import print_table
 
-    colours = {"running": "green", "failed": "red", "unresponsive": "red", "restarting": "yellow"}
-    print_table(
-        ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"),
-        [
-            [
-                (r["name"], ""),
-                (r["kind"], ""),
-                (r["host"], ""),
-                (r["state"], colours.get(r["state"], "")),
-                (str(r["pid"] or "-"), ""),
-                (f"{r['uptime']:.0f}s", ""),
-                (str(r["restarts"]), ""),
-                (r["last_error"] or "", ""),
-            ]
-            for r in rows
-        ],
-    )
+            colours = {
+                "running": "green",
+                "failed": "red",
+                "unresponsive": "red",
+                "restarting": "yellow",
+            }
+            print_table(
+                ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"),
+                [
+                    [
+                        (r["name"], ""),
+                        (r["kind"], ""),
+                        (r["host"], ""),
+                        (r["state"], colours.get(r["state"], "")),
+                        (str(r["pid"] or "-"), ""),
+                        (f"{r['uptime']:.0f}s", ""),
+                        (str(r["restarts"]), ""),
+                        (r["last_error"] or "", ""),
+                    ]
+                    for r in rows
+                ]
+                + [
+                    [
+                        ("-", ""),
+                        ("-", ""),
+                        (s.host, ""),
+                        ("refused" if s.why == REFUSED else "unreachable", "red"),
+                        ("-", ""),
+                        ("-", ""),
+                        ("-", ""),
+                        (s.detail, ""),
+                    ]
+                    for s in failed
+                ],
+            )
+            idle = [d["host"] for d in documents if not d.get("components")]
+            if all_hosts and idle:
+                # Every host of the plan is accounted for: those that answered with nothing
+                # to list too.
+                _warn(f"answered, running nothing: {', '.join(idle)}")
+        else:
+            sys.stderr.write("nothing is running (start with `msctl up dragon`)\n")
+    if not_asked:
+        # Said in both forms: a JSON reader has the list, a person at a terminal this line.
+        template = fleet.plan.template if fleet.plan else "the assembly"
+        how = "no router" if not_asked[0].why == NO_NETWORK else "not on the graph"
+        _warn(
+            f"not asked ({how}): {', '.join(s.host for s in not_asked)}, host(s) of "
+            f"{template}'s plan: their components are not listed (`msctl ps --all` asks each)"
+        )
+    if failed:
+        from msctl.errors import MsctlError
+
+        raise MsctlError(
+            f"{len(failed)} host(s) did not answer: {describe(failed)}",
+            hint=_what_to_check(failed),
+        )
+
+
+def _what_to_check(silent: list) -> str:
+    """What an operator checks for hosts that did not answer, by why."""
+    from msctl.launcher.fleet import NO_ANSWER, NO_NETWORK, NO_SUPERVISOR
+
+    whys = {s.why for s in silent}
+    checks = []
+    if NO_NETWORK in whys:
+        checks.append("start this computer's router (`msctl router` or `msctl agent`)")
+    if NO_SUPERVISOR in whys:
+        checks.append(
+            "check that `msctl agent` runs on each (`systemctl status msctl-agent`) and that "
+            "its router links to this one (`msctl doctor --all`)"
+        )
+    if NO_ANSWER in whys:
+        checks.append("a loaded computer or a lossy link answers late: try a longer --timeout")
+    if len(checks) < len(whys):  # refused: the reason is in the message
+        checks.append("see each one's reason")
+    return "; ".join(checks)
+
+
+def _warn(text: str) -> None:
+    """One human line on stderr, yellow on a terminal: written as it is, without rich (70 ms
+    to import, and a note such as ``[Errno 111]`` is not markup)."""
+    import os
+
+    if sys.stderr.isatty() and not os.environ.get("NO_COLOR"):
+        text = f"\x1b[33m{text}\x1b[0m"
+    sys.stderr.write(text + "\n")
+    sys.stderr.flush()
 
 
 def show_topics(show_types: bool = False, verbose: bool = False, json_output: bool = False) -> None:

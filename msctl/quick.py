@@ -79,7 +79,7 @@ COMMANDS: tuple[QuickCommand, ...] = (
     QuickCommand(
         ("ps",),
         "msctl.listings:show_ps",
-        flags={"--json": "json_output"},
+        flags={"--json": "json_output", "--all": "all_hosts"},
         numbers={"--timeout": "timeout"},
     ),
     QuickCommand(

@@ -418,9 +418,14 @@ def test_unreachable_agent_is_named_and_the_others_start(
     assert agents.stop("gl-pi-01") == 0, agents.logs()
     assert [p for p in limb_groups if process_group_alive(p)] == []
 
+    # `down --all` stops what it reaches, and names every host of the plan it could not ask
+    # (their agents are gone: nothing says their processes are), exit status 1.
     wheel_groups = {r["pid"] for r in rows["hl-wheel-01"].values()}
     down = msctl(ground_home, net_env, "down", "--all")
-    assert down.returncode == 0, down.stderr
+    assert down.returncode == 1, down.stderr
+    said = " ".join(down.stderr.split())
+    assert "2 host(s) did not stop: gl-pi-01, hl-wheel-02 (no supervisor on the graph)" in said
+    assert "stopped: hl-wheel-01, ground1" in said or "stopped: ground1, hl-wheel-01" in said
     assert [p for p in wheel_groups if process_group_alive(p)] == []
 
 

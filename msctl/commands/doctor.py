@@ -11,7 +11,11 @@ COMMAND_SETTINGS = {
 
 def command(
     all_hosts: bool = typer.Option(
-        False, "--all", help="Every host, through its supervisor or agent, and compare them."
+        False,
+        "--all",
+        help="Every host, through its supervisor or agent, and compare them: every supervisor "
+        "on the graph and every host of the resolved assembly's plan; one that does not answer "
+        "is an ERROR (exit 1) naming it.",
     ),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON document."),
     clock_timeout: float = typer.Option(
@@ -41,6 +45,8 @@ def command(
                     host, "router", doctor.ERROR, f"{exc}: run `msctl up` or `msctl router`"
                 )
             )
+            if all_hosts:
+                findings += _unasked(host)
         else:
             try:
                 findings += doctor.this_computer(
@@ -67,19 +73,54 @@ def command(
 
 
 def _other_hosts(session: object, domain: int, here: str, timeout: float) -> list:
-    """Every other host's findings, asked of its supervisor or agent."""
+    """Every other host's findings, asked of its supervisor or agent: every supervisor on
+    the graph and every host of the resolved assembly's plan. A host that did not answer is
+    an ERROR naming it, why, and what to check."""
     from components.comm.node import Node
-    from msctl.launcher.fleet import ask_all
+    from msctl.launcher.fleet import (
+        NO_ANSWER,
+        NO_SUPERVISOR,
+        ask_hosts,
+        hosts_to_ask,
+        read_plan,
+        supervisors,
+    )
     from msctl.net import doctor
 
+    checks = {
+        NO_SUPERVISOR: "start `msctl agent` there (`systemctl status msctl-agent`) and check its "
+        "router links to this one",
+        NO_ANSWER: "a loaded computer or a lossy link answers late: try a longer --clock-timeout",
+    }
     node = Node(session, f"msctl_doctor_{id(session)}", "/", domain=domain)
     found = []
     try:
-        for namespace, answer in ask_all(node, "doctor", timeout=timeout + 10.0).items():
-            if "error" in answer:
-                found.append(doctor.Finding(namespace, "reachable", doctor.ERROR, answer["error"]))
-            elif answer.get("host") != here:
+        supervisors_now = supervisors(node)
+        # This computer is checked directly (above), whether or not it runs a supervisor.
+        hosts = [h for h in hosts_to_ask(node, read_plan(), supervisors_now) if h != here]
+        asked = ask_hosts(node, "doctor", hosts, None, timeout + 10.0, supervisors_now)
+        for answer in asked.answers.values():
+            if answer.get("host") != here:
                 found += [doctor.Finding(**f) for f in answer.get("findings", [])]
+        for silence in asked.silent.values():
+            detail = silence.detail
+            if silence.why in checks:
+                detail += f": {checks[silence.why]}"
+            found.append(doctor.Finding(silence.host, "reachable", doctor.ERROR, detail))
     finally:
         node.close()
     return found
+
+
+def _unasked(here: str) -> list:
+    """An ERROR for each other host of the plan, none of which could be asked (no router)."""
+    from msctl.launcher.fleet import expected_hosts, read_plan
+    from msctl.launcher.state import read_state
+    from msctl.net import doctor
+
+    local = read_state()
+    return [
+        doctor.Finding(h, "reachable", doctor.ERROR, "not asked: no router here to ask through")
+        for h in expected_hosts(read_plan(), [local] if local else [])
+        if h != here
+    ]

@@ -17,7 +17,13 @@ COMMAND_SETTINGS = {"help": "Stop every component (verified gone); --all for eve
 
 
 def command(
-    all_hosts: bool = typer.Option(False, "--all", help="Also stop every agent's run."),
+    all_hosts: bool = typer.Option(
+        False,
+        "--all",
+        help="Also stop every agent's run: every supervisor on the graph and every host of the "
+        "resolved assembly's plan; exit 1 naming each that did not stop (no supervisor on the "
+        "graph, no answer, refused).",
+    ),
     timeout: float = typer.Option(15.0, "--timeout", help="Seconds to wait for everything to end."),
 ) -> None:
     """Stop the run on this computer (and every host with --all), then check nothing is left."""
@@ -26,7 +32,7 @@ def command(
     document = state.read_state()
     local_runs = bool(document) and state.supervisor_alive(document)
     if all_hosts:
-        _down_every_host(local_runs)
+        _down_every_host(local_runs, document)
     if not local_runs:
         # A supervisor that died (SIGKILL, OOM) leaves its process groups behind: kill them,
         # say so, and make the state file stop claiming they run.
@@ -72,54 +78,95 @@ def command(
     )
 
 
-def _down_every_host(local_runs: bool) -> None:
-    """Ask every agent to stop its run; no router and nothing here means nothing runs."""
+def _down_every_host(local_runs: bool, local: dict[str, Any] | None) -> None:
+    """Ask every agent and supervisor to stop its run, and every host of the resolved
+    assembly's plan even if the graph does not show it.
+
+    Raises:
+        MsctlError: Naming every host that did not stop (a plan host with no supervisor on
+            the graph, one that did not answer, one that refused) and those that did.
+        NetworkError: If no router answers while a supervisor runs here, or while the plan
+            names hosts that may still run (unless the last run here was the whole assembly).
+    """
     from msctl.console import err
     from msctl.errors import NetworkError
-    from msctl.launcher.fleet import ask_all
+    from msctl.launcher.control import host_namespace
+    from msctl.launcher.fleet import (
+        ask_hosts,
+        describe,
+        expected_hosts,
+        hosts_to_ask,
+        read_plan,
+        supervisors,
+    )
     from msctl.plane import connected
 
+    plan = read_plan()
     try:
         with connected("down") as node:
+            found = supervisors(node)
+            planned = hosts_to_ask(node, plan, found)
             # An agent answers once its processes are gone: up to the shutdown policy's 3 s
             # of grace each, more on a loaded computer. All are asked at once, and the bound
             # costs nothing when they answer sooner.
-            answers = ask_all(node, "down", timeout=20.0)
-            there = _still_there(node, [n for n, a in answers.items() if "error" in a])
+            asked = ask_hosts(node, "down", planned, None, 20.0, found)
+            owed = {host_namespace(h) for h in planned}
+            there = _still_there(node, [n for n in asked.silent if n in found and n not in owed])
     except NetworkError as exc:
         if local_runs:
             raise  # a supervisor runs here, yet its router is gone: worth saying loudly
+        # With no router, nothing the operator could reach through it runs here; but the
+        # plan's computers have routers of their own and may run on. Unless this computer's
+        # last run was the whole assembly off-robot (their stand-in), they are not known
+        # to have stopped.
+        hosts = expected_hosts(plan, [local] if local else [])
+        if hosts:
+            raise NetworkError(
+                f"could not ask {', '.join(hosts)} ({plan.template}'s plan) to stop: "
+                f"{exc.message}; nothing was stopped there",
+                hint="start this computer's router (`msctl router`, or its `msctl agent`) or "
+                "point MSCTL_ZENOH_CONNECT at one, then run `msctl down --all` again",
+            ) from exc
         # Agents and supervisors serve through a router; with none, none can run anything
         # the operator could reach: the goal of `down` is met.
         err.print(f"nothing is running ({exc.message}, and no supervisor runs here)")
         return
-    failed = []
+    stopped = []
     idle = []  # agents that ran nothing: nothing of theirs was stopped
-    for namespace, answer in answers.items():
-        if "error" not in answer and answer.get("stopped") == [] and not answer.get("template"):
-            idle.append(answer.get("host") or namespace)
-        elif "error" not in answer:
+    for namespace, answer in asked.answers.items():
+        host = answer.get("host") or namespace
+        if answer.get("stopped") == [] and not answer.get("template"):
+            idle.append(host)
+        else:
             # An agent answers once its run is gone; a supervisor, as it begins to stop.
             what = f"stopped {answer['template']}" if answer.get("template") else "stopping"
             err.print(f"{namespace}: {what}", highlight=False)
-        elif namespace in there:
-            err.print(f"{namespace}: {answer['error']}", highlight=False)
-            failed.append(namespace)
+            stopped.append(host)
+    failed = []
+    for namespace, silence in asked.silent.items():
+        if namespace in owed or namespace in there:
+            err.print(f"{silence.host}: {silence.detail}", highlight=False)
+            failed.append(silence)
         else:
             err.print(f"{namespace}: left the network before it could be asked", highlight=False)
-    failed.sort()
     if failed:
+        done = f"stopped: {', '.join(stopped)}" if stopped else "none was stopped"
+        if idle:
+            done += f"; idle: {', '.join(sorted(idle))}"
         raise MsctlError(
-            f"{', '.join(failed)} did not stop: {answers[failed[0]]['error']}",
-            hint=_identity_hint() or "see them with `msctl ps`; run `msctl down --all` again",
+            f"{len(failed)} host(s) did not stop: {describe(failed)}; {done}",
+            hint=_identity_hint()
+            or "check that `msctl agent` runs there and its router links to this one "
+            "(`msctl doctor --all`), then run `msctl down --all` again; `msctl ps --all` "
+            "shows what still runs",
         )
-    if not answers and not local_runs:
+    if not asked.answers and not local_runs:
         if hint := _identity_hint():
             # A fleet's access control hides supervisors from who may not stop them: an
             # empty answer proves nothing runs only to an operator.
             raise MsctlError("no agent or supervisor answered, so nothing was stopped", hint=hint)
         err.print("nothing is running: no agent or supervisor answered")
-    elif idle and len(idle) == len(answers) and not local_runs:
+    elif idle and len(idle) == len(asked.answers) and not local_runs:
         err.print(
             f"nothing is running: the agents of {', '.join(sorted(idle))} run nothing",
             highlight=False,

@@ -1,16 +1,135 @@
-"""Finding and asking every supervisor on the network (this computer's and the agents')."""
+"""Finding and asking every supervisor on the network (this computer's and the agents'), and
+saying which hosts that should have answered did not.
+
+The hosts that should answer are those of this computer's resolved assembly (the lock that
+``msctl assemble`` wrote into MSCTL_HOME: every robot computer of its modules and every ground
+station), plus any other supervisor the graph shows. The lock is read here as plain JSON, not
+through :mod:`components.assembly`'s schema: ``msctl ps`` reads it on every run and must not
+pay for msgspec and the module specs (see :mod:`msctl.quick`).
+"""
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple, TypeVar
 
+from components.paths import state_dir
 from msctl.launcher import state
-from msctl.launcher.control import AGENT_SRV, encode_args
+from msctl.launcher.control import AGENT_SRV, encode_args, host_namespace
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+#: Why a host did not answer (:attr:`Silence.why`): no supervisor of it on the graph (the
+#: query ended at once: no server known), ...
+NO_SUPERVISOR = "no supervisor"
+#: ... one is there but its answer did not come within the timeout, ...
+NO_ANSWER = "no answer"
+#: ... it answered with an error instead, ...
+REFUSED = "refused"
+#: ... or there was no router to ask through at all.
+NO_NETWORK = "no network"
+
+#: What a plan host the graph does not show is told when it was not asked (plain ``ps``).
+NOT_ASKED = "no supervisor on the graph (not asked: `msctl ps --all` asks it)"
+
+
+class Silence(NamedTuple):
+    """A host that should have answered and did not.
+
+    A named tuple, not a dataclass: ``msctl ps`` imports no dataclasses (see
+    :mod:`msctl.quick`).
+
+    Attributes:
+        host: The host, or its supervisor's namespace when no plan names it.
+        why: :data:`NO_SUPERVISOR`, :data:`NO_ANSWER`, :data:`REFUSED` or :data:`NO_NETWORK`.
+        detail: What was seen, for a person.
+        asked: Whether a request was sent to it (plain ``ps`` names plan hosts it did not
+            ask, and does not fail for them).
+    """
+
+    host: str
+    why: str
+    detail: str
+    asked: bool = True
+
+
+class Plan(NamedTuple):
+    """The computers of this computer's resolved assembly.
+
+    Attributes:
+        template: The template it was resolved from (``dragon``).
+        hosts: Each host (robot computers and ground stations, in the lock's order) and the
+            components planned on it.
+    """
+
+    template: str
+    hosts: dict[str, tuple[str, ...]]
+
+
+class Asked(NamedTuple):
+    """What a request to several supervisors brought back, by supervisor namespace."""
+
+    answers: dict[str, Any]
+    silent: dict[str, Silence]
+
+
+class FleetState(NamedTuple):
+    """What ``msctl ps`` shows: every run document, who did not answer, notes, the plan."""
+
+    documents: list[dict[str, Any]]
+    silent: list[Silence]
+    notes: list[str]
+    plan: Plan | None
+
+
+def describe(silent: Iterable[Silence]) -> str:
+    """``a, b (why); c (why)``: hosts that did not answer, grouped by what was seen, in order."""
+    groups: dict[str, list[str]] = {}
+    for silence in silent:
+        groups.setdefault(silence.detail, []).append(silence.host)
+    return "; ".join(f"{', '.join(hosts)} ({detail})" for detail, hosts in groups.items())
+
+
+def plan_path() -> Path:
+    """The resolved assembly's lock file (:func:`components.assembly.lock_path`)."""
+    return state_dir() / "assembly" / "assembly.lock.json"
+
+
+def read_plan() -> Plan | None:
+    """This computer's resolved assembly's hosts, or ``None`` when none is resolved (or its
+    lock cannot be read: the commands that ask the fleet then ask whoever answers)."""
+    try:
+        lock = json.loads(plan_path().read_text(encoding="utf-8"))
+        roles = lock.get("host_plans") or {}
+        hosts = {
+            host: tuple((roles.get(host) or {}).get("components", ()))
+            or tuple(c["name"] for c in lock.get("components", ()) if c.get("host") == host)
+            for host in lock["hosts"]
+        }
+        return Plan(str(lock["template"]), hosts)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def expected_hosts(plan: Plan | None, documents: Iterable[dict[str, Any]]) -> list[str]:
+    """The plan's hosts that must answer, given the run documents at hand.
+
+    Every one, unless one computer runs the whole assembly off-robot (``msctl up dragon`` on
+    a laptop, MuJoCo for the motors): its document stands for every host of the plan, whose
+    computers then take no part. An agent's run is never that, off-robot or not: a ground
+    station's agent runs the station's own part (``msctl.launcher.agent.plan_part``).
+    """
+    if plan is None:
+        return []
+    for document in documents:
+        whole = document.get("off_robot") and not document.get("agent")
+        if whole and document.get("template") == plan.template:
+            return []
+    return list(plan.hosts)
 
 
 def supervisors(node: Any) -> dict[str, str]:
@@ -62,49 +181,140 @@ def at_once(work: Callable[[T], R], items: Sequence[T]) -> list[R]:
     return results
 
 
-def ask_all(
-    node: Any, verb: str, args: dict[str, Any] | None = None, timeout: float = 3.0
-) -> dict[str, Any]:
-    """Send one request to every supervisor, all at once; ``{namespace: payload or
-    {"error": ...}}``, in the graph's order."""
-    from components.comm.services import ServiceError
+def ask_hosts(
+    node: Any,
+    verb: str,
+    hosts: Iterable[str] = (),
+    args: dict[str, Any] | None = None,
+    timeout: float = 3.0,
+    found: dict[str, str] | None = None,
+) -> Asked:
+    """Send one request to every supervisor on the graph and to each of ``hosts``, all at once.
+
+    A host of ``hosts`` the graph does not show is asked all the same: the graph's answer
+    may have missed it, and a query for a server nobody serves ends as soon as the router
+    says so (well under a second), so asking costs little and tells "no supervisor" from
+    "no answer" (a query that waited the whole ``timeout``).
+
+    Args:
+        node: The asking node.
+        verb: The request's verb (:data:`msctl.launcher.control.VERBS`).
+        hosts: Hosts that must be asked even if the graph does not show their supervisor
+            (the plan's, see :func:`read_plan`).
+        args: The request's arguments.
+        timeout: Seconds each supervisor may take to answer.
+        found: The graph's supervisors (:func:`supervisors`) when the caller has them.
+
+    Returns:
+        The answers and the silences, each by namespace, in asking order (graph first).
+    """
+    from components.comm.services import ServiceError, ServiceTimeout
     from msctl.agent_wire import AgentClient
 
-    clients = {ns: AgentClient(node, service) for ns, service in supervisors(node).items()}
+    found = supervisors(node) if found is None else found
+    named = {namespace: namespace for namespace in found}  # what a silence is called
+    services = dict(found)
+    for host in hosts:
+        namespace = host_namespace(host)
+        named[namespace] = host
+        services.setdefault(namespace, f"{namespace}/request")
+    clients = {ns: AgentClient(node, service) for ns, service in services.items()}
+    request = encode_args(args)
 
-    def ask(client: AgentClient) -> Any:
+    def ask(namespace: str) -> Any:
+        host = named[namespace]
+        started = time.monotonic()
         try:
-            response = client.ask(verb, encode_args(args), timeout=timeout)
-        except ServiceError as exc:
-            return {"error": str(exc)}
-        if response.success:
-            return json.loads(response.payload) if response.payload else {}
-        return {"error": response.message}
+            response = clients[namespace].ask(verb, request, timeout=timeout)
+        except ServiceTimeout:
+            # Timed by the clock, not by the error's wording: a query that ended well before
+            # its bound ended because the router knows no server for that host.
+            if time.monotonic() - started < 0.9 * timeout:
+                left = " (it left while asked)" if namespace in found else ""
+                return Silence(host, NO_SUPERVISOR, f"no supervisor on the graph{left}")
+            return Silence(host, NO_ANSWER, f"no answer within {timeout:g} s")
+        except ServiceError as exc:  # an error reply, or one that is not a response
+            return Silence(host, REFUSED, str(exc))
+        if not response.success:
+            return Silence(host, REFUSED, response.message)
+        return json.loads(response.payload) if response.payload else {}
 
     try:
-        return dict(zip(clients, at_once(ask, list(clients.values())), strict=True))
+        results = at_once(ask, list(clients))
     finally:
         for client in clients.values():
             client.close()
+    answers: dict[str, Any] = {}
+    silent: dict[str, Silence] = {}
+    for namespace, result in zip(clients, results, strict=True):
+        if isinstance(result, Silence):
+            silent[namespace] = result
+        else:
+            answers[namespace] = result
+    return Asked(answers, silent)
 
 
-def fleet_state(timeout: float = 3.0) -> tuple[list[dict[str, Any]], list[str]]:
+def ask_all(
+    node: Any, verb: str, args: dict[str, Any] | None = None, timeout: float = 3.0
+) -> dict[str, Any]:
+    """Send one request to every supervisor on the graph, all at once; ``{namespace: payload
+    or {"error": ...}}``, in the graph's order."""
+    found = supervisors(node)
+    asked = ask_hosts(node, verb, (), args, timeout, found)
+    return {
+        namespace: (
+            asked.answers[namespace]
+            if namespace in asked.answers
+            else {"error": asked.silent[namespace].detail}
+        )
+        for namespace in found
+    }
+
+
+def hosts_to_ask(
+    node: Any, plan: Plan | None, found: dict[str, str], timeout: float = 5.0
+) -> list[str]:
+    """The plan's hosts that must answer a fleet-wide request: :func:`expected_hosts`, the
+    graph's supervisors asked what they run only when some host of the plan has none on the
+    graph (to see whether one computer runs the whole assembly off-robot)."""
+    hosts = expected_hosts(plan, ())
+    if all(host_namespace(h) in found for h in hosts):
+        return hosts
+    documents = ask_hosts(node, "ps", (), None, timeout, found).answers.values()
+    return expected_hosts(plan, documents)
+
+
+def fleet_state(timeout: float = 3.0, every_host: bool = False) -> FleetState:
     """Every host's run document (network first, this computer's state file as fallback),
-    and notes about what could not be reached."""
+    the hosts that did not answer, and notes about the rest.
+
+    Args:
+        timeout: Seconds each supervisor may take to answer.
+        every_host: Also ask each host of the plan the graph does not show (``ps --all``);
+            without it, those are named as not asked.
+    """
     from msctl.errors import NetworkError
     from msctl.plane import connected
 
+    plan = read_plan()
     documents: dict[str, dict[str, Any]] = {}
+    silent: dict[str, Silence] = {}  # by host
     notes: list[str] = []
+    unreached = ""  # why the network could not be asked, if it could not
     local = state.read_state()
     try:
         with connected("ps") as node:
-            for namespace, answer in ask_all(node, "ps", timeout=timeout).items():
-                if "error" in answer:
-                    notes.append(f"{namespace}: {answer['error']}")
-                elif "host" in answer:
-                    documents[answer["host"]] = answer
+            asked = ask_hosts(node, "ps", plan.hosts if plan and every_host else (), None, timeout)
+        for answer in asked.answers.values():
+            if "host" in answer:
+                documents[answer["host"]] = answer
+        # A silent supervisor of a plan host is named as the plan names the host.
+        named = {host_namespace(h): h for h in (plan.hosts if plan else ())}
+        for namespace, silence in asked.silent.items():
+            host = named.get(namespace, silence.host)
+            silent[host] = silence._replace(host=host)
     except NetworkError as exc:
+        unreached = exc.message
         notes.append(f"network: {exc} (showing this computer's state file only)")
     if local and local.get("host") not in documents:
         if not state.supervisor_alive(local) and local.get("state") != "stopped":
@@ -116,8 +326,30 @@ def fleet_state(timeout: float = 3.0) -> tuple[list[dict[str, Any]], list[str]]:
                     f"{local.get('supervisor_pid')}) is gone; processes left running: "
                     f"{', '.join(left)} — stop them with `msctl down`"
                 )
+        elif local["host"] in silent:
+            # Alive, yet its answer did not come: its state file (rewritten twice a second)
+            # answers for it.
+            notes.append(
+                f"{local['host']}: {silent[local['host']].detail}; shown from its state file"
+            )
+        silent.pop(local["host"], None)
         documents[local["host"]] = local
-    return list(documents.values()), notes
+    # A plan host with no supervisor is owed an answer only if no computer runs the whole
+    # assembly in its stead; one that has a supervisor and stayed silent always is.
+    owed = set(expected_hosts(plan, documents.values()))
+    covered = set(plan.hosts) - owed if plan else set()
+    silent = {
+        host: s
+        for host, s in silent.items()
+        if not (host in covered and s.why in (NO_SUPERVISOR, NO_NETWORK))
+    }
+    for host in (h for h in (plan.hosts if plan else ()) if h in owed):
+        if host not in documents and host not in silent:
+            if unreached:
+                silent[host] = Silence(host, NO_NETWORK, unreached, asked=every_host)
+            else:
+                silent[host] = Silence(host, NO_SUPERVISOR, NOT_ASKED, asked=False)
+    return FleetState(list(documents.values()), list(silent.values()), notes, plan)
 
 
 def _supervisor_gone(document: dict[str, Any]) -> dict[str, Any]:
