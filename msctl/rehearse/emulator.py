@@ -430,6 +430,8 @@ class _Host:
     link: Link
     profile: str
     unroutable: dict[str, int] = field(default_factory=lambda: dict.fromkeys(UNROUTABLE, 0))
+    #: Why its device can no longer be read (deleted under the emulator), or None.
+    device_error: str | None = None
 
 
 @dataclass(eq=False)
@@ -466,6 +468,7 @@ class _Emulator:
         self.clients: dict[int, _Client] = {}
         self.stopping = False
         self.wakeup: tuple[int, int] | None = None
+        self.old_handlers: dict[int, Any] = {}
 
     # ------------------------------------------------------------ set-up and tear-down
     def add_host(self, host: HostSpec, now: float) -> None:
@@ -525,7 +528,7 @@ class _Emulator:
         signal.set_wakeup_fd(write)
         self.selector.register(read, selectors.EVENT_READ, "signal")
         for signum in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(signum, self._on_signal)
+            self.old_handlers[signum] = signal.signal(signum, self._on_signal)
 
     def _on_signal(self, signum: int, _frame: object) -> None:
         log.info("stopping on %s", signal.Signals(signum).name)
@@ -570,6 +573,8 @@ class _Emulator:
             os.close(host.fd)
         if self.wakeup is not None:
             signal.set_wakeup_fd(-1)
+            for signum, handler in self.old_handlers.items():
+                signal.signal(signum, handler)
             for fd in self.wakeup:
                 os.close(fd)
         self.selector.close()
@@ -586,7 +591,7 @@ class _Emulator:
             timeout = None
             if heap:
                 timeout = max(0.0, heap[0][0] - clock())
-            for key, _mask in self.selector.select(timeout):
+            for key, mask in self.selector.select(timeout):
                 what = key.data
                 if isinstance(what, _Host):
                     self._read(what, clock())
@@ -595,7 +600,7 @@ class _Emulator:
                 elif what == "signal":
                     self._drain_wakeup()
                 elif isinstance(what, _Client):
-                    self._serve(what, _mask)
+                    self._serve(what, mask)
             if heap:
                 self._due(clock())
 
@@ -609,7 +614,11 @@ class _Emulator:
             except BlockingIOError:
                 return
             except OSError as error:
+                # The device was deleted under us: stop watching it, or the loop would spin
+                # on its error; the computer is cut off, and status says why.
                 log.warning("%s: reading %s: %s", host.spec.name, host.spec.device, error)
+                host.device_error = str(error)
+                self.selector.unregister(fd)
                 return
             self._route(host, packet, now)
 
@@ -786,6 +795,7 @@ class _Emulator:
                     "device": host.spec.device,
                     "profile": host.profile,
                     "unroutable": dict(host.unroutable),
+                    "device_error": host.device_error,
                     "up": host.link.up.status(now),
                     "down": host.link.down.status(now),
                 }
@@ -866,9 +876,10 @@ def serve(spec: Spec) -> None:
         for host in spec.hosts:
             emulator.add_host(host, time.monotonic())
         emulator.listen()
-        emulator.write_ready()
-        log.info("serving %d hosts on %s", len(spec.hosts), spec.control)
-        emulator.run()
+        if not emulator.stopping:  # a signal during set-up: not ready, just leave
+            emulator.write_ready()
+            log.info("serving %d hosts on %s", len(spec.hosts), spec.control)
+            emulator.run()
     finally:
         emulator.close()
 
