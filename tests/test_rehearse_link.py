@@ -191,6 +191,22 @@ def test_queue_limit_in_bytes() -> None:
     assert direction.profile.queue_limit_ms is None  # a byte limit alone: no time limit
 
 
+def test_a_new_rate_drains_the_backlog_and_keeps_the_refill_so_far() -> None:
+    direction = LinkDirection(DirectionProfile(rate_kbit=1000, queue_ms=10_000), seed=0)
+    assert direction.offer(1000, 0.0) == 0.0  # bucket 1500 -> 500
+    # 1 s later the bucket is full again, whatever the new profile says.
+    direction.set_profile(DirectionProfile(rate_kbit=8000, queue_ms=10_000), 1.0)
+    assert direction.offer(1500, 1.0) == 1.0
+    # A backlog of 100 000 bytes at 1 000 000 bytes/s (8000 kbit/s): 0.1 s.
+    for _ in range(100):
+        direction.offer(1000, 1.0)
+    assert direction.queued_bytes(1.0) == 100_000
+    direction.set_profile(DirectionProfile(rate_kbit=800, queue_ms=10_000), 1.05)
+    # Half drained at the old rate, the rest at 100 000 bytes/s.
+    assert direction.queued_bytes(1.05) == 50_000
+    assert direction.offer(1, 1.05) == pytest.approx(1.05 + 50_001 / 100_000)
+
+
 def test_the_default_queue_limit_applies_when_none_is_given() -> None:
     direction = LinkDirection(DirectionProfile(rate_kbit=100), seed=0)
     assert direction.profile.queue_limit_ms == DEFAULT_QUEUE_MS

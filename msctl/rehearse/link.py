@@ -359,6 +359,7 @@ class LinkDirection:
             f"{seed}:outages" if outage_seed is None else f"{outage_seed}:outages"
         )
         self._bad = False
+        self._rate: float | None = None
         self._now = now
         self.packets = 0
         self.bytes = 0
@@ -395,8 +396,11 @@ class LinkDirection:
         self._in_burst = False
 
     def _apply(self, profile: DirectionProfile, now: float, keep_state: bool) -> None:
-        old_rate = self.profile.rate_kbit if keep_state else None
+        old_rate = self._rate if keep_state else None
         old_model = self.profile.loss_model if keep_state else None
+        if old_rate is not None:
+            # The bucket fills at the old rate up to now (a backlog drains at the new one).
+            self._tokens = min(self._bucket, self._tokens + (now - self._tokens_at) * old_rate)
         self.profile = profile
         self._delay = profile.delay_ms / 1000.0
         self._jitter = profile.jitter_ms / 1000.0
@@ -586,7 +590,7 @@ class LinkDirection:
             return 0
         now = max(now, self._now)
         tokens = self._tokens + (now - self._tokens_at) * self._rate
-        return math.ceil(-tokens) if tokens < 0 else 0
+        return round(-tokens) if tokens < 0 else 0
 
     @property
     def mean_delay(self) -> float:
