@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -170,9 +171,56 @@ def test_topic_pub_reaches_our_subscription(node: Node, env: dict[str, str]) -> 
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert "publishing #3 on /cli/pub_in" in result.stderr
+    assert "published 3 messages on /cli/pub_in: all 3 delivered to a matching subscriber" in (
+        result.stderr
+    )
     assert result.stdout == ""
     wait_until(lambda: len(got) >= 1)
     assert set(got) == {"hi from cli"}
+
+
+def test_topic_pub_to_nobody_says_none_was_delivered_and_fails(env: dict[str, str]) -> None:
+    args = ("topic", "pub", "/cli/nobody", STRING, "{data: x}", "-t", "3", "-r", "50")
+    result = msctl(*args, "--wait-matching", "0.2", env=env)
+    assert result.returncode == 1, result.stderr
+    (line,) = [x for x in result.stderr.splitlines() if x.startswith("error:")]
+    assert "published 3 messages on /cli/nobody, no subscriber matched: none delivered" in line
+    assert "--fire-and-forget" in line and result.stdout == ""
+    # Publishing to nobody, on purpose: said all the same, and fine.
+    forgot = msctl(*args, "--fire-and-forget", env=env)
+    assert forgot.returncode == 0, forgot.stderr
+    assert "no subscriber matched: none delivered (--fire-and-forget)" in forgot.stderr
+
+
+def test_topic_pub_counts_what_a_subscriber_that_left_did_not_get(
+    node: Node, env: dict[str, str]
+) -> None:
+    got: list[str] = []
+    enough = threading.Event()
+
+    def take(message: Any) -> None:
+        got.append(message.data)
+        if len(got) >= 3:
+            enough.set()
+
+    subscription = node.subscription("/cli/leaving", STRING, take)
+    closer = threading.Thread(target=lambda: enough.wait(30.0) and subscription.close())
+    closer.start()  # the subscription goes away after 3 messages, mid-run
+    result = msctl(
+        "topic", "pub", "/cli/leaving", STRING, "{data: x}", "-t", "40", "-r", "20", env=env
+    )  # fmt: skip
+    closer.join(30.0)
+    assert result.returncode == 1, result.stderr
+    said = re.search(
+        r"published 40 messages on /cli/leaving: (\d+) delivered to a matching subscriber, "
+        r"(\d+) published with none matching",
+        result.stderr,
+    )
+    assert said, result.stderr
+    delivered, missed = int(said[1]), int(said[2])
+    assert delivered + missed == 40 and missed > 0
+    # Never more claimed than the subscriber could have had: what it got was counted.
+    assert 3 <= len(got) <= delivered, (got, delivered)
 
 
 def test_topic_echo_once_json_finds_the_type(
@@ -294,6 +342,11 @@ def test_service_call_errors(node: Node, env: dict[str, str]) -> None:
         (("topic", "pub", "/x", "sensor_msgs/msg/JointState", "{position: 3}"), 2, "position"),
         (("topic", "pub", "/x", "geometry_msgs/msg/Pose", "{position: {x: abc}}"), 2, "position.x"),
         (("topic", "pub", "/x", STRING, "{data: a}", "--rate", "0"), 2, "--rate"),
+        (
+            ("topic", "pub", "/x", STRING, "{data: a}", "--wait-matching", "-1"),
+            2,
+            "--wait-matching",
+        ),
         # Out of the field's range: an internal error from the serializer, exit 70.
         (("topic", "pub", "/x", "std_msgs/msg/Int8", "{data: 300}"), 2, "'data' is a int8"),
         (("topic", "pub", "/x", "std_msgs/msg/UInt8", "{data: -1}"), 2, "'data' is a uint8"),
@@ -394,8 +447,10 @@ def test_pub_onto_a_topic_of_another_type_is_refused_unless_forced(
     forced = msctl(
         "topic", "pub", "/cli/guarded", STRING, "{data: x}", "--once", "--force", env=env
     )
-    assert forced.returncode == 0, forced.stderr
+    # Published, and honest about it: no subscriber takes a String there.
+    assert forced.returncode == 1, forced.stderr
     assert "publishing #1 on /cli/guarded" in forced.stderr
+    assert "no subscriber matched: none delivered" in forced.stderr
 
 
 def test_service_call_reads_its_input_before_the_network() -> None:

@@ -223,15 +223,31 @@ def pub(
     rate: float = typer.Option(1.0, "--rate", "-r", help="Messages per second."),
     times: int = typer.Option(0, "--times", "-t", help="Publish this many messages then exit."),
     wait_matching: float = typer.Option(
-        1.0, "--wait-matching", help="Seconds to wait for a subscriber before the first message."
+        None,
+        "--wait-matching",
+        help="Seconds to wait for a matching subscriber before the first message "
+        "[default: 1; 0 with --fire-and-forget].",
     ),
     latched: bool = typer.Option(False, "--latched", help="Transient-local (latched) QoS."),
     force: bool = typer.Option(
         False, "--force", help="Publish even if the topic carries another type."
     ),
+    fire_and_forget: bool = typer.Option(
+        False,
+        "--fire-and-forget",
+        help="Publishing to nobody is fine: do not wait for a subscriber, and exit 0 whether "
+        "or not one matched (the count is still said).",
+    ),
 ) -> None:
-    """Publish a message, once, N times, or at a rate until Ctrl-C."""
-    from components.comm.graph import snapshot
+    """Publish a message, once, N times, or at a rate until Ctrl-C; then say how many were
+    delivered.
+
+    A message counts as delivered when Zenoh showed a subscriber matching it as it was
+    published (its matching status; the QoS is reliable, so the network resends it until
+    that subscriber has it, unless the link itself breaks). Exit status 1 when any message
+    was published with no subscriber matching ("no subscriber matched: none delivered", or
+    how many of them were), unless --fire-and-forget.
+    """
     from components.comm.names import qualify
     from components.comm.qos import LATCHED, QoS
     from msctl.console import err
@@ -239,35 +255,96 @@ def pub(
 
     if rate <= 0 or not math.isfinite(rate):
         raise InputError(f"--rate must be a positive number of messages per second, not {rate}")
+    if wait_matching is not None and not (wait_matching >= 0 and math.isfinite(wait_matching)):
+        raise InputError(f"--wait-matching must be a number of seconds >= 0, not {wait_matching}")
+    if wait_matching is None:
+        wait_matching = 0.0 if fire_and_forget else 1.0
     # Input first, network after: a typo in VALUES fails at once.
     type_name = _known(msg_type, None, topic)
     message = build_message(type_name, parse_values(values))
     total = 1 if once else times
     qualified = qualify(topic, "/")
+    sent = delivered = 0
     with connected("pub") as node, _Stopper() as stop:
         if not force:
             _refuse_another_type(node, topic, type_name)
         publisher = node.publisher(topic, type_name, LATCHED if latched else QoS())
-        deadline = time.monotonic() + wait_matching
-        while time.monotonic() < deadline and not stop.is_set():
-            info = snapshot(node.session, node.domain, timeout=0.3).topics().get(qualified)
-            if info is not None and info.subscribers > 0:
-                time.sleep(0.05)  # let the subscriber's declaration reach our session
-                break
-            time.sleep(0.05)
-        sent = 0
-        period = 1.0 / rate
-        next_time = time.monotonic()
-        while not stop.is_set():
-            publisher.publish(message)
-            sent += 1
-            err.print(f"publishing #{sent} on {qualified}", highlight=False)
-            if total and sent >= total:
-                break
-            next_time += period
-            stop.wait(max(0.0, next_time - time.monotonic()))
-        if latched and total:
-            stop.wait(0.5)  # a latched sample must outlive this process a moment to be fetched
+        # Zenoh's matching status, read from a plain publisher on the same key that never
+        # publishes: a latched topic's publisher (an advanced one) does not expose it, and
+        # this one is no entity on the graph.
+        probe = node.session.declare_publisher(publisher.key)
+        try:
+            deadline = time.monotonic() + wait_matching
+            while not stop.is_set() and not _matching(probe) and time.monotonic() < deadline:
+                stop.wait(0.01)
+            period = 1.0 / rate
+            next_time = time.monotonic()
+            while not stop.is_set():
+                matched = _matching(probe)
+                publisher.publish(message)
+                sent += 1
+                delivered += matched
+                err.print(f"publishing #{sent} on {qualified}", highlight=False)
+                if total and sent >= total:
+                    break
+                next_time += period
+                stop.wait(max(0.0, next_time - time.monotonic()))
+            if latched and total:
+                stop.wait(0.5)  # a latched sample must outlive this process a moment to be fetched
+        finally:
+            probe.undeclare()
+    _report_delivery(qualified, sent, delivered, fire_and_forget)
+
+
+def _matching(probe: Any) -> bool:
+    """Whether Zenoh knows a subscriber matching ``probe``'s key now."""
+    return bool(probe.matching_status.matching)
+
+
+def _messages(count: int) -> str:
+    return f"{count} message" + ("" if count == 1 else "s")
+
+
+def _report_delivery(topic: str, sent: int, delivered: int, fire_and_forget: bool) -> None:
+    """Say how many of the ``sent`` messages a subscriber matched; fail unless all were.
+
+    Raises:
+        MsctlError: Exit status 1 when some (or every) message was published with no
+            subscriber matching, unless ``fire_and_forget``.
+    """
+    from msctl.console import err
+
+    if sent == 0:
+        err.print(
+            f"published nothing on {topic} (stopped before the first message)", highlight=False
+        )
+        return
+    if delivered == sent:
+        every = "it" if sent == 1 else f"all {sent}"
+        err.print(
+            f"published {_messages(sent)} on {topic}: {every} delivered to a matching subscriber",
+            highlight=False,
+        )
+        return
+    if delivered == 0:
+        said = f"published {_messages(sent)} on {topic}, no subscriber matched: none delivered"
+        hint = (
+            f"start its subscriber first (e.g. `msctl topic echo {topic}`) or wait longer for "
+            "it (--wait-matching SECONDS); --fire-and-forget if nobody needs to hear it"
+        )
+    else:
+        said = (
+            f"published {_messages(sent)} on {topic}: {delivered} delivered to a matching "
+            f"subscriber, {sent - delivered} published with none matching"
+        )
+        hint = (
+            "a subscriber came late or left meanwhile (`msctl topic list -v` counts them); "
+            "--fire-and-forget if that is fine"
+        )
+    if fire_and_forget:
+        err.print(f"{said} (--fire-and-forget)", highlight=False)
+        return
+    raise MsctlError(said, hint=hint)
 
 
 def _refuse_another_type(node: Any, topic: str, type_name: str) -> None:
