@@ -171,6 +171,31 @@ def test_msctl_estop_names_each_module_and_a_silent_one_fails_the_command(env, m
     assert recovered.returncode == 0 and "recovered" in recovered.stdout
 
 
+@pytest.mark.e2e
+def test_msctl_estop_names_the_planned_modules_whose_joint_manager_is_gone(env, modules) -> None:
+    """The resolved Dragon here plans four modules: wheel2's joint manager never started and
+    limb2's has stopped. Both are asked all the same and named as not acknowledging (exit 5),
+    by estop and by recover; the two that run answer."""
+    from msctl.assembler import resolve
+    from msctl.assembler.store import write_resolution
+
+    write_resolution(Path(env["MSCTL_HOME"]) / "assembly", resolve("dragon", {}), mjcf=False)
+    modules("limb1")
+    modules("wheel1")
+    modules("limb2").close()  # it ran, and stopped
+    wait_until(lambda: "/wheel1/halt" in msctl(env, "service", "list").stdout, 60.0, "the services")
+    for verb in ("estop", "recover"):
+        result = msctl(env, verb, "--json", "--timeout", "1")
+        assert result.returncode == 5, result.stdout + result.stderr
+        document = json.loads(result.stdout)
+        ok = {r["module"]: r["ok"] for r in document["modules"]}
+        assert ok == {"limb1": True, "limb2": False, "wheel1": True, "wheel2": False}
+        assert "not on the graph: limb2, wheel2 (asked all the same)" in document["notes"]
+        (line,) = [x for x in result.stderr.splitlines() if x.startswith("error:")]
+        verb_said = "halt" if verb == "estop" else "recover"
+        assert f"{verb_said}: limb2, wheel2 did not acknowledge" in line, line
+
+
 def test_msctl_estop_refuses_an_unknown_module_naming_those_that_exist(env, modules) -> None:
     modules("limb1")
     modules("wheel1")
