@@ -105,6 +105,13 @@ def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = F
                 _warn(f"answered, running nothing: {', '.join(idle)}")
         else:
             sys.stderr.write("nothing is running (start with `msctl up dragon`)\n")
+    if all_hosts and fleet.plan is None:
+        from msctl.launcher.fleet import plan_path
+
+        _warn(
+            f"no resolved assembly here ({plan_path()}): asked only the supervisors on the "
+            "graph; `msctl assemble TEMPLATE` names every host to ask"
+        )
     if not_asked:
         # Said in both forms: a JSON reader has the list, a person at a terminal this line.
         template = fleet.plan.template if fleet.plan else "the assembly"

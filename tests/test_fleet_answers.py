@@ -266,6 +266,17 @@ def test_ps_all_lists_the_unreachable_hosts_and_exits_1(
 
 
 @pytest.mark.e2e
+def test_ps_all_with_no_plan_asks_the_graph_and_says_so(
+    agents: Agents, tmp_path: Path, net_env: dict[str, str]
+) -> None:
+    result = msctl(tmp_path, net_env, "ps", "--all", "--json")
+    assert result.returncode == 0, result.stderr + agents.logs()
+    assert set(json.loads(result.stdout)["hosts"]) == set(RUNNING)
+    assert "no resolved assembly here" in result.stderr
+    assert "asked only the supervisors on the graph" in result.stderr
+
+
+@pytest.mark.e2e
 def test_plain_ps_names_the_missing_hosts_and_exits_0(
     agents: Agents, ground_home: Path, net_env: dict[str, str]
 ) -> None:

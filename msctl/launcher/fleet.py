@@ -105,10 +105,13 @@ def read_plan() -> Plan | None:
     try:
         lock = json.loads(plan_path().read_text(encoding="utf-8"))
         roles = lock.get("host_plans") or {}
+        # The lock's hosts are those with something to run; every module's computer is one
+        # (its motor interface at least), named again in case a lock ever says otherwise.
+        named = [*lock["hosts"], *(m["host"] for m in lock.get("modules", ()))]
         hosts = {
             host: tuple((roles.get(host) or {}).get("components", ()))
             or tuple(c["name"] for c in lock.get("components", ()) if c.get("host") == host)
-            for host in lock["hosts"]
+            for host in dict.fromkeys(named)
         }
         return Plan(str(lock["template"]), hosts)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
