@@ -113,6 +113,21 @@ def test_a_taken_port_names_who_holds_it_and_a_foreign_address_is_refused() -> N
     check_listen(f"tcp/127.0.0.1:{free_port()}")  # a free one passes
 
 
+@pytest.mark.e2e
+@pytest.mark.parametrize("command", ["up", "agent"])
+def test_help_says_where_the_router_listens_and_links(command: str) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "msctl", command, "--help"],
+        env={**_base_env(), "COLUMNS": "200"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    for variable in ("MSCTL_ROUTER_LISTEN", "MSCTL_ROUTER_CONNECT", "MSCTL_SECURE"):
+        assert variable in done.stdout, done.stdout
+
+
 # --------------------------------------------------------------------------- two computers
 class Agent:
     """``msctl agent`` as one computer, its own home, its log in a file."""

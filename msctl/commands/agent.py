@@ -22,10 +22,12 @@ from pathlib import Path
 
 import typer
 
+from msctl.commands.up import ROUTER_EPILOG
 from msctl.errors import InputError, MsctlError
 
 app = typer.Typer(
     help="This computer's agent: starts its part of an assembly when `msctl up --all` asks.",
+    epilog=ROUTER_EPILOG,
 )
 
 UNIT_NAME = "msctl-agent.service"
@@ -62,12 +64,7 @@ def run(
 ) -> None:
     """Run the agent: idle until `msctl up --all` sends it an assembly; Ctrl-C stops all.
 
-    Unless a router already answers on MSCTL_ZENOH_CONNECT (default tcp/localhost:7447), the
-    agent starts this computer's router: on loopback only, plus MSCTL_ROUTER_LISTEN
-    (comma-separated endpoints, e.g. tcp/0.0.0.0:7448; one on the same port as the loopback
-    one replaces it), linked to MSCTL_ROUTER_CONNECT (comma-separated, e.g. tcp/ground1:7448).
-    Plain TCP beyond this computer is a loud, explicit choice; with --secure the router takes
-    its TLS links and access control from `msctl net` instead.
+    Its router (when it starts one) is the app's epilog.
     """
     if secure:
         import os

@@ -14,7 +14,20 @@ import typer
 
 from msctl.errors import InputError, MsctlError, NotFoundError, OperationTimeout
 
-COMMAND_SETTINGS = {"help": "Start this computer's part of the assembly (simulated off-robot)."}
+#: Where the router `msctl up` or `msctl agent` starts listens and links: their `--help`'s
+#: epilog.
+ROUTER_EPILOG = (
+    "Unless a router answers on MSCTL_ZENOH_CONNECT (default tcp/localhost:7447), this command "
+    "starts this computer's router, on loopback only; MSCTL_ROUTER_LISTEN adds endpoints "
+    "(comma-separated, e.g. tcp/0.0.0.0:7448; one on the loopback listener's own port, "
+    "tcp/0.0.0.0:7447, replaces it) and MSCTL_ROUTER_CONNECT links it to other routers "
+    "(comma-separated, e.g. tcp/ground1:7448). Plain TCP beyond this computer is warned of; "
+    "--secure (MSCTL_SECURE=1) takes mutual TLS and access control from `msctl net` instead."
+)
+COMMAND_SETTINGS = {
+    "help": "Start this computer's part of the assembly (simulated off-robot).",
+    "epilog": ROUTER_EPILOG,
+}
 
 _DAEMON_ENV = "MSCTL_UP_DAEMON"
 
@@ -77,11 +90,7 @@ def command(
 ) -> None:
     """Start the components of this computer, wait until every one is healthy, then run.
 
-    Unless a router answers on MSCTL_ZENOH_CONNECT, the run starts this computer's router:
-    on loopback only, plus MSCTL_ROUTER_LISTEN (comma-separated endpoints; one on the same
-    port as the loopback one replaces it), linked to MSCTL_ROUTER_CONNECT (comma-separated);
-    plain TCP beyond this computer is warned of. --secure (MSCTL_SECURE=1): mutual TLS and
-    access control from `msctl net` instead.
+    The router it starts when none answers is the epilog of ``COMMAND_SETTINGS``.
     """
     from msctl.launcher import state
     from msctl.launcher.plan import plan_host, this_host
