@@ -357,3 +357,26 @@ def test_down_all_names_every_host_that_did_not_stop(
         assert f"{host}: no supervisor on the graph\n" in result.stderr
     # The agents that answered are still there, idle.
     assert all(p.poll() is None for p in agents.procs.values()), agents.logs()
+
+
+def test_down_all_stops_this_computers_run_even_when_a_host_did_not_stop(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The hosts that did not stop are said last, after this computer's run is stopped."""
+    from msctl.commands import down
+    from msctl.errors import MsctlError
+
+    done: list[str] = []
+    document = {"host": "ground1", "supervisor_pid": 1, "processes": []}
+    monkeypatch.setattr(down.state, "read_state", lambda: document)
+    monkeypatch.setattr(down.state, "supervisor_alive", lambda d: True)
+
+    def elsewhere(local_runs: bool, local: Any) -> None:
+        done.append("elsewhere")
+        raise MsctlError("1 host(s) did not stop: hl-wheel-02 (no supervisor on the graph)")
+
+    monkeypatch.setattr(down, "_down_every_host", elsewhere)
+    monkeypatch.setattr(down, "_down_here", lambda *args: done.append("here"))
+    with pytest.raises(MsctlError, match="hl-wheel-02"):
+        down.command(all_hosts=True, timeout=1.0)
+    assert done == ["elsewhere", "here"]

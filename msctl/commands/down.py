@@ -27,12 +27,40 @@ def command(
     timeout: float = typer.Option(15.0, "--timeout", help="Seconds to wait for everything to end."),
 ) -> None:
     """Stop the run on this computer (and every host with --all), then check nothing is left."""
+    from rich.markup import escape
+
     from msctl.console import err
 
     document = state.read_state()
     local_runs = bool(document) and state.supervisor_alive(document)
+    elsewhere: MsctlError | None = None
     if all_hosts:
-        _down_every_host(local_runs, document)
+        try:
+            _down_every_host(local_runs, document)
+        except MsctlError as exc:
+            # This computer's run is stopped all the same; what did not stop is said last.
+            elsewhere = exc
+    try:
+        _down_here(document, local_runs, all_hosts, timeout)
+    except MsctlError:
+        if elsewhere is not None:
+            err.print(f"[bold red]error:[/] {escape(str(elsewhere))}", highlight=False)
+        raise
+    if elsewhere is not None:
+        raise elsewhere
+
+
+def _down_here(
+    document: dict[str, Any] | None, local_runs: bool, all_hosts: bool, timeout: float
+) -> None:
+    """Stop this computer's run (through its agent when it has one) and check nothing of it
+    is left; a dead supervisor's leftovers are killed.
+
+    Raises:
+        MsctlError: If processes are still alive after it.
+    """
+    from msctl.console import err
+
     if not local_runs:
         # A supervisor that died (SIGKILL, OOM) leaves its process groups behind: kill them,
         # say so, and make the state file stop claiming they run.
