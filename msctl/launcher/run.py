@@ -255,8 +255,15 @@ class EmbeddedRouter:
                     for e in document["listen"]["endpoints"]
                 ]
             else:
-                for text in self.connect:
-                    endpoints.parse(text)
+                for variable, given in (
+                    ("MSCTL_ROUTER_LISTEN", self.listen),
+                    ("MSCTL_ROUTER_CONNECT", self.connect),
+                ):
+                    for text in given:
+                        try:
+                            endpoints.parse(text)
+                        except endpoints.EndpointError as exc:
+                            raise endpoints.EndpointError(f"{variable}: {exc}") from None
                 local = listen_endpoint_for(self.endpoint)
                 listen = [
                     (e, "MSCTL_ZENOH_CONNECT" if e == local else "MSCTL_ROUTER_LISTEN")
