@@ -109,6 +109,7 @@ def _heavy(loaded: set[str], names: tuple[str, ...]) -> list[str]:
     [
         ["ps", "--json"],
         ["ps", "--json", "--timeout", "1.5"],
+        ["ps", "--all", "--json"],
         ["topic", "list", "-t"],
         ["topic", "list", "-v", "--json"],
     ],
@@ -145,6 +146,25 @@ def test_ps_table_loads_nothing_heavy_not_even_rich(router_endpoint: str, tmp_pa
     assert stdout == ""
 
 
+def test_ps_reads_the_plan_without_the_lock_schema(router_endpoint: str, tmp_path: Path) -> None:
+    """With a resolved Dragon here and nothing running, ``msctl ps`` names the plan's hosts
+    it did not ask (on stderr), exits 0, and the lock's schema (msgspec, the module specs)
+    is not loaded to read them."""
+    from msctl.assembler import resolve
+    from msctl.assembler.store import write_resolution
+
+    write_resolution(tmp_path / "assembly", resolve("dragon", {}), mjcf=False)
+    loaded, stdout = _loaded_by(["ps", "--json"], router_endpoint, tmp_path)
+    assert _heavy(loaded, (*HEAVY, *RICH, "msgspec")) == []
+    assert [u["host"] for u in json.loads(stdout)["unreachable"]] == [
+        "hl-limb-01",
+        "hl-limb-02",
+        "hl-wheel-01",
+        "hl-wheel-02",
+        "ground1",
+    ]
+
+
 # ----------------------------------------------------------------------- quick path vs typer
 def _typer_params(words: tuple[str, ...]) -> dict[str, object]:
     from msctl.app import command
@@ -179,6 +199,7 @@ def test_quick_path_knows_every_typer_option_with_its_default(
     [
         (["ps"], {}),
         (["ps", "--json", "--timeout", "0.5"], {"json_output": True, "timeout": 0.5}),
+        (["ps", "--all"], {"all_hosts": True}),
         (["topic", "list", "-t", "--verbose"], {"show_types": True, "verbose": True}),
         (["topic", "list", "-v", "--json"], {"verbose": True, "json_output": True}),
         # Everything else is typer's: help, typos, other spellings and numbers.
