@@ -273,10 +273,13 @@ def test_a_missing_identity_fails_at_once_before_detaching(tmp_path: Path) -> No
             cwd=ROOT,
         )
 
-    assert msctl("assemble", "dragon").returncode == 0
-    assert msctl("net", "init", "--host", "ground1").returncode == 0
+    from msctl.assembler import resolve
+    from msctl.assembler.store import write_resolution
+
+    write_resolution(tmp_path / "assembly", resolve("dragon", {}))
+    pki.init_fleet(["ground1"], [], home=tmp_path)  # `msctl net init --host ground1`
     started = time.monotonic()
-    done = msctl("up", "--sim", "--detach", "--secure")
+    done = msctl("up", "--sim", "--detach", "--secure")  # the resolved dragon
     elapsed = time.monotonic() - started
     assert done.returncode == 2, done.stderr
     error = done.stderr.strip().splitlines()[-1]
