@@ -144,7 +144,11 @@ def check_listen(text: str, setting: str = "MSCTL_ROUTER_LISTEN") -> None:
             f"use one of this computer's addresses (or 0.0.0.0) in {setting}"
         ) from None
     family, kind, proto, _, address = infos[0]  # the one a listener binds first
-    with socket.socket(family, kind, proto) as sock:
+    try:
+        sock = socket.socket(family, kind, proto)
+    except OSError:
+        return  # no such family here (IPv6 off): Zenoh says what it makes of it
+    with sock:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         if family == socket.AF_INET6 and endpoint.wildcard:
             # [::] takes IPv4 too on Linux (dual stack), as Zenoh's listener does.
