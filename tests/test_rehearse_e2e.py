@@ -1,0 +1,330 @@
+"""The operator commands across computers, on a rehearsal of ``dragon`` (five computers, secure).
+
+``msctl rehearse up dragon --link wifi --detach`` stands up hl-limb-01/02 and hl-wheel-01/02
+(robot computers: their real CANopen backends against emulated drives) and ground1 (the
+ground station), one network namespace each, linked through the userspace link emulator,
+secured as the README says (``msctl net init`` on the ground station, its ``net/`` copied to
+every computer, mutual TLS and access control); the ground station then runs ``msctl up
+--all``. Every command below runs as a user would type it, through ``msctl rehearse exec
+HOST -- ...``, on the computer it names. At the end, ``msctl rehearse down`` must leave no
+namespace, process or file.
+
+Needs root (CI runs as root); skipped, saying so, without it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import wait_until
+
+from msctl.rehearse.computers import namespaces, privileges_problem
+from msctl.rehearse.rehearsal import namespace_prefix
+
+pytestmark = [
+    pytest.mark.e2e,
+    pytest.mark.timeout(900),
+    pytest.mark.skipif(privileges_problem() is not None, reason=str(privileges_problem())),
+]
+
+ROBOTS = {
+    "limb1": "hl-limb-01",
+    "limb2": "hl-limb-02",
+    "wheel1": "hl-wheel-01",
+    "wheel2": "hl-wheel-02",
+}
+GROUND = "ground1"
+
+
+class Stage:
+    """A rehearsal of ``dragon`` in its own MSCTL_HOME, and commands run on its computers."""
+
+    def __init__(self, home: Path) -> None:
+        self.home = home
+        self.env = {
+            k: v for k, v in os.environ.items() if not k.startswith(("MSCTL_", "COLUMNS", "LINES"))
+        }
+        self.env.update({"MSCTL_HOME": str(home), "COLUMNS": "200"})
+
+    def msctl(self, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+        """``msctl ARGS`` on this (the rehearsing) machine."""
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env=self.env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            stdin=subprocess.DEVNULL,
+            check=False,
+        )
+
+    def on(self, host: str, *argv: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+        """``msctl ARGV`` run as computer ``host``."""
+        return self.msctl("rehearse", "exec", host, "--", "msctl", *argv, timeout=timeout)
+
+    def spawn(self, host: str, *argv: str) -> subprocess.Popen[str]:
+        """``msctl ARGV`` started as computer ``host`` (the pid is msctl's: exec all the way)."""
+        return subprocess.Popen(
+            [sys.executable, "-m", "msctl", "rehearse", "exec", host, "--", "msctl", *argv],
+            env=self.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+            text=True,
+        )
+
+    def status(self) -> dict[str, Any]:
+        done = self.msctl("rehearse", "status", "--json")
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+
+@pytest.fixture(scope="module")
+def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
+    stage = Stage(tmp_path_factory.mktemp("rehearse"))
+    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=600)
+    try:
+        assert up.returncode == 0, up.stderr
+        yield stage
+    finally:
+        stage.msctl("rehearse", "down", timeout=120)
+
+
+def health(stage: Stage, host: str = GROUND) -> tuple[int, dict[str, Any]]:
+    done = stage.on(host, "health", "--once", "--json", "--timeout", "15")
+    assert done.returncode in (0, 1), done.stderr
+    return done.returncode, json.loads(done.stdout)
+
+
+def all_ok(document: dict[str, Any]) -> bool:
+    """Every item of every module OK (a rate may WARN on a loaded machine), but the computers'
+    own CPU and memory: the five share this machine's two cores with the rest of the suite,
+    so its load is not theirs."""
+    return all(
+        item["level"] == "OK" or (item["level"] == "WARN" and "/topics/" in item["name"])
+        for row in document["modules"]
+        for item in row["items"]
+        if "/host/" not in item["name"]
+    )
+
+
+def test_up_made_five_computers_each_with_its_own_link(stage: Stage) -> None:
+    document = stage.status()
+    assert document["secure"] is True and document["emulator"] == "running"
+    names = {c["name"]: c for c in document["computers"]}
+    assert set(names) == {*ROBOTS.values(), GROUND}
+    assert len({c["address"] for c in names.values()}) == 5
+    for computer in names.values():
+        assert computer["link"]["profile"] == "wifi"
+        assert computer["link"]["up"]["packets"] > 0, computer  # the radio carried its traffic
+        # An agent and a router at least, inside the computer's own namespace.
+        commands = " ".join(p["command"] for p in computer["processes"])
+        assert "msctl agent" in commands and "router" in commands, commands
+
+
+def test_every_computer_has_its_own_host_name_and_home(stage: Stage) -> None:
+    done = stage.msctl(
+        "rehearse", "exec", "hl-limb-02", "--", "sh", "-c", 'hostname; echo "$MSCTL_HOME"'
+    )
+    assert done.returncode == 0, done.stderr
+    name, home = done.stdout.split()
+    assert name == "hl-limb-02"
+    assert Path(home).name == "hl-limb-02" and Path(home).is_relative_to(stage.home)
+
+
+def test_health_shows_every_module_ok_from_its_own_computer(stage: Stage) -> None:
+    _code, document = wait_until(
+        lambda: (r := health(stage)) and all_ok(r[1]) and r, timeout=120, what="every module OK"
+    )
+    assert document["assembly"] == "dragon"
+    assert {row["name"]: row["host"] for row in document["modules"]} == ROBOTS
+    assert [s["name"] for s in document["stations"]] == ["gc1"]
+
+
+def test_ps_all_lists_every_computer_of_the_plan(stage: Stage) -> None:
+    done = stage.on(GROUND, "ps", "--all", "--json")
+    assert done.returncode == 0, done.stderr
+    document = json.loads(done.stdout)
+    hosts = {c["host"] for c in document["components"]}
+    assert hosts == {*ROBOTS.values(), GROUND}
+    motors = {c["name"]: c for c in document["components"] if c["kind"] == "motor_interface"}
+    assert {m["host"] for m in motors.values()} == set(ROBOTS.values())  # each on its robot
+    assert all(m["state"] == "running" for m in motors.values()), motors
+
+
+def test_estop_and_recover_reach_every_module_from_the_ground(stage: Stage) -> None:
+    done = stage.on(GROUND, "estop")
+    assert done.returncode == 0, done.stderr
+    for module in ROBOTS:
+        assert re.search(rf"^{module}\s+halted", done.stdout + done.stderr, re.M), done
+    done = stage.on(GROUND, "recover")
+    assert done.returncode == 0, done.stderr
+    for module in ROBOTS:
+        assert re.search(rf"^{module}\s+recovered", done.stdout + done.stderr, re.M), done
+
+
+def test_logs_of_a_component_on_another_computer(stage: Stage) -> None:
+    done = stage.on(GROUND, "logs", "limb2/motor_interface")
+    assert done.returncode == 0, done.stderr
+    # The real CANopen backend, on its robot, against emulated drives.
+    assert "canopen" in done.stdout, done.stdout[-2000:]
+
+
+def test_restart_of_a_component_on_another_computer(stage: Stage) -> None:
+    def pid() -> int:
+        listed = stage.on(GROUND, "ps", "--json")
+        assert listed.returncode in (0, 1), listed.stderr
+        rows = {c["name"]: c for c in json.loads(listed.stdout)["components"]}
+        return rows["wheel1/joint_manager"]["pid"]
+
+    before = pid()
+    done = stage.on(GROUND, "restart", "wheel1/joint_manager")
+    assert done.returncode == 0, done.stderr
+    assert "hl-wheel-01" in done.stderr
+    wait_until(lambda: pid() not in (before, None), timeout=120, what="a new process")
+    wait_until(lambda: all_ok(health(stage)[1]), timeout=120, what="healthy again")
+
+
+def test_record_on_the_ground_station(stage: Stage) -> None:
+    bag = stage.home / "ground-bag"
+    recorder = stage.spawn(
+        GROUND, "record", "/limb1/joint_states", "/wheel2/health", "-o", str(bag)
+    )
+    try:
+        wait_until(
+            lambda: (bag / "metadata.yaml").exists() and _bag_messages(stage, bag) > 50,
+            timeout=120,
+            what="messages in the bag",
+        )
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        _out, err = recorder.communicate(timeout=60)
+    assert recorder.returncode == 0, err
+    info = json.loads(stage.msctl("bag", "info", str(bag), "--json").stdout)
+    topics = {t["name"]: t["count"] for t in info["topics"]}
+    assert topics.get("/limb1/joint_states", 0) > 50, topics
+
+
+def _bag_messages(stage: Stage, bag: Path) -> int:
+    done = stage.msctl("bag", "info", str(bag), "--json")
+    if done.returncode != 0:
+        return 0
+    return int(json.loads(done.stdout).get("message_count", 0))
+
+
+def test_teleop_drives_joints_and_wheels_from_the_ground(stage: Stage) -> None:
+    if shutil.which("tmux") is None:
+        pytest.skip("tmux is not installed")
+    session = f"rehearse-teleop-{os.getpid()}"
+    command = (
+        f"env -u COLUMNS -u LINES MSCTL_HOME={stage.home} {sys.executable} -m msctl rehearse "
+        f"exec {GROUND} -- msctl teleop; echo EXITED $?; sleep 600"
+    )
+    # Each command must cross the radio and the robot router's access control to be seen
+    # on the robot computer it commands.
+    joint_set = stage.spawn(
+        "hl-limb-01", "topic", "echo", "/limb1/joint_set", "--once", "--timeout", "240"
+    )
+    cmd_vel = stage.spawn("hl-wheel-01", "topic", "echo", "/cmd_vel", "--once", "--timeout", "240")
+    subprocess.run(
+        ["tmux", "new-session", "-d", "-s", session, "-x", "160", "-y", "40", command], check=True
+    )
+
+    def screen() -> str:
+        return subprocess.run(
+            ["tmux", "capture-pane", "-p", "-t", session], capture_output=True, text=True
+        ).stdout
+
+    def hold(key: str, watcher: subprocess.Popen[str]) -> str:
+        """Press ``key`` as a held key repeats it, until ``watcher`` saw its message."""
+        deadline = time.monotonic() + 90
+        while watcher.poll() is None and time.monotonic() < deadline:
+            subprocess.run(["tmux", "send-keys", "-t", session, key], check=True)
+            time.sleep(0.05)
+        out, err = watcher.communicate(timeout=60)
+        assert watcher.returncode == 0, (err, screen())
+        return out
+
+    try:
+        wait_until(lambda: "limb1" in screen(), timeout=120, what="the teleop screen")
+        claims = wait_until(
+            lambda: (
+                (c := stage.on("hl-limb-01", "claims", "--json")).returncode == 0
+                and json.loads(c.stdout)["claims"]
+            ),
+            timeout=60,
+            what="the teleop's claims, seen on a robot computer",
+        )
+        assert "limb1" in {c["module"] for c in claims}
+        assert all(c["holder"].endswith(f"@{GROUND}") for c in claims), claims
+        assert "position" in hold("w", joint_set)  # joint mode: jog limb1's joint
+        subprocess.run(["tmux", "send-keys", "-t", session, "3"], check=True)  # drive mode
+        assert "linear" in hold("i", cmd_vel)
+        subprocess.run(["tmux", "send-keys", "-t", session, "Escape"], check=True)
+        wait_until(lambda: "EXITED" in screen(), timeout=60, what="teleop quits")
+        assert "EXITED 0" in screen(), screen()
+    finally:
+        for watcher in (joint_set, cmd_vel):
+            if watcher.poll() is None:
+                watcher.kill()
+        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True, check=False)
+
+
+def test_an_outage_makes_ps_all_name_the_computer_and_exit_1(stage: Stage) -> None:
+    done = stage.msctl("rehearse", "link", "hl-wheel-02", "--down", "0")
+    assert done.returncode == 0, done.stderr
+    try:
+        listed = wait_until(
+            lambda: (
+                (r := stage.on(GROUND, "ps", "--all", "--json", "--timeout", "3"))
+                and r.returncode == 1
+                and r
+            ),
+            timeout=60,
+            what="ps --all noticing the outage",
+        )
+        assert "hl-wheel-02" in listed.stderr
+        status = stage.status()
+        link = next(c["link"] for c in status["computers"] if c["name"] == "hl-wheel-02")
+        assert link["up"]["outage"] or link["down"]["outage"], link
+    finally:
+        stage.msctl("rehearse", "link", "hl-wheel-02", "--up")
+    wait_until(
+        lambda: stage.on(GROUND, "ps", "--all", "--json").returncode == 0,
+        timeout=120,
+        what="every computer answering again",
+    )
+
+
+def test_reboot_brings_the_agent_back_alone(stage: Stage) -> None:
+    done = stage.msctl("rehearse", "reboot", "hl-limb-02")
+    assert done.returncode == 0, done.stderr
+    assert "processes killed" in done.stderr
+    wait_until(
+        lambda: "/msctl/hl_limb_02/request" in stage.on(GROUND, "service", "list").stdout,
+        timeout=120,
+        what="hl-limb-02's agent back on the fleet",
+    )
+
+
+def test_down_all_then_rehearse_down_leaves_nothing(stage: Stage) -> None:
+    done = stage.on(GROUND, "down", "--all", timeout=180)
+    assert done.returncode == 0, done.stderr
+    root = stage.home / "rehearse"
+    prefix = namespace_prefix(root)
+    done = stage.msctl("rehearse", "down")
+    assert done.returncode == 0, done.stderr
+    assert not [n for n in namespaces() if n.startswith(prefix)]
+    assert not root.exists()
+    assert not list(Path("/etc/netns").glob(prefix + "*"))
