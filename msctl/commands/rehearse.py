@@ -222,7 +222,7 @@ def status(json_output: bool = JSON_OPT) -> None:
         title=f"rehearsal of {document['template']} "
         f"({'secure' if document['secure'] else 'plain TCP'}; links: {document['emulator']})"
     )
-    for column in ("computer", "address", "processes", "link", "up: pkts / dropped", "down"):
+    for column in ("computer", "address", "processes", "link", "to the access point", "from it"):
         table.add_column(column)
     for computer in document["computers"]:
         link_state = computer["link"] or {}
@@ -240,20 +240,29 @@ def status(json_output: bool = JSON_OPT) -> None:
 
 
 def _link_cell(link_state: dict) -> str:
+    """The profile, and an outage with how long it has left."""
     text = str(link_state.get("profile", "?"))
     for direction in ("up", "down"):
         outage = (link_state.get(direction) or {}).get("outage")
         if outage:
-            return text + " [red](outage)[/]"
+            left = outage.get("left_s")
+            return text + (
+                f" [red]outage, {left:.1f} s left[/]" if left is not None else " [red]outage[/]"
+            )
     return text
 
 
 def _direction_cell(counters: dict | None) -> str:
+    """Packets and bytes carried, dropped by reason, the delay actually added."""
     if not counters:
         return "-"
     dropped = counters.get("dropped", {})
-    total = sum(dropped.values()) if isinstance(dropped, dict) else dropped
-    return f"{counters.get('packets', 0)} / {total}"
+    drops = ", ".join(f"{n} {why}" for why, n in sorted(dropped.items()) if n) or "none dropped"
+    applied = counters.get("applied", {})
+    return (
+        f"{counters.get('packets', 0)} pkts, {counters.get('bytes', 0) / 1024:.0f} KiB; {drops}; "
+        f"+{applied.get('mean_delay_ms', 0.0):.1f} ms"
+    )
 
 
 @app.command()

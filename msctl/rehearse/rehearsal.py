@@ -62,7 +62,8 @@ AGENTS_WITHIN = 120.0
 
 def rehearsal_dir() -> Path:
     """``$MSCTL_HOME/rehearse``: the rehearsal's state, logs and its computers' homes."""
-    return state_dir() / "rehearse"
+    # Absolute: the state names files the computers' processes read from other directories.
+    return (state_dir() / "rehearse").absolute()
 
 
 def namespace_prefix(root: Path | None = None) -> str:
@@ -545,13 +546,27 @@ def down(root: Path | None = None) -> list[str]:
     counts = at_once(kill_all, sorted(names))
     for netns, count in zip(sorted(names), counts, strict=True):
         removed.append(f"{netns} ({count} processes)")
-    if rehearsal is not None and rehearsal.emulator_pid:
-        _stop_pid(rehearsal.emulator_pid, "msctl.rehearse.emulator")
+    # By its spec file, not only the pid kept: a crash may come before the pid was written.
+    for pid in _emulators(root):
+        _stop_pid(pid, "msctl.rehearse.emulator")
     for netns in sorted(names):
         remove_namespace(netns)
     if root.exists():
         shutil.rmtree(root, ignore_errors=True)
     return removed
+
+
+def _emulators(root: Path) -> list[int]:
+    """The link emulators running for the rehearsal in ``root``."""
+    import psutil
+
+    spec = str(root / "links.json")
+    found = []
+    for process in psutil.process_iter(["pid", "cmdline"]):
+        argv = process.info.get("cmdline") or []
+        if "msctl.rehearse.emulator" in argv and spec in argv:
+            found.append(process.info["pid"])
+    return found
 
 
 def _stop_pid(pid: int, marker: str) -> None:
