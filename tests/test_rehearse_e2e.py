@@ -153,7 +153,8 @@ def test_health_shows_every_module_ok_from_its_own_computer(stage: Stage) -> Non
 
 
 def test_ps_all_lists_every_computer_of_the_plan(stage: Stage) -> None:
-    done = stage.on(GROUND, "ps", "--all", "--json")
+    # A generous answer time: the five computers share two loaded cores.
+    done = stage.on(GROUND, "ps", "--all", "--json", "--timeout", "30")
     assert done.returncode == 0, done.stderr
     document = json.loads(done.stdout)
     hosts = {c["host"] for c in document["components"]}
@@ -183,7 +184,7 @@ def test_logs_of_a_component_on_another_computer(stage: Stage) -> None:
 
 def test_restart_of_a_component_on_another_computer(stage: Stage) -> None:
     def pid() -> int:
-        listed = stage.on(GROUND, "ps", "--json")
+        listed = stage.on(GROUND, "ps", "--json", "--timeout", "30")
         assert listed.returncode in (0, 1), listed.stderr
         rows = {c["name"]: c for c in json.loads(listed.stdout)["components"]}
         return rows["wheel1/joint_manager"]["pid"]
@@ -301,7 +302,7 @@ def test_an_outage_makes_ps_all_name_the_computer_and_exit_1(stage: Stage) -> No
     finally:
         stage.msctl("rehearse", "link", "hl-wheel-02", "--up")
     wait_until(
-        lambda: stage.on(GROUND, "ps", "--all", "--json").returncode == 0,
+        lambda: stage.on(GROUND, "ps", "--all", "--json", "--timeout", "30").returncode == 0,
         timeout=120,
         what="every computer answering again",
     )

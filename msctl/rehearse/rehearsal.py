@@ -396,10 +396,10 @@ def _make(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
         progress.step(f"{ground.name}: msctl net init; its net/ copied to every computer")
         from components.claims import default_holder
 
-        holder = default_holder().split("@")[0] + "@" + ground.name
-        done = rehearsal.run(ground, ["msctl", "net", "init", "--operator", holder], timeout)
+        # As the README says it: on the ground station, `msctl net init` makes you (user@ground1).
+        done = rehearsal.run(ground, ["msctl", "net", "init"], timeout)
         _check(done, ground, "msctl net init")
-        rehearsal.operator = holder
+        rehearsal.operator = default_holder().split("@")[0] + "@" + ground.name
         rehearsal.save()
         for computer in computers:
             if computer is not ground:
