@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import stat
 import subprocess
 import sys
@@ -161,3 +162,16 @@ def test_an_off_robot_router_links_to_no_real_robot(home: Path) -> None:
     # The laptop simulates the whole assembly: its router must not reach the real robots.
     off = netconfig.router_config(assembly, "laptop", home=home / "laptop-net", off_robot=True)
     assert off["connect"]["endpoints"] == []
+
+
+def test_a_computer_with_the_ca_certificate_but_not_its_key(tmp_path: Path) -> None:
+    """A robot computer gets MSCTL_HOME/net without ca/ca.key: it trusts the fleet (its router
+    config is made) but cannot mint identities, and says where they are made."""
+    home = tmp_path / "ground"
+    pki.init_fleet(["robot1"], ["alice@ground"], home)
+    robot = tmp_path / "robot"
+    shutil.copytree(pki.net_dir(home), pki.net_dir(robot), ignore=shutil.ignore_patterns("ca.key"))
+    assert pki.trusts(robot) and not pki.initialised(robot)
+    with pytest.raises(pki.PkiError, match="not its key") as refused:
+        pki.issue("robot2", robot)
+    assert "robot2" in str(refused.value)

@@ -180,8 +180,11 @@ def config(
         assembly = load_assembly()
     except AssemblyError as exc:
         raise InputError(str(exc)) from exc
-    if not pki.initialised():
-        raise InputError(f"no fleet CA in {pki.net_dir()}", hint="run `msctl net init` first")
+    if not pki.trusts():
+        raise InputError(
+            f"no fleet CA certificate in {pki.net_dir()}",
+            hint="run `msctl net init` (on the ground station; then copy its net/ here)",
+        )
     try:
         document = (
             netconfig.component_config(host)

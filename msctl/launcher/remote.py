@@ -297,9 +297,9 @@ _LOOPBACK = ("127.", "localhost", "[::1]")
 
 #: What to do about plain links, in every refusal.
 _SECURE_THE_FLEET = (
-    "run `msctl net init`, copy MSCTL_HOME/net to every computer, start the agents with "
-    "MSCTL_SECURE=1 and set MSCTL_IDENTITY to your operator name; or pass --insecure on a "
-    "network you trust"
+    "run `msctl net init`, copy MSCTL_HOME/net (all but ca/ca.key) to every computer, start "
+    "the agents with MSCTL_SECURE=1 and set MSCTL_IDENTITY to your operator name; or pass "
+    "--insecure on a network you trust"
 )
 
 

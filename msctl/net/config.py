@@ -71,7 +71,7 @@ def tls_block(identity: pki.Identity, home: Path | None) -> dict[str, Any]:
                 f"run `msctl net add-operator {name.removeprefix(pki.OPERATOR_PREFIX)}`"
                 if identity.role == "operator"
                 else f"run `msctl net init --host {name}` where the fleet CA is, then copy "
-                "MSCTL_HOME/net to this computer"
+                "MSCTL_HOME/net to this computer (all but ca/ca.key)"
             )
             raise NetConfigError(f"identity {name!r} has no {path.name} at {path}: {fix}")
     return {
@@ -243,10 +243,11 @@ def this_computer_router(
     """
     from components.assembly import load_assembly
 
-    if not pki.initialised(home):
+    if not pki.trusts(home):
         raise NetConfigError(
-            f"the fleet has no certificate authority in {pki.net_dir(home)}: run "
-            "`msctl net init` (then copy MSCTL_HOME/net to every computer)"
+            f"this computer has no fleet CA certificate ({pki.ca_cert(home)}): run "
+            "`msctl net init` on the ground station, then copy its MSCTL_HOME/net here "
+            "(all but ca/ca.key)"
         )
     assembly = load_assembly()
     if off_robot is None:

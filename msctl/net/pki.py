@@ -104,8 +104,15 @@ def check_name(name: str, what: str) -> str:
 
 
 def initialised(home: Path | None = None) -> bool:
-    """Whether ``msctl net init`` has made the fleet CA here."""
+    """Whether ``msctl net init`` has made the fleet CA here (it can sign identities)."""
     return ca_cert(home).is_file() and (net_dir(home) / "ca" / "ca.key").is_file()
+
+
+def trusts(home: Path | None = None) -> bool:
+    """Whether this computer holds the fleet CA's certificate: all a member of the fleet
+    needs to verify the others. The CA's key stays where identities are made (the ground
+    station): whoever holds it can mint an identity every router admits."""
+    return ca_cert(home).is_file()
 
 
 def init_fleet(hosts: list[str], operators: list[str], home: Path | None = None) -> list[str]:
@@ -152,6 +159,12 @@ def issue(common_name: str, home: Path | None = None, days: int = IDENTITY_DAYS)
         PkiError: If the fleet has no CA yet.
     """
     if not initialised(home):
+        if trusts(home):
+            raise PkiError(
+                f"{net_dir(home)} holds the fleet CA's certificate but not its key (ca/ca.key "
+                f"stays where `msctl net init` ran): make the identity of {common_name} there, "
+                "then copy it here"
+            )
         raise PkiError(f"no fleet CA in {net_dir(home)}: run `msctl net init` first")
     _need_openssl()
     target = identity_dir(common_name, home)

@@ -4,11 +4,12 @@
 commands, each computer in its own namespace:
 
 1. resolve the template here to learn its computers (robot computers and ground stations);
-2. one namespace per computer, linked to the simulated access point by the link emulator;
+2. one namespace per computer, linked to the simulated access point by the link emulator,
+   and its own home and Python environment (what its builds install goes there);
 3. on every computer, ``msctl assemble TEMPLATE`` from its own data (as each real computer
    resolves for itself);
 4. secure (the default): ``msctl net init`` on the first ground station, and its
-   ``MSCTL_HOME/net`` copied to every computer, as the README tells a user;
+   ``MSCTL_HOME/net`` copied to every computer but for the CA's key, as the README tells a user;
 5. ``msctl agent`` on every computer (robot computers with their real motor backends against
    emulated hardware: ``MSCTL_EMULATE_HARDWARE=1``), each starting its computer's router
    linked as the generated configs say (plain TCP links only with ``--insecure``);
@@ -41,6 +42,7 @@ from msctl.rehearse.computers import (
     environment,
     kill_all,
     make_namespace,
+    make_python_environment,
     namespaces,
     need_privileges,
     remove_namespace,
@@ -385,6 +387,7 @@ def _make(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
     for computer in computers:
         make_namespace(computer, computers)
         computer.home.mkdir(parents=True, exist_ok=True)
+        make_python_environment(computer)
     progress.step("radio links (link emulator)")
     rehearsal.emulator_pid = _start_emulator(rehearsal)
     rehearsal.save()
@@ -401,9 +404,13 @@ def _make(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
         _check(done, ground, "msctl net init")
         rehearsal.operator = default_holder().split("@")[0] + "@" + ground.name
         rehearsal.save()
+        # All but the CA's key, which stays on the ground station (README, "In the field").
+        keep_key = shutil.ignore_patterns("ca.key")
         for computer in computers:
             if computer is not ground:
-                shutil.copytree(ground.home / "net", computer.home / "net", dirs_exist_ok=True)
+                shutil.copytree(
+                    ground.home / "net", computer.home / "net", ignore=keep_key, dirs_exist_ok=True
+                )
     progress.step("msctl agent on every computer")
     for computer in computers:
         rehearsal.start_agent(computer)
