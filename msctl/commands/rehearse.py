@@ -10,8 +10,10 @@
     msctl rehearse status [--json]                  computers, processes, link counters
     msctl rehearse down                             remove everything it made
 
-Needs root (network namespaces, TUN devices). See ``msctl/rehearse/rehearsal.py`` for what
-``up`` does, step by step: the same commands the README's field section gives a user.
+Needs root, or unprivileged user namespaces (then no sudo: the namespaces live in a user
+namespace of the user's own, see ``msctl/rehearse/privileges.py``); without either it says
+what to do. See ``msctl/rehearse/rehearsal.py`` for what ``up`` does, step by step: the same
+commands the README's field section gives a user.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from msctl.errors import InputError
 
 app = typer.Typer(
     help="The assembly's multi-computer deployment on this machine, over emulated radio links "
-    "(root).",
+    "(root, or unprivileged user namespaces).",
     no_args_is_help=True,
 )
 
@@ -218,9 +220,12 @@ def status(json_output: bool = JSON_OPT) -> None:
     if json_output:
         print_json(document)
         return
+    where = {"root": "as root", "userns": "in a user namespace"}
+    mode = document["privileges"].get("mode", "root")
     table = Table(
         title=f"rehearsal of {document['template']} "
-        f"({'secure' if document['secure'] else 'plain TCP'}; links: {document['emulator']})"
+        f"({'secure' if document['secure'] else 'plain TCP'}; links: {document['emulator']}; "
+        f"{where.get(mode, mode)})"
     )
     for column in ("computer", "address", "processes", "link", "to the access point", "from it"):
         table.add_column(column)

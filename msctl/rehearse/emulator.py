@@ -8,8 +8,9 @@ comes out of the sender's TUN here, goes through the sender's ``up``
 is written to the receiver's TUN when both let it leave. Anything else (unknown addresses,
 broadcast, multicast, not IPv4) is dropped and counted per sender.
 
-Run it as ``python -m msctl.rehearse.emulator SPEC.json`` (root: it enters namespaces and
-creates devices), or call :func:`serve`. The spec (:class:`Spec`) is JSON::
+Run it as ``python -m msctl.rehearse.emulator SPEC.json`` (as root, or inside the user
+namespace that owns the namespaces: it enters them and creates devices), or call
+:func:`serve`. The spec (:class:`Spec`) is JSON::
 
     {
       "control": "/run/msr/ctl.sock",          # unix socket of the control protocol
@@ -292,7 +293,7 @@ def run_in_netns(netns: str, function: Callable[[], T]) -> T:
     It runs on a new thread that enters the namespace (setns only moves the calling thread)
     and then ends, so the caller's namespace never changes. Sockets and devices made there
     stay in that namespace after it returns: a socket opened this way talks from that
-    computer. Needs root (CAP_SYS_ADMIN).
+    computer. Needs CAP_SYS_ADMIN over it: root, or the user namespace that owns it.
 
     Raises:
         NotFoundError: No such namespace.

@@ -18,6 +18,10 @@ commands, each computer in its own namespace:
 Everything it makes is written down in ``$MSCTL_HOME/rehearse/rehearsal.json`` before it is
 made, and every namespace is named after that directory, so ``down`` removes all of it even
 after the rehearsal itself crashed midway.
+
+As root, the namespaces are the system's; as any other user, where the kernel allows
+unprivileged user namespaces, they live in a keeper process's own user namespace
+(:mod:`msctl.rehearse.privileges`), with no sudo: every step above is the same.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +52,8 @@ from msctl.rehearse.computers import (
     remove_namespace,
     spawn,
 )
+from msctl.rehearse.privileges import ROOT, Privileges, find_keepers
+from msctl.rehearse.privileges import from_json as privileges_from_json
 
 #: The radio subnet every rehearsal uses (each computer's namespace has its own stack, so
 #: two rehearsals never meet).
@@ -89,6 +95,8 @@ class Rehearsal:
         emulator_pid: The link emulator's process.
         seed: The link emulator's seed (the same seed replays the same losses).
         created: When it was made (epoch seconds).
+        privileges: Where its namespaces live (the system's as root, else a keeper's user
+            namespace); its computers carry the same.
     """
 
     root: Path
@@ -100,6 +108,7 @@ class Rehearsal:
     emulator_pid: int | None = None
     seed: int = 1
     created: float = field(default_factory=time.time)
+    privileges: Privileges = ROOT
 
     # ------------------------------------------------------------------ state
     @property
@@ -129,6 +138,7 @@ class Rehearsal:
             "emulator_pid": self.emulator_pid,
             "seed": self.seed,
             "created": self.created,
+            "privileges": self.privileges.to_json(),
             "computers": [c.to_json() for c in self.computers],
         }
         write_file(self.state_file, json.dumps(document, indent=2) + "\n")
@@ -144,16 +154,18 @@ class Rehearsal:
         path = root / STATE_FILE
         try:
             data = json.loads(path.read_text())
+            privileges = privileges_from_json(data.get("privileges"))
             return cls(
                 root=root,
                 template=data["template"],
                 uses=dict(data.get("uses", {})),
                 secure=bool(data["secure"]),
-                computers=[Computer.from_json(c) for c in data["computers"]],
+                computers=[Computer.from_json(c, privileges) for c in data["computers"]],
                 operator=data.get("operator", ""),
                 emulator_pid=data.get("emulator_pid"),
                 seed=int(data.get("seed", 1)),
                 created=float(data.get("created", 0.0)),
+                privileges=privileges,
             )
         except FileNotFoundError:
             raise RehearseError(
@@ -164,6 +176,11 @@ class Rehearsal:
                 f"{path} is not a rehearsal's state ({exc})",
                 hint="`msctl rehearse down` removes whatever it can find of it",
             ) from exc
+
+    def use(self, privileges: Privileges) -> None:
+        """Make its namespaces with ``privileges`` (every computer's with them)."""
+        self.privileges = privileges
+        self.computers = [replace(c, privileges=privileges) for c in self.computers]
 
     def computer(self, name: str) -> Computer:
         """The computer called ``name``.
@@ -196,9 +213,11 @@ class Rehearsal:
     # ------------------------------------------------------------------ running as a computer
     def env(self, computer: Computer, base: Mapping[str, str] | None = None) -> dict[str, str]:
         """The environment of a command run as ``computer``: its host name and home, and on a
-        secure ground station the operator's identity, so `msctl` commands reach the fleet."""
+        secure ground station the operator's identity, so `msctl` commands reach the fleet
+        (on the first robot computer of an assembly without one: operators work there)."""
         extra: dict[str, str] = {}
-        if self.secure and computer.role == "station" and self.operator:
+        operated = computer.role == "station" or computer.name == self.ground.name
+        if self.secure and operated and self.operator:
             extra["MSCTL_IDENTITY"] = self.operator
         return environment(computer, extra, base)
 
@@ -340,9 +359,9 @@ def up(
     from msctl.rehearse import profiles as link_profiles
 
     progress = progress or Progress()
-    need_privileges()
+    mode = need_privileges()
     root = rehearsal_dir()
-    if (root / STATE_FILE).exists() or _leftover_namespaces(root):
+    if (root / STATE_FILE).exists() or _leftovers(root):
         raise RehearseError(
             f"a rehearsal is already in {root}",
             hint="see it with `msctl rehearse status`; `msctl rehearse down` removes it",
@@ -368,8 +387,10 @@ def up(
         computers=plan_computers(assembly, root, every or "lan", per_host),
     )
     root.mkdir(parents=True, exist_ok=True)
-    rehearsal.save()  # before anything is made: `down` finds it all after a crash
     try:
+        # Its keeper, without root, is found by its command line if a crash comes first.
+        rehearsal.use(mode.start(root))
+        rehearsal.save()  # before anything is made: `down` finds it all after a crash
         _make(rehearsal, progress, timeout)
         if bring_up:
             progress.step(f"{rehearsal.ground.name}: msctl up --all")
@@ -460,9 +481,11 @@ def _start_emulator(rehearsal: Rehearsal) -> int:
     ready = Path(spec["ready"])
     ready.unlink(missing_ok=True)
     rehearsal.logs.mkdir(parents=True, exist_ok=True)
+    argv = [sys.executable, "-m", "msctl.rehearse.emulator", str(spec_file)]
     with open(rehearsal.logs / "links.log", "ab") as log:
+        # Where the namespaces are: it enters each one to make its TUN device there.
         process = subprocess.Popen(
-            [sys.executable, "-m", "msctl.rehearse.emulator", str(spec_file)],
+            rehearsal.privileges.command(argv),
             stdin=subprocess.DEVNULL,
             stdout=log,
             stderr=subprocess.STDOUT,
@@ -504,7 +527,7 @@ def _wait_for_agents(rehearsal: Rehearsal, timeout: float) -> None:
             if not missing:
                 return
         for computer in rehearsal.computers:
-            if not describe_processes(computer.netns):
+            if not describe_processes(computer.netns, computer.privileges):
                 raise RehearseError(
                     f"the agent of {computer.name} exited",
                     hint=f"see {rehearsal.logs / (computer.name + '.log')}",
@@ -528,36 +551,66 @@ def _bring_up(rehearsal: Rehearsal, timeout: float) -> None:
 
 
 # --------------------------------------------------------------------------- down
-def _leftover_namespaces(root: Path) -> list[str]:
+def _leftover_namespaces(root: Path, privileges: Privileges = ROOT) -> list[str]:
     prefix = namespace_prefix(root)
-    return [n for n in namespaces() if n.startswith(prefix)]
+    return [n for n in namespaces(privileges) if n.startswith(prefix)]
+
+
+def _leftovers(root: Path) -> list[str]:
+    """What a rehearsal in ``root`` left running without its state file: the system's
+    namespaces named after it, and keepers of its user namespace."""
+    keepers = [f"keeper {k.keeper}" for k in find_keepers(root)]
+    return _leftover_namespaces(root) + keepers
+
+
+def _places(root: Path, rehearsal: Rehearsal | None) -> list[Privileges]:
+    """Where the rehearsal in ``root`` has namespaces: the mode its state kept, the
+    system's when namespaces named after it are there, every keeper found running for it
+    (a crash may come before the state kept one)."""
+    places: list[Privileges] = [rehearsal.privileges] if rehearsal else []
+    if _leftover_namespaces(root):
+        places.append(ROOT)
+    places += find_keepers(root)
+    return list(dict.fromkeys(places))
 
 
 def down(root: Path | None = None) -> list[str]:
     """Remove everything the rehearsal in ``root`` made: every process of its computers,
-    the link emulator, the namespaces and their files, its directory. Works from what is
-    left after a crash (the namespaces are named after ``root``). Returns what it removed.
+    the link emulator, the namespaces and their files, its keeper (without root), its
+    directory. Works from what is left after a crash (the namespaces are named after
+    ``root``, a keeper has it on its command line). Returns what it removed.
+
+    Raises:
+        RehearseError: If root made it and this is not root.
     """
-    need_privileges()
     root = root or rehearsal_dir()
     removed: list[str] = []
     try:
         rehearsal: Rehearsal | None = Rehearsal.load(root)
     except RehearseError:
         rehearsal = None
-    names = {c.netns for c in rehearsal.computers} if rehearsal else set()
-    names |= set(_leftover_namespaces(root))
+    places = _places(root, rehearsal)
+    for privileges in places:
+        privileges.need()
     from msctl.launcher.fleet import at_once
 
-    # Every computer's processes at once: each gets its SIGTERM grace in parallel.
-    counts = at_once(kill_all, sorted(names))
-    for netns, count in zip(sorted(names), counts, strict=True):
-        removed.append(f"{netns} ({count} processes)")
+    kept = {c.netns for c in rehearsal.computers} if rehearsal else set()
+    # A keeper that died took its namespaces with it: nothing of them to reach.
+    reachable = [p for p in places if p.alive()]
+    found = {p: sorted(kept | set(_leftover_namespaces(root, p))) for p in reachable}
+    for privileges, names in found.items():
+        # Every computer's processes at once: each gets its SIGTERM grace in parallel.
+        counts = at_once(lambda n, p=privileges: kill_all(n, privileges=p), names)
+        for netns, count in zip(names, counts, strict=True):
+            removed.append(f"{netns} ({count} processes)")
     # By its spec file, not only the pid kept: a crash may come before the pid was written.
     for pid in _emulators(root):
         _stop_pid(pid, "msctl.rehearse.emulator")
-    for netns in sorted(names):
-        remove_namespace(netns)
+    for privileges, names in found.items():
+        for netns in names:
+            remove_namespace(netns, privileges)
+    for privileges in places:
+        removed += privileges.close()
     if root.exists():
         shutil.rmtree(root, ignore_errors=True)
     return removed
@@ -618,7 +671,7 @@ def reboot(rehearsal: Rehearsal, name: str, after: float = 0.0) -> int:
     seconds later, start its agent again as systemd would at boot. Returns how many
     processes it killed."""
     computer = rehearsal.computer(name)
-    killed = kill_all(computer.netns, grace=0.0)
+    killed = kill_all(computer.netns, grace=0.0, privileges=computer.privileges)
     if after > 0:
         time.sleep(after)
     rehearsal.start_agent(computer)
@@ -641,7 +694,7 @@ def status(rehearsal: Rehearsal) -> dict[str, Any]:
                 "netns": computer.netns,
                 "address": computer.address,
                 "home": str(computer.home),
-                "processes": describe_processes(computer.netns),
+                "processes": describe_processes(computer.netns, computer.privileges),
                 "link": links.get(computer.name),
             }
         )
@@ -651,6 +704,7 @@ def status(rehearsal: Rehearsal) -> dict[str, Any]:
         "operator": rehearsal.operator,
         "root": str(rehearsal.root),
         "seed": rehearsal.seed,
+        "privileges": rehearsal.privileges.to_json(),
         "emulator": emulator,
         "computers": computers,
     }
