@@ -24,7 +24,15 @@ from components.comm.session import open_session
 from msctl.app import app
 from msctl.errors import InputError, NotFoundError
 from msctl.launcher.control import host_namespace
-from msctl.workspace.remote import Refused, WorkspaceAgent, check_request, workspace_services
+from msctl.workspace.remote import (
+    LEFT,
+    SILENT,
+    Refused,
+    Unanswered,
+    WorkspaceAgent,
+    check_request,
+    workspace_services,
+)
 
 GOOD = "repositories:\n  src/limb:\n    type: git\n    url: file:///srv/limb.git\n"
 
@@ -366,6 +374,24 @@ def test_unreachable_agents_are_named_before_and_during_a_job(tmp_path: Path, ro
         assert progress_rows(b"".join(shown).decode(errors="replace")) == {
             "gl-pi-01": "0/1 unreachable"
         }
+
+
+def test_an_agent_a_moment_off_the_graph_is_not_named_unreachable() -> None:
+    # Fake time. A busy computer misses its lease: its agent leaves the graph for 3 s and
+    # answers again, job running; one that stays out 5 s left; one in the graph but silent
+    # for 15 s is unreachable all the same.
+    watch = Unanswered(["/msctl/a", "/msctl/b", "/msctl/c"], now=0.0)
+    for now in (1.0, 2.0, 3.0, 4.0):
+        assert watch.failed("/msctl/a", now, in_graph=False) is None
+    watch.answered("/msctl/a", 4.5)
+    assert watch.failed("/msctl/a", 8.0, in_graph=False) is None  # out again: a new count
+    assert watch.failed("/msctl/a", 12.9, in_graph=False) is None
+    assert watch.failed("/msctl/a", 13.0, in_graph=False) == LEFT
+    assert watch.failed("/msctl/b", 1.0, in_graph=False) is None
+    assert watch.failed("/msctl/b", 3.0, in_graph=True) is None  # back in the graph
+    assert watch.failed("/msctl/b", 7.0, in_graph=False) is None  # out since 7, not since 1
+    assert watch.failed("/msctl/c", 14.0, in_graph=True) is None
+    assert watch.failed("/msctl/c", 15.0, in_graph=True) == SILENT
 
 
 def test_an_agent_runs_one_job_at_a_time_and_reports_its_progress(tmp_path: Path) -> None:

@@ -22,8 +22,11 @@ An update or build runs on the agent's own worker thread, one at a time (a secon
 meanwhile is refused, naming the first); the ground station asks for ``progress`` every
 half second until every agent is done, and shows one combined view. Unreachable agents are
 named: those of the resolved assembly's computers that serve nothing, and those that stop
-answering mid-job (at once when the agent has left the graph, after
-:data:`MAX_MISSES` unanswered asks otherwise), with how far they had got.
+answering mid-job (once the agent has been out of the graph for :data:`GONE_AFTER` seconds,
+else after :data:`SILENT_AFTER` seconds without an answer), with how far they had got. A
+moment out of the graph is not leaving it: a computer whose CPU is taken (five builds
+starting at once) can miss its 1 s lease, and its tokens come back as its session
+reconnects, the job still running.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +48,11 @@ VERBS = ("update", "build", "progress")
 MAX_ARGS_BYTES = 512 * 1024
 MAX_OVERLAYS = 16
 MAX_PACKAGES = 256
-#: Unanswered progress asks in a row after which an agent still in the graph is unreachable.
-MAX_MISSES = 3
+#: Seconds an agent asked for progress must stay out of the graph to be named unreachable
+#: (it left: its computer is down, its agent died, its radio link is gone).
+GONE_AFTER = 5.0
+#: Seconds without an answer after which an agent still in the graph is unreachable.
+SILENT_AFTER = 15.0
 _ARG_KEYS = {
     "update": {"repos", "overlays", "offline", "shallow"},
     "build": {"packages_up_to", "offline"},
@@ -310,6 +316,51 @@ class WorkspaceAgent:
 
 
 # --------------------------------------------------------------------------- the ground station
+#: :meth:`Unanswered.failed`'s verdicts: the agent left the graph, or stayed silent in it.
+LEFT, SILENT = "left", "silent"
+
+
+class Unanswered:
+    """When an agent asked for its job's progress, that stopped answering, is unreachable.
+
+    Once it has been out of the graph for :data:`GONE_AFTER` seconds (it left: its computer
+    is down, its agent died, its radio link is gone), or without an answer for
+    :data:`SILENT_AFTER` seconds while in it. Not at the first ask it missed out of the
+    graph: a computer whose CPU is taken misses its 1 s lease, its tokens leave for a
+    moment and come back as its session reconnects, its job still running.
+
+    Args:
+        namespaces: The agents asked (their host namespaces).
+        now: The time their job started (seconds, a monotonic clock).
+    """
+
+    def __init__(self, namespaces: Iterable[str], now: float):
+        self._answered = dict.fromkeys(namespaces, now)
+        self._out: dict[str, float] = {}
+
+    def answered(self, namespace: str, now: float) -> None:
+        """The agent answered at ``now``."""
+        self._answered[namespace] = now
+        self._out.pop(namespace, None)
+
+    def failed(self, namespace: str, now: float, in_graph: bool) -> str | None:
+        """The agent did not answer at ``now``; ``in_graph``: the graph shows its service.
+
+        Returns:
+            :data:`LEFT` or :data:`SILENT` when it is unreachable now, else ``None`` (ask
+            again).
+        """
+        if in_graph:
+            self._out.pop(namespace, None)
+        else:
+            self._out.setdefault(namespace, now)
+        if now - self._out.get(namespace, now) >= GONE_AFTER:
+            return LEFT
+        if now - self._answered.get(namespace, now) >= SILENT_AFTER:
+            return SILENT
+        return None
+
+
 #: Stages after which an item is done, for the combined progress bar.
 _DONE = {"cloned", "updated", "unchanged", "refused", "failed", "built", "up to date"}
 _DONE |= {"blocked", "skipped"}
@@ -319,10 +370,15 @@ def workspace_services(node: Any, timeout: float = 1.0) -> dict[str, str]:
     """``{host namespace: service}`` of every agent serving workspace requests (the graph's
     answer within ``timeout`` seconds)."""
     from components.comm.graph import snapshot
+    from components.comm.types import dds_type_name
     from msctl.launcher.control import AGENT_SRV
 
+    # Only the servers of AgentRequest (zid/node/entity/SS/enclave/namespace/node/service/
+    # type/hash/qos), as fleet.supervisors asks: not every token of the fleet.
+    servers = f"*/*/*/SS/*/*/*/*/{dds_type_name(AGENT_SRV)}/*/*"
     found = {}
-    for name, info in snapshot(node.session, node.domain, timeout).services().items():
+    graph = snapshot(node.session, node.domain, timeout, tokens=servers)
+    for name, info in graph.services().items():
         if name.startswith("/msctl/") and name.endswith(f"/{SERVICE}") and AGENT_SRV in info.types:
             found[name[: -len(SERVICE) - 1]] = name
     return found
@@ -429,7 +485,7 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
                 for ns, answer in started.items()
             }
             waiting = set(started)
-            misses: dict[str, int] = {}
+            watch = Unanswered(started, time.monotonic())
             last_seen: dict[str, str] = {}
             while waiting and time.monotonic() < deadline:
                 for namespace in sorted(waiting):
@@ -437,14 +493,15 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
                         state = _call(node, services[namespace], "progress", {}, 3.0)
                     except (Refused, ServiceError) as exc:
                         # A robot whose agent died or whose radio link dropped mid-job is
-                        # named now, not after the whole --timeout: at once when its agent
-                        # has left the graph, else after a few unanswered asks.
-                        misses[namespace] = misses.get(namespace, 0) + 1
+                        # named within seconds, not after the whole --timeout: once its
+                        # agent has stayed out of the graph, else once it stayed silent.
                         # A generous wait for the graph's answer: on a loaded link an
                         # answer cut short would read as the agent gone.
-                        gone = namespace not in workspace_services(node, timeout=5.0)
-                        if gone or misses[namespace] >= MAX_MISSES:
-                            why = "its agent left the network" if gone else str(exc)
+                        now = time.monotonic()
+                        seen = namespace in workspace_services(node, timeout=5.0)
+                        verdict = watch.failed(namespace, now, seen)
+                        if verdict is not None:
+                            why = "its agent left the network" if verdict == LEFT else str(exc)
                             seen = last_seen.get(namespace)
                             problems[namespace] = f"unreachable during the {verb}: {why}" + (
                                 f" (last seen: {seen})" if seen else ""
@@ -454,7 +511,7 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
                         else:
                             progress.update(rows[namespace], stage=f"[yellow]{exc}[/]")
                         continue
-                    misses[namespace] = 0
+                    watch.answered(namespace, time.monotonic())
                     job = state.get("job") or {}
                     asked = (started[namespace].get("job") or {}).get("id")
                     if job.get("id") != asked:
