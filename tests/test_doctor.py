@@ -13,7 +13,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from conftest import quick_peer_settings, quick_router
+from conftest import quick_peer_settings, quick_router, wait_until
 
 from components.comm.session import open_session
 from msctl.net import doctor
@@ -56,6 +56,39 @@ def test_a_skewed_clock_is_reported(publishing_router: str, skew_s: float, statu
     assert source == "0/limb1/joint_states/t"
     assert doctor.clock_offset("ground1", offset, source).status == status
     assert found.status == doctor.WARN and found.value == "tcp"  # reached, not encrypted
+
+
+def test_a_sample_taken_in_late_does_not_skew_the_clock(publishing_router: str) -> None:
+    # The same clock on both ends; the first sample's callback ran 400 ms late (a loaded
+    # computer): the samples after it say what the clocks are.
+    late = iter([400_000_000])
+
+    def now_ns() -> int:
+        return time.time_ns() + next(late, 0)
+
+    session = open_session(quick_peer_settings(publishing_router))
+    try:
+        offset, _source = doctor.measure_clock_offset(session, "0/**", now_ns, timeout=10.0)
+    finally:
+        session.close()
+    assert offset is not None and abs(offset) < doctor.CLOCK_ERROR_S / 2, offset
+
+
+def test_a_secure_computers_own_router_on_loopback_is_its_tls_link(publishing_router: str) -> None:
+    # An agent (or `msctl up --secure`) is a client of its own router over loopback TCP; what
+    # leaves the computer is that router's mutual TLS, not the loopback link.
+    session = open_session(quick_peer_settings(publishing_router))
+    try:
+        wait_until(lambda: list(session.info.routers_zid()), 30, "the session reaching its router")
+        secure = doctor.router("hl-limb-01", session, [publishing_router], secure=True)
+        plain = doctor.router("hl-limb-01", session, [publishing_router], secure=False)
+        beyond = doctor.router("hl-limb-01", session, ["tcp/ground1:7447"], secure=True)
+    finally:
+        session.close()
+    assert (secure.status, secure.value) == (doctor.OK, "tls"), secure
+    assert "loopback" in secure.detail
+    assert (plain.status, plain.value) == (doctor.WARN, "tcp")
+    assert (beyond.status, beyond.value) == (doctor.WARN, "tcp")  # plain TCP leaving it
 
 
 def test_missing_serial_port_and_can_interface(tmp_path: Path) -> None:
