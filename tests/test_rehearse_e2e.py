@@ -28,6 +28,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
+from rehearse_rigs import GROUND, ROBOTS, Stage
 
 from msctl.rehearse.computers import namespaces, privileges_problem
 from msctl.rehearse.rehearsal import namespace_prefix
@@ -37,57 +38,6 @@ pytestmark = [
     pytest.mark.timeout(900),
     pytest.mark.skipif(privileges_problem() is not None, reason=str(privileges_problem())),
 ]
-
-ROBOTS = {
-    "limb1": "hl-limb-01",
-    "limb2": "hl-limb-02",
-    "wheel1": "hl-wheel-01",
-    "wheel2": "hl-wheel-02",
-}
-GROUND = "ground1"
-
-
-class Stage:
-    """A rehearsal of ``dragon`` in its own MSCTL_HOME, and commands run on its computers."""
-
-    def __init__(self, home: Path) -> None:
-        self.home = home
-        self.env = {
-            k: v for k, v in os.environ.items() if not k.startswith(("MSCTL_", "COLUMNS", "LINES"))
-        }
-        self.env.update({"MSCTL_HOME": str(home), "COLUMNS": "200"})
-
-    def msctl(self, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
-        """``msctl ARGS`` on this (the rehearsing) machine."""
-        return subprocess.run(
-            [sys.executable, "-m", "msctl", *args],
-            env=self.env,
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-            stdin=subprocess.DEVNULL,
-            check=False,
-        )
-
-    def on(self, host: str, *argv: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
-        """``msctl ARGV`` run as computer ``host``."""
-        return self.msctl("rehearse", "exec", host, "--", "msctl", *argv, timeout=timeout)
-
-    def spawn(self, host: str, *argv: str) -> subprocess.Popen[str]:
-        """``msctl ARGV`` started as computer ``host`` (the pid is msctl's: exec all the way)."""
-        return subprocess.Popen(
-            [sys.executable, "-m", "msctl", "rehearse", "exec", host, "--", "msctl", *argv],
-            env=self.env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            stdin=subprocess.DEVNULL,
-            text=True,
-        )
-
-    def status(self) -> dict[str, Any]:
-        done = self.msctl("rehearse", "status", "--json")
-        assert done.returncode == 0, done.stderr
-        return json.loads(done.stdout)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,92 @@
+"""A rehearsal of ``dragon`` for the cross-computer tests, and commands run on its computers.
+
+``msctl rehearse up dragon`` makes hl-limb-01/02 and hl-wheel-01/02 (robot computers) and
+ground1 (the ground station), one network namespace each; :class:`Stage` runs ``msctl`` on
+the rehearsing machine and any command as one of those computers (``msctl rehearse exec
+HOST -- ...``), each test run in its own ``MSCTL_HOME``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+#: Dragon's modules and the robot computer each runs on.
+ROBOTS = {
+    "limb1": "hl-limb-01",
+    "limb2": "hl-limb-02",
+    "wheel1": "hl-wheel-01",
+    "wheel2": "hl-wheel-02",
+}
+#: Dragon's ground station, where the operator works.
+GROUND = "ground1"
+
+
+class Stage:
+    """A rehearsal of ``dragon`` in its own MSCTL_HOME, and commands run on its computers.
+
+    Args:
+        home: The rehearsing machine's ``MSCTL_HOME`` (the rehearsal lives under it).
+        env: More environment for every command, and so for every computer's agent, which
+            ``msctl rehearse up`` starts with its own environment (``MSCTL_WHEELHOUSE``).
+    """
+
+    def __init__(self, home: Path, env: Mapping[str, str] | None = None) -> None:
+        self.home = home
+        self.env = {
+            k: v for k, v in os.environ.items() if not k.startswith(("MSCTL_", "COLUMNS", "LINES"))
+        }
+        self.env.update({"MSCTL_HOME": str(home), "COLUMNS": "200"})
+        self.env.update(env or {})
+
+    def computer_home(self, host: str) -> Path:
+        """The ``MSCTL_HOME`` of computer ``host``."""
+        return self.home / "rehearse" / "computers" / host
+
+    def msctl(self, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+        """``msctl ARGS`` on this (the rehearsing) machine."""
+        return subprocess.run(
+            [sys.executable, "-m", "msctl", *args],
+            env=self.env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            stdin=subprocess.DEVNULL,
+            check=False,
+        )
+
+    def on(self, host: str, *argv: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+        """``msctl ARGV`` run as computer ``host``."""
+        return self.run(host, "msctl", *argv, timeout=timeout)
+
+    def run(
+        self, host: str, *argv: str, timeout: float = 120.0
+    ) -> subprocess.CompletedProcess[str]:
+        """Any command run as computer ``host`` (its namespace and environment)."""
+        return self.msctl("rehearse", "exec", host, "--", *argv, timeout=timeout)
+
+    def spawn(self, host: str, *argv: str) -> subprocess.Popen[str]:
+        """``msctl ARGV`` started as computer ``host`` (the pid is msctl's: exec all the way)."""
+        return self.start(host, "msctl", *argv)
+
+    def start(self, host: str, *argv: str) -> subprocess.Popen[str]:
+        """Any command started as computer ``host`` (the pid is the command's)."""
+        return subprocess.Popen(
+            [sys.executable, "-m", "msctl", "rehearse", "exec", host, "--", *argv],
+            env=self.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+            text=True,
+        )
+
+    def status(self) -> dict[str, Any]:
+        """``msctl rehearse status --json``."""
+        done = self.msctl("rehearse", "status", "--json")
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
