@@ -171,6 +171,24 @@ def test_an_off_robot_run_of_the_same_assembly_stands_for_every_host() -> None:
 
 
 # --------------------------------------------------------------------------- asking
+def test_a_host_back_within_the_grace_is_answered_not_gone(node: Node) -> None:
+    # A busy agent that missed its lease is out of the router's routes for a moment: the
+    # host is asked again within the grace, and its answer counts.
+    import threading
+
+    made: list[StandIn] = []
+    timer = threading.Timer(0.4, lambda: made.append(StandIn(node, "late")))
+    timer.start()
+    try:
+        asked = fleet.ask_hosts(node, "ps", ["late"], timeout=6.0, found={})
+    finally:
+        timer.join()
+        for one in made:
+            one.close()
+    assert asked.answers == {host_namespace("late"): {"host": "late", "components": []}}
+    assert not asked.silent
+
+
 def test_each_silence_says_why(node: Node, stand_in: Callable[..., StandIn]) -> None:
     stand_in("answers")
     stand_in("refuses", refusal="refused for the test")

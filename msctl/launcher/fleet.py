@@ -184,6 +184,12 @@ def at_once(work: Callable[[T], R], items: Sequence[T]) -> list[R]:
     return results
 
 
+#: Seconds a host whose router knows no server for it is asked again before it is called
+#: gone (a busy agent that missed its lease is back within that), and the pause between.
+NO_SERVER_GRACE = 2.0
+NO_SERVER_PAUSE = 0.25
+
+
 def ask_hosts(
     node: Any,
     verb: str,
@@ -227,17 +233,27 @@ def ask_hosts(
     def ask(namespace: str) -> Any:
         host = named[namespace]
         started = time.monotonic()
-        try:
-            response = clients[namespace].ask(verb, request, timeout=timeout)
-        except ServiceTimeout:
-            # Timed by the clock, not by the error's wording: a query that ended well before
-            # its bound ended because the router knows no server for that host.
-            if time.monotonic() - started < 0.9 * timeout:
-                left = " (it left while asked)" if namespace in found else ""
-                return Silence(host, NO_SUPERVISOR, f"no supervisor on the graph{left}")
-            return Silence(host, NO_ANSWER, f"no answer within {timeout:g} s")
-        except ServiceError as exc:  # an error reply, or one that is not a response
-            return Silence(host, REFUSED, str(exc))
+        while True:
+            asked_at = time.monotonic()
+            budget = timeout - (asked_at - started)
+            try:
+                response = clients[namespace].ask(verb, request, timeout=budget)
+                break
+            except ServiceTimeout:
+                # Timed by the clock, not by the error's wording: a query that ended well
+                # before its bound ended because the router knows no server for that host.
+                if time.monotonic() - asked_at >= 0.9 * budget:
+                    return Silence(host, NO_ANSWER, f"no answer within {timeout:g} s")
+                # No server got it, so asking again is safe for any verb. A busy agent's
+                # route lapses for a moment when it misses its lease: look again for a while
+                # (within half the bound) before calling it gone.
+                elapsed = time.monotonic() - started + NO_SERVER_PAUSE
+                if elapsed >= min(NO_SERVER_GRACE, timeout / 2):
+                    left = " (it left while asked)" if namespace in found else ""
+                    return Silence(host, NO_SUPERVISOR, f"no supervisor on the graph{left}")
+                time.sleep(NO_SERVER_PAUSE)
+            except ServiceError as exc:  # an error reply, or one that is not a response
+                return Silence(host, REFUSED, str(exc))
         if not response.success:
             return Silence(host, REFUSED, response.message)
         return json.loads(response.payload) if response.payload else {}
