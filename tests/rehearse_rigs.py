@@ -16,6 +16,24 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import pytest
+
+from msctl.rehearse.computers import privileges_problem
+
+
+def _root_mode_problem() -> str | None:
+    if os.geteuid() != 0:
+        # Without root a rehearsal runs in user namespaces (tests/test_rehearse_userns_e2e.py):
+        # these tests look at the system's own /run/netns and /etc/netns.
+        return "these tests rehearse as root (CI does); user namespaces have their own tests"
+    return privileges_problem()
+
+
+#: Skips a test of a rehearsal run as root, saying why.
+ROOT_REHEARSAL = pytest.mark.skipif(
+    _root_mode_problem() is not None, reason=str(_root_mode_problem())
+)
+
 #: Dragon's modules and the robot computer each runs on.
 ROBOTS = {
     "limb1": "hl-limb-01",

@@ -34,16 +34,15 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, Stage
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
 from workspace_rigs import Remote, branch, build_wheel, head, imports, python_package, repos_text
 
 from msctl.launcher.control import host_namespace
-from msctl.rehearse.computers import privileges_problem
 
 pytestmark = [
     pytest.mark.e2e,
     pytest.mark.timeout(900),
-    pytest.mark.skipif(privileges_problem() is not None, reason=str(privileges_problem())),
+    ROOT_REHEARSAL,
 ]
 
 COMPUTERS = [*ROBOTS.values(), GROUND]

@@ -28,15 +28,15 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, Stage
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
 
-from msctl.rehearse.computers import namespaces, privileges_problem
+from msctl.rehearse.computers import namespaces
 from msctl.rehearse.rehearsal import namespace_prefix
 
 pytestmark = [
     pytest.mark.e2e,
     pytest.mark.timeout(900),
-    pytest.mark.skipif(privileges_problem() is not None, reason=str(privileges_problem())),
+    ROOT_REHEARSAL,
 ]
 
 

@@ -12,13 +12,14 @@ from pathlib import Path
 
 import pytest
 from conftest import wait_until
+from rehearse_rigs import ROOT_REHEARSAL
 
-from msctl.rehearse.computers import namespaces, privileges_problem
+from msctl.rehearse.computers import namespaces
 from msctl.rehearse.rehearsal import namespace_prefix
 
 pytestmark = [
     pytest.mark.e2e,
-    pytest.mark.skipif(privileges_problem() is not None, reason=str(privileges_problem())),
+    ROOT_REHEARSAL,
 ]
 
 
