@@ -252,3 +252,19 @@ def quick_peer_settings(router_endpoint: str) -> SessionSettings:
         multicast=False,
         extra=dict(QUICK_OPEN),
     )
+
+
+@pytest.fixture(scope="module")
+def endpoint() -> Iterator[str]:
+    """A real router on a random loopback port, for the whole module."""
+    yield from quick_router()
+
+
+@pytest.fixture(scope="module")
+def net_env(endpoint: str) -> dict[str, str]:
+    """Network settings every subprocess of the module gets: its router only, no multicast."""
+    return {
+        "MSCTL_ZENOH_CONNECT": endpoint,
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+    }

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import quick_peer_settings, quick_router, wait_until
+from conftest import quick_peer_settings, wait_until
 
 from components.assembly import load_assembly
 from components.comm.node import Node
@@ -41,22 +41,6 @@ GROUND = "ground1"
 def _base_env() -> dict[str, str]:
     # Nothing of the caller's msctl settings may leak into the simulated computers.
     return {k: v for k, v in os.environ.items() if not k.startswith(("MSCTL_", "ZENOH_"))}
-
-
-@pytest.fixture(scope="module")
-def endpoint() -> Iterator[str]:
-    """A real router on a random loopback port, for the whole module."""
-    yield from quick_router()
-
-
-@pytest.fixture(scope="module")
-def net_env(endpoint: str) -> dict[str, str]:
-    """Network settings every subprocess gets: the test router only, no multicast."""
-    return {
-        "MSCTL_ZENOH_CONNECT": endpoint,
-        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
-        "MSCTL_ZENOH_MULTICAST": "0",
-    }
 
 
 @pytest.fixture(scope="module")

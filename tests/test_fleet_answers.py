@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import quick_peer_settings, quick_router, wait_until
+from conftest import quick_peer_settings, wait_until
 from test_agents import Agents, _base_env
 
 from components.comm.node import Node
@@ -37,22 +37,6 @@ ROOT = Path(__file__).resolve().parents[1]
 GROUND = "ground1"
 RUNNING = (GROUND, "hl-limb-01")  # the computers whose agents run
 DOWN = ("hl-limb-02", "hl-wheel-01", "hl-wheel-02")  # the plan's other computers
-
-
-@pytest.fixture(scope="module")
-def endpoint() -> Iterator[str]:
-    """A real router on a random loopback port, for the whole module."""
-    yield from quick_router()
-
-
-@pytest.fixture(scope="module")
-def net_env(endpoint: str) -> dict[str, str]:
-    """What every subprocess gets: the test router only, no multicast."""
-    return {
-        "MSCTL_ZENOH_CONNECT": endpoint,
-        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
-        "MSCTL_ZENOH_MULTICAST": "0",
-    }
 
 
 @pytest.fixture(scope="module")
