@@ -16,6 +16,7 @@ Used by ``msctl estop`` / ``msctl recover``, and by any operator that stops what
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -24,6 +25,8 @@ from components.messages import TRIGGER
 
 #: Seconds to wait for each module's answer.
 HALT_TIMEOUT = 2.0
+#: Seconds between two sends of a request that reached no server.
+RESEND_PAUSE = 0.05
 
 
 @dataclass(frozen=True)
@@ -105,21 +108,34 @@ class Estop:
             )
         clients = self._clients[verb]
         request = clients[chosen[0]].request_type()() if chosen else None
+        first = time.monotonic()
+        deadline = first + timeout
         # Every request leaves before any answer is awaited: all modules at once.
-        calls = [(slot, clients[slot].call_async(request, timeout, urgent=True)) for slot in chosen]
+        calls = {slot: clients[slot].call_async(request, timeout, urgent=True) for slot in chosen}
         for slot in chosen:
             clients[slot].announce()
-        answers = []
-        for slot, call in calls:
-            try:
-                response = call.result()
-            except ServiceError as exc:
-                answers.append(Acknowledgement(slot, False, str(exc), call.seconds))
-                continue
-            answers.append(
-                Acknowledgement(slot, bool(response.success), str(response.message), call.seconds)
-            )
-        return answers
+        answers: dict[str, Acknowledgement] = {}
+        while calls:
+            resend: list[str] = []
+            for slot, call in calls.items():
+                try:
+                    response = call.result()
+                    ok, message = bool(response.success), str(response.message)
+                except ServiceError as exc:
+                    if call.reached_nobody and deadline - time.monotonic() > RESEND_PAUSE:
+                        # No server got it (a radio link's route lapsed for a moment), so it
+                        # goes again until the deadline: safety traffic is retried.
+                        resend.append(slot)
+                        continue
+                    ok, message = False, str(exc)
+                seconds = None if call.answered is None else call.answered - first
+                answers[slot] = Acknowledgement(slot, ok, message, seconds)
+            calls = {}
+            if resend:
+                time.sleep(RESEND_PAUSE)
+                left = max(deadline - time.monotonic(), RESEND_PAUSE)
+                calls = {s: clients[s].call_async(request, left, urgent=True) for s in resend}
+        return [answers[slot] for slot in chosen]
 
     def close(self) -> None:
         """Undeclare the clients (idempotent; the node stays open)."""

@@ -146,6 +146,29 @@ def test_estop_calls_every_modules_halt_at_once_with_its_time(open_sessions, mod
         node.close()
 
 
+def test_a_halt_that_reached_nobody_goes_again_until_its_deadline(open_sessions, modules) -> None:
+    # A module whose route lapsed (its link flapped): the router knows no server for its
+    # halt for a moment. The halt is sent again until the deadline, not given up at once.
+    import threading
+
+    session = open_sessions()
+    wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+    node = Node(session, "operator", "/ground1")
+    back = threading.Timer(0.5, lambda: modules("limb1"))
+    try:
+        with Estop(node, ["limb1"]) as estop:
+            back.start()
+            (answer,) = estop.halt(timeout=20.0)
+            assert answer.ok and answer.message == "halt done", answer
+            assert answer.seconds is not None and answer.seconds > 0
+        with Estop(node, ["limb9"]) as nowhere:
+            (absent,) = nowhere.halt(timeout=0.5)
+            assert not absent.ok and "no server of /limb9/halt" in absent.message
+    finally:
+        back.join()
+        node.close()
+
+
 def test_msctl_estop_names_each_module_and_a_silent_one_fails_the_command(env, modules) -> None:
     modules("limb1")
     silent = modules("limb2", silent=True)

@@ -422,6 +422,9 @@ class PendingCall:
         answered: ``time.monotonic()`` when the answer (or the error reply) came; ``None``
             until then, and for a call no server answered.
         done: Set once the call is over: answered, refused, or out of time.
+        reached_nobody: The call ended early with no answer: the router knew no server for
+            it, so no server got the request (a call that waited its whole time may have
+            been carried out, its answer lost).
     """
 
     def __init__(self, client: ServiceClient, timeout: float) -> None:
@@ -432,6 +435,7 @@ class PendingCall:
         self.done = threading.Event()
         self._response: Any = None
         self._error: ServiceError | None = None
+        self.reached_nobody = False
 
     def _on_reply(self, reply: Any) -> None:
         if self.answered is not None or _timed_out(reply):
@@ -458,6 +462,7 @@ class PendingCall:
             waited = time.monotonic() - self.started
             client = self._client
             if waited < 0.9 * self._timeout:
+                self.reached_nobody = True
                 self._error = ServiceTimeout(
                     f"no server of {client.service} ({client.srv_type}) on the network: the "
                     f"query ended after {waited:.1f} s with no answer; check it is running "
