@@ -173,6 +173,30 @@ def test_a_host_back_within_the_grace_is_answered_not_gone(node: Node) -> None:
     assert not asked.silent
 
 
+def test_a_supervisor_call_with_a_grace_reaches_a_host_whose_route_came_back(
+    node: Node,
+) -> None:
+    # `up --all` asks with a grace: a host whose route lapsed (no server known for a moment)
+    # is asked again; without one, it is named at once.
+    import threading
+
+    from components.comm.services import ServiceTimeout
+    from msctl.launcher.control import call_supervisor
+
+    with pytest.raises(ServiceTimeout, match="no server of"):
+        call_supervisor(node, "later", "ps", timeout=5.0)
+    made: list[StandIn] = []
+    timer = threading.Timer(0.4, lambda: made.append(StandIn(node, "later")))
+    timer.start()
+    try:
+        answer = call_supervisor(node, "later", "ps", timeout=6.0, grace=3.0)
+    finally:
+        timer.join()
+        for one in made:
+            one.close()
+    assert answer == {"host": "later", "components": []}
+
+
 def test_each_silence_says_why(node: Node, stand_in: Callable[..., StandIn]) -> None:
     stand_in("answers")
     stand_in("refuses", refusal="refused for the test")

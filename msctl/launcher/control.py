@@ -185,20 +185,48 @@ def _describe(exc: BaseException) -> str:
 
 
 def call_supervisor(
-    node: Any, host: str, verb: str, args: dict[str, Any] | None = None, timeout: float = 5.0
+    node: Any,
+    host: str,
+    verb: str,
+    args: dict[str, Any] | None = None,
+    timeout: float = 5.0,
+    grace: float = 0.0,
 ) -> dict[str, Any]:
     """Send a request to ``host``'s supervisor and return its decoded payload.
+
+    Args:
+        node: The asking node.
+        host: The supervisor's computer.
+        verb: The request's verb.
+        args: Its arguments.
+        timeout: Seconds to wait for the answer.
+        grace: Seconds to keep sending it again while the router knows no server for it
+            (then no server got it, so sending again is safe for any verb): a radio link's
+            route that lapsed for a moment is not an agent gone.
 
     Raises:
         ServiceTimeout: If nobody answers for that host.
         RequestError: If the supervisor refused the request.
     """
+    import time
+
+    from components.comm.services import ServiceTimeout
     from components.comm.types import registry
 
     client = node.client(f"{host_namespace(host)}/request", AGENT_SRV)
+    started = time.monotonic()
     try:
-        request_cls = registry().msg_class(client.parts.request)
-        response = client.call(request_cls(verb=verb, args=encode_args(args)), timeout=timeout)
+        request = registry().msg_class(client.parts.request)(verb=verb, args=encode_args(args))
+        while True:
+            left = timeout - (time.monotonic() - started)
+            try:
+                response = client.call(request, timeout=max(left, 0.1))
+                break
+            except ServiceTimeout as exc:
+                waited = time.monotonic() - started
+                if not str(exc).startswith("no server of ") or waited + 0.25 >= min(grace, timeout):
+                    raise
+                time.sleep(0.25)
     finally:
         client.close()
     if not response.success:

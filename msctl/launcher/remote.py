@@ -124,6 +124,11 @@ def _wait_rebuilt(
     )
 
 
+#: Seconds ``up --all`` keeps asking a host whose route has lapsed (on field Wi-Fi a link
+#: flaps for a second or two) before naming it unreachable.
+UP_GRACE = 3.0
+
+
 def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> None:
     """Start every host's part through its agent, with one progress view for all of them.
 
@@ -191,13 +196,14 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         def ask(host: str) -> tuple[str, Any]:
             try:
                 if host_namespace(host) not in present:
-                    call_supervisor(node, host, "ps", timeout=10.0)
+                    call_supervisor(node, host, "ps", timeout=10.0, grace=UP_GRACE)
                 answer = call_supervisor(
                     node,
                     host,
                     "up",
                     {"assembly": document, "sim": sim, "speed": speed},
                     answer_bound,
+                    grace=UP_GRACE,
                 )
             except ServiceError as exc:  # a timeout says how long it waited, and for what
                 return "unreachable", str(exc)
