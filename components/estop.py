@@ -123,8 +123,9 @@ class Estop:
                     ok, message = bool(response.success), str(response.message)
                 except ServiceError as exc:
                     if call.reached_nobody and deadline - time.monotonic() > RESEND_PAUSE:
-                        # No server got it (a radio link's route lapsed for a moment), so it
-                        # goes again until the deadline: safety traffic is retried.
+                        # The router knew no server for it (a radio link's route lapsed for a
+                        # moment): it goes again until the deadline, as safety traffic must.
+                        # A halt taken twice is one halt.
                         resend.append(slot)
                         continue
                     ok, message = False, str(exc)

@@ -422,9 +422,9 @@ class PendingCall:
         answered: ``time.monotonic()`` when the answer (or the error reply) came; ``None``
             until then, and for a call no server answered.
         done: Set once the call is over: answered, refused, or out of time.
-        reached_nobody: The call ended early with no answer: the router knew no server for
-            it, so no server got the request (a call that waited its whole time may have
-            been carried out, its answer lost).
+        reached_nobody: The call ended early with no answer: most often the router knew no
+            server for it. Not a proof that no server got it (a link that dropped while it
+            waited ends it early too), so only a request safe to repeat is sent again.
     """
 
     def __init__(self, client: ServiceClient, timeout: float) -> None:

@@ -421,6 +421,11 @@ class Agent:
 
     def _up(self, args: dict[str, Any]) -> tuple[Any, str]:
         if self.launch is not None:
+            if self._runs_already(args):
+                # The same up again (its answer lost on a flapping link, or `up --all` run
+                # again after a partial failure): what runs is what was asked, nothing moves.
+                self.log(f"up {self.launch.assembly.template}: already running, as asked")
+                return self._up_payload(self.launch.assembly, self.launch.plan), "already running"
             running = [c.name for c in self.launch.plan.components]
             raise RequestError(
                 f"{self.host} already runs {self.launch.assembly.template} ({len(running)} "
@@ -461,6 +466,20 @@ class Agent:
         self.launch = launch
         self._printed_events = 0
         return self._up_payload(assembly, plan), "starting"
+
+    def _runs_already(self, args: dict[str, Any]) -> bool:
+        """Whether ``up`` asks for exactly what runs: the same resolution, simulated alike."""
+        assert self.launch is not None
+        document = args.get("assembly")
+        if not isinstance(document, Mapping):
+            return False
+        try:
+            sent = check_assembly(document, self.host)
+        except RequestError:
+            return False
+        if _same_resolution(document, self.launch.assembly.document):
+            return False
+        return plan_part(sent, self.host, args.get("sim")).simulated == self.launch.plan.simulated
 
     def _up_payload(self, assembly: ResolvedAssembly, plan: HostPlan) -> dict[str, Any]:
         return {

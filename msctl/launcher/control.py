@@ -200,9 +200,11 @@ def call_supervisor(
         verb: The request's verb.
         args: Its arguments.
         timeout: Seconds to wait for the answer.
-        grace: Seconds to keep sending it again while the router knows no server for it
-            (then no server got it, so sending again is safe for any verb): a radio link's
-            route that lapsed for a moment is not an agent gone.
+        grace: Seconds to keep sending it again while its query ends early with no answer
+            (the router knows no server for it: a radio link's route that lapsed for a
+            moment is not an agent gone). Only for a verb that is safe to repeat: a query
+            that ended early may still have reached its server (a link that dropped while
+            it waited), and an agent takes the same ``up`` twice as one.
 
     Raises:
         ServiceTimeout: If nobody answers for that host.

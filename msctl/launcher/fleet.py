@@ -244,9 +244,9 @@ def ask_hosts(
                 # before its bound ended because the router knows no server for that host.
                 if time.monotonic() - asked_at >= 0.9 * budget:
                     return Silence(host, NO_ANSWER, f"no answer within {timeout:g} s")
-                # No server got it, so asking again is safe for any verb. A busy agent's
-                # route lapses for a moment when it misses its lease: look again for a while
-                # (within half the bound) before calling it gone.
+                # A busy agent's route lapses for a moment when it misses its lease: look
+                # again for a while (within half the bound) before calling it gone. The
+                # verbs asked this way (ps, doctor, down) are safe to repeat.
                 elapsed = time.monotonic() - started + NO_SERVER_PAUSE
                 if elapsed >= min(NO_SERVER_GRACE, timeout / 2):
                     left = " (it left while asked)" if namespace in found else ""
