@@ -56,6 +56,14 @@ class ServiceTimeout(ServiceError, TimeoutError):
     """No server answered within the timeout."""
 
 
+class NoServer(ServiceTimeout):
+    """The query ended early with no answer: most often the network knew no server for it.
+
+    Not a proof that no server got the request (a link that dropped while it waited ends it
+    early too): only a request that is safe to repeat is sent again on it.
+    """
+
+
 def service_key(domain: int, service: str, srv_type: str) -> str:
     """The Zenoh key expression of a service."""
     return (
@@ -351,7 +359,7 @@ class ServiceClient:
         waited = time.monotonic() - started
         if waited < 0.9 * timeout:
             # The query ended early: the network knows no server for this key at all.
-            raise ServiceTimeout(
+            raise NoServer(
                 f"no server of {self.service} ({self.srv_type}) on the network: the query "
                 f"ended after {waited:.1f} s with no answer; check it is running "
                 "(`msctl service list`)"
@@ -422,9 +430,6 @@ class PendingCall:
         answered: ``time.monotonic()`` when the answer (or the error reply) came; ``None``
             until then, and for a call no server answered.
         done: Set once the call is over: answered, refused, or out of time.
-        reached_nobody: The call ended early with no answer: most often the router knew no
-            server for it. Not a proof that no server got it (a link that dropped while it
-            waited ends it early too), so only a request safe to repeat is sent again.
     """
 
     def __init__(self, client: ServiceClient, timeout: float) -> None:
@@ -435,7 +440,6 @@ class PendingCall:
         self.done = threading.Event()
         self._response: Any = None
         self._error: ServiceError | None = None
-        self.reached_nobody = False
 
     def _on_reply(self, reply: Any) -> None:
         if self.answered is not None or _timed_out(reply):
@@ -462,8 +466,7 @@ class PendingCall:
             waited = time.monotonic() - self.started
             client = self._client
             if waited < 0.9 * self._timeout:
-                self.reached_nobody = True
-                self._error = ServiceTimeout(
+                self._error = NoServer(
                     f"no server of {client.service} ({client.srv_type}) on the network: the "
                     f"query ended after {waited:.1f} s with no answer; check it is running "
                     "(`msctl service list`)"
@@ -474,6 +477,11 @@ class PendingCall:
                     f"{self._timeout:g} s; check it is running (`msctl service list`)"
                 )
         self.done.set()
+
+    @property
+    def reached_nobody(self) -> bool:
+        """The call ended early with no answer (:class:`NoServer`)."""
+        return isinstance(self._error, NoServer)
 
     @property
     def seconds(self) -> float | None:

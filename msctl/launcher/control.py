@@ -212,7 +212,7 @@ def call_supervisor(
     """
     import time
 
-    from components.comm.services import ServiceTimeout
+    from components.comm.services import NoServer
     from components.comm.types import registry
 
     client = node.client(f"{host_namespace(host)}/request", AGENT_SRV)
@@ -224,9 +224,8 @@ def call_supervisor(
             try:
                 response = client.call(request, timeout=max(left, 0.1))
                 break
-            except ServiceTimeout as exc:
-                waited = time.monotonic() - started
-                if not str(exc).startswith("no server of ") or waited + 0.25 >= min(grace, timeout):
+            except NoServer:
+                if time.monotonic() - started + 0.25 >= min(grace, timeout):
                     raise
                 time.sleep(0.25)
     finally:
