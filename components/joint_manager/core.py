@@ -17,6 +17,13 @@ injections and overrides use (see :class:`JointManagerCore`):
 * :attr:`JointManagerCore.extra_serve`: services an injection adds, bound by the executor
   in addition to the static :data:`~components.joint_manager.interface.JOINT_MANAGER` spec.
 
+A module that loses its operators holds itself (:mod:`components.joint_manager.presence`):
+given an :class:`~components.joint_manager.presence.OperatorPresence`, the core holds every
+joint and refuses commands once no ground station or claim holder has been visible for the
+template's ``operator_timeout``, and lifts that hold by itself when one is visible again (a
+dead-man's hold, like the watchdog's). A halt someone asked for is a separate latch: only
+``recover`` lifts it, never an operator's return.
+
 The core keeps all state on the instance: several managers in one process share nothing.
 """
 
@@ -30,6 +37,7 @@ from typing import Any
 from components.config import require
 from components.executor.core import Core
 from components.executor.interface import Serve
+from components.joint_manager.presence import LOST, OperatorPresence
 from components.joints import JointCalibration, JointSpec
 from components.messages import (
     ERROR,
@@ -55,7 +63,9 @@ JOINT_INFO = "msctl_msgs/msg/JointInfo"
 #: module has joints; arrays that do not match the names), ``feedback_oversize`` such
 #: ``joint_states`` messages; ``duplicates`` counts entries superseded by a later one for the
 #: same joint in the same message; ``speed_cuts`` efforts cut because the joint was already
-#: faster than its max velocity; the rest count entries.
+#: faster than its max velocity; ``presence_holds`` how often the module held itself for
+#: lost operators; the rest count entries (``refused_no_operator``: refused during such a
+#: hold).
 COUNTERS = (
     "refused_oversize",
     "refused_malformed",
@@ -68,6 +78,8 @@ COUNTERS = (
     "refused_no_state",
     "clamped",
     "watchdog_trips",
+    "presence_holds",
+    "refused_no_operator",
     "speed_cuts",
     "feedback_rejected",
     "feedback_oversize",
@@ -265,6 +277,9 @@ class JointManagerCore(Core):
         calibration: The unit's calibration per joint, keyed by full (``limb1_joint3``) or
             raw (``joint3``) name; a joint left out is uncalibrated (offset 0, direction 1).
         config: Tuning; defaults when omitted.
+        presence: Watches the module's operators (ground stations, claim holder): the
+            module holds itself while they are gone (see the module docstring); ``None``:
+            not watched (an assembly without stations, or off-robot).
 
     Attributes:
         module: The module name.
@@ -284,10 +299,12 @@ class JointManagerCore(Core):
         joints: Sequence[JointSpec],
         calibration: Mapping[str, JointCalibration] | None = None,
         config: JointManagerConfig | None = None,
+        presence: OperatorPresence | None = None,
     ) -> None:
         super().__init__(name)
         self.module = module
         self.config = config or JointManagerConfig()
+        self.presence = presence
         self.extra_serve: list[Serve] = []
         self._prefix = f"{module}_"
         self._joints: dict[str, _Joint] = {}
@@ -344,6 +361,11 @@ class JointManagerCore(Core):
     def halted(self) -> bool:
         """Whether ``halt`` was called and ``recover`` not yet."""
         return self._halted
+
+    @property
+    def presence_held(self) -> bool:
+        """Whether the module holds itself because its operators are gone (lifts by itself)."""
+        return self.presence is not None and self.presence.held
 
     def resolve(self, joint: str) -> str:
         """The full name of a joint given by full (``limb1_joint3``) or raw (``joint3``) name.
@@ -479,9 +501,12 @@ class JointManagerCore(Core):
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, now: float) -> None:
-        """Send the holds of pinned joints whose position is already known."""
+        """Send the holds of pinned joints whose position is already known; start watching
+        the operators (their grace at start-up counts from here)."""
         out = [self._hold_sample(j) for j in self._joints.values() if j.pin is not None]
         self._send(out, now)
+        if self.presence is not None:
+            self.presence.start(now)
 
     def stop(self, now: float) -> None:
         """Leave the joints safe: hold every joint that is being commanded."""
@@ -638,6 +663,9 @@ class JointManagerCore(Core):
         if self._halted:
             self._refuse_all(samples, now)
             return
+        if self.presence_held:
+            self._refuse_all(samples, now, no_operator=True)
+            return
         # The last entry per joint wins: one command per joint however often it is named.
         latest = {sample.name: sample for sample in samples}
         if len(latest) != len(samples):
@@ -780,11 +808,17 @@ class JointManagerCore(Core):
         self._last_refusal = now
         self._refusal_note = reason
 
-    def _refuse_all(self, samples: list[JointSample], now: float) -> None:
+    def _refuse_all(
+        self, samples: list[JointSample], now: float, no_operator: bool = False
+    ) -> None:
         for sample in samples:
             j = self._joints.get(sample.name)
             if j is None:
                 self._refuse_name(sample.name, now)
+            elif no_operator:
+                assert self.presence is not None
+                why = f"{j.spec.name}: {self.presence.reason(now)}; held until one is visible"
+                self._refuse(j, "refused_no_operator", why, now)
             else:
                 self._refuse(j, "refused_halted", f"{j.spec.name}: halted, call recover", now)
 
@@ -803,8 +837,10 @@ class JointManagerCore(Core):
 
     # ------------------------------------------------------------------ periodic
     def tick(self, now: float) -> None:
-        """Periodic work (the interface runs it at 50 Hz): watchdog, keep-alive, diagnostics."""
+        """Periodic work (the interface runs it at 50 Hz): watchdog, operators' presence,
+        keep-alive, diagnostics."""
         self._watchdog(now)
+        self._watch_presence(now)
         self._keepalive_if_due(now)
         if (
             self._last_diagnostics is None
@@ -834,6 +870,39 @@ class JointManagerCore(Core):
             self._tripped_joints = tripped
             self._send(out, now)
 
+    # ------------------------------------------------------------------ operators
+    def on_station(self, station: str, visible: bool, now: float) -> None:
+        """A ground station became visible or invisible on this module's computer (posted by
+        the builder's presence feed); ignored when presence is not watched."""
+        if self.presence is not None:
+            self.presence.on_station(station, visible, now)
+            self._watch_presence(now)
+
+    def on_holder(self, holder: str | None, now: float) -> None:
+        """The module's claim holder changed (``None``: its claim is gone)."""
+        if self.presence is not None:
+            self.presence.on_holder(holder, now)
+            self._watch_presence(now)
+
+    def _watch_presence(self, now: float) -> None:
+        if self.presence is None:
+            return
+        # On BACK nothing moves: the joints stay held until commanded, as after recover.
+        if self.presence.update(now) == LOST:
+            # The halt path's hold, on a latch of its own: an operator's return lifts this
+            # one, and only recover lifts a halt someone asked for.
+            self._counters["presence_holds"] += 1
+            self._hold_all(now)
+
+    def _hold_all(self, now: float) -> list[JointSample]:
+        out = []
+        for j in self._joints.values():
+            out.append(self._hold_sample(j))
+            j.mode = _HOLD
+            j.target_raw = None
+        self._send(out, now)
+        return out
+
     def _moving(self, j: _Joint) -> bool:
         if j.velocity is not None and abs(j.velocity) > self.config.read_velocity_threshold:
             return True
@@ -845,12 +914,7 @@ class JointManagerCore(Core):
     # ------------------------------------------------------------------ services
     def on_halt(self, request: Any, now: float) -> Any:
         """``halt`` (std_srvs/Trigger): hold every joint now and refuse commands until recover."""
-        out = []
-        for j in self._joints.values():
-            out.append(self._hold_sample(j))
-            j.mode = _HOLD
-            j.target_raw = None
-        self._send(out, now)
+        out = self._hold_all(now)
         was = self._halted
         self._halted = True
         self._halted_at = now
@@ -874,6 +938,13 @@ class JointManagerCore(Core):
         age = None if self._last_feedback is None else now - self._last_feedback
         if age is None or age > self.config.stale_timeout:
             text += "; warning: no fresh joint_states, velocity commands will be refused"
+        if self.presence_held:
+            assert self.presence is not None
+            # Not lifted by recover: only an operator's return does (a dead-man's hold).
+            text += (
+                f"; still held: {self.presence.reason(now)} (lifts by itself when a ground "
+                "station or a claim holder is visible again)"
+            )
         return trigger_response(True, text)
 
     def on_joints(self, request: Any, now: float) -> Any:
@@ -921,6 +992,19 @@ class JointManagerCore(Core):
                 f"watchdog stopped {', '.join(self._tripped_joints)}: no command for "
                 f"{cfg.watchdog_timeout} s; send a command or recover"
             )
+        if self.presence is not None:
+            if self.presence.held:
+                levels.append(ERROR)
+                notes.append(
+                    f"{self.presence.reason(now)}: motors held, commands refused until an "
+                    "operator is visible again"
+                )
+            else:
+                # Said at OK: the robot is fine again, and "back to OK" after an outage
+                # must not wait for a warning window.
+                back = self.presence.lifted(now, cfg.warn_window)
+                if back is not None:
+                    notes.append(back)
         age = None if self._last_feedback is None else now - self._last_feedback
         if age is None or age > cfg.stale_timeout:
             # Below ERROR: "no news" must not hide a halt or a watchdog trip.
@@ -938,6 +1022,7 @@ class JointManagerCore(Core):
         values: dict[str, Any] = {
             "module": self.module,
             "halted": self._halted,
+            "operators": _operators(self.presence),
             "joints": len(self._joints),
             "feedback_age": "never" if age is None else f"{age:.3f}",
         }
@@ -975,6 +1060,18 @@ class JointManagerCore(Core):
             hardware_id=self.module,
             values=values,
         )
+
+
+def _operators(presence: OperatorPresence | None) -> str:
+    """The ``operators`` diagnostic value: who attends the module now."""
+    if presence is None:
+        return "not watched"
+    if presence.held:
+        return "none: held"
+    seen = presence.visible()
+    if presence.holder is not None:
+        seen.insert(0, presence.holder)
+    return ", ".join(seen) or "none"
 
 
 def _moved(value: float | None, published: float | None, threshold: float) -> bool:

@@ -64,6 +64,7 @@ from msctl.launcher.run import (
 )
 from msctl.launcher.state import RunLock
 from msctl.launcher.supervisor import Supervisor
+from msctl.recorder import shelf
 
 #: Verbs forwarded to the running :class:`Launch` as they are.
 _FORWARDED = ("logs", "restart", "stop", "start")
@@ -393,6 +394,8 @@ class Agent:
             return self._up(args)
         if verb == "down":
             return self._down()
+        if verb in shelf.VERBS:  # this computer's own bags, idle or not (`msctl bag pull`)
+            return shelf.serve(verb, args, self.host)
         if self.launch is None:
             raise RequestError(
                 f"nothing runs on {self.host} (its agent is idle); start with `msctl up --all`"
