@@ -1,4 +1,5 @@
-"""``msctl bag``: info, play and recover of rosbag2 (MCAP) bags, msctl's and ROS 2's."""
+"""``msctl bag``: info, play and recover of rosbag2 (MCAP) bags, msctl's and ROS 2's; pull of a
+computer's own bags (robot-side recording) to this one, over the fleet."""
 
 from __future__ import annotations
 
@@ -261,3 +262,160 @@ def _when(stamp: int) -> str:
         return "-"
     moment = datetime.fromtimestamp(stamp / 1e9)
     return f"{moment:%b %d %Y %H:%M:%S}.{stamp % 1_000_000_000:09d} ({stamp / 1e9:.9f})"
+
+
+@app.command("pull")
+def pull(
+    host: str = typer.Argument(..., help="The computer whose own bags to copy here."),
+    into: Path = typer.Option(
+        None, "--into", help="Directory the bags go to [default: $MSCTL_HOME/pulled/HOST]."
+    ),
+    limit: float = typer.Option(
+        0.0, "--limit", help="kB/s at most, leaving the radio room for the rest (0: no limit)."
+    ),
+    patience: float = typer.Option(
+        30.0, "--patience", help="Seconds with no answer from HOST before giving up."
+    ),
+    dry_run: bool = typer.Option(
+        False, "--dry-run", help="List what would be pulled, skipped and left; fetch nothing."
+    ),
+    json_output: bool = JSON_OPT,
+) -> None:
+    """Copy HOST's own bags (robot-side recording) here over the fleet, chunk by chunk.
+
+    Resumes after a cut (run it again: nothing already here is fetched again), verifies every
+    file's SHA-256, and exits non-zero naming any file not verified or a host that did not
+    answer.
+    """
+    from components.paths import state_dir
+    from msctl.errors import InputError, NetworkError
+    from msctl.launcher.plan import SAFE_NAME
+    from msctl.plane import connected
+    from msctl.recorder.pull import HostSilent, Puller
+
+    if not SAFE_NAME.match(host) or "/" in host or ".." in host:
+        raise InputError(
+            f"{host!r} is not a computer's name", hint="e.g. `msctl bag pull hl-limb-01`"
+        )
+    if limit < 0 or patience <= 0:
+        raise InputError("--limit must be 0 or more and --patience more than 0")
+    target = into if into is not None else state_dir() / "pulled" / host
+    with (
+        connected("bag_pull") as node,
+        Puller(node, host, target, patience=patience, limit=limit * 1000) as puller,
+    ):
+        try:
+            files = puller.listing()
+        except HostSilent as exc:
+            raise NetworkError(
+                f"{host} did not answer within {patience:g} s: {exc}",
+                hint=f"check `msctl ps --all` shows {host}'s agent, and its link; then pull again",
+            ) from None
+        actions = puller.plan(files)
+        if dry_run:
+            _print_plan(host, target, actions, json_output)
+            return
+        report = _pull_with_progress(puller, actions)
+    _print_report(report, json_output)
+    _judge(report)
+
+
+def _print_plan(host: str, target: Path, actions: list, json_output: bool) -> None:
+    from msctl.console import err, print_json
+
+    if json_output:
+        print_json(
+            {
+                "host": host,
+                "into": str(target),
+                "files": [
+                    {
+                        "path": a.file.path,
+                        "action": a.kind,
+                        "size": a.file.size,
+                        "offset": a.offset,
+                        "why": a.why,
+                    }
+                    for a in actions
+                ],
+            }
+        )
+        return
+    for a in actions:
+        err.print(f"{a.kind:<8} {a.file.path} ({_size(a.file.size)}) {a.why}", highlight=False)
+    err.print(f"{len(actions)} file(s) on {host}; nothing fetched (--dry-run)", highlight=False)
+
+
+def _pull_with_progress(puller: Any, actions: list) -> Any:
+    from rich.progress import (
+        BarColumn,
+        DownloadColumn,
+        Progress,
+        TextColumn,
+        TransferSpeedColumn,
+    )
+
+    from msctl.console import err
+    from msctl.recorder.pull import FETCH
+
+    total = sum(a.file.size - a.offset for a in actions if a.kind == FETCH)
+    with Progress(
+        TextColumn("pulling {task.description}"),
+        BarColumn(),
+        DownloadColumn(),
+        TransferSpeedColumn(),
+        console=err,
+        transient=True,
+        disable=not err.is_terminal,
+    ) as progress:
+        task = progress.add_task(puller.host, total=total or None)
+
+        def advance(path: str, size: int) -> None:
+            progress.update(task, description=path, advance=size)
+
+        puller.progress = advance
+        return puller.pull(actions)
+
+
+def _print_report(report: Any, json_output: bool) -> None:
+    from rich.markup import escape
+
+    from msctl.console import err, print_json
+    from msctl.recorder.pull import FAILED, NOT_READY, PULLED, SKIPPED
+
+    if json_output:
+        print_json(report.as_dict())
+        return
+    for f in report.having(PULLED):
+        resumed = f" (resumed at {f.resumed_from:,} bytes)" if f.resumed_from else ""
+        err.print(f"[green]pulled[/]   {escape(f.path)} {_size(f.size)}{resumed}", highlight=False)
+    for f in report.having(NOT_READY):
+        err.print(f"[yellow]left[/]     {escape(f.path)}: {escape(f.why)}", highlight=False)
+    for f in report.having(FAILED):
+        err.print(f"[bold red]failed[/]   {escape(f.path)}: {escape(f.why)}", highlight=False)
+    err.print(
+        f"{report.host}: {len(report.having(PULLED))} pulled and verified, "
+        f"{len(report.having(SKIPPED))} already here (verified), "
+        f"{len(report.having(NOT_READY))} left (not finished there), "
+        f"{len(report.having(FAILED))} failed; {_size(report.fetched)} in "
+        f"{report.seconds:.1f} s ({report.rate / 1000:.1f} kB/s) into {report.into}",
+        highlight=False,
+    )
+
+
+def _judge(report: Any) -> None:
+    from msctl.errors import MsctlError, NetworkError
+    from msctl.recorder.pull import FAILED
+
+    failed = report.having(FAILED)
+    if report.silent:
+        raise NetworkError(
+            f"{report.silent}; not verified: {', '.join(f.path for f in failed)}",
+            hint=f"`msctl bag pull {report.host}` again once the link is back resumes where "
+            "this one stopped",
+        )
+    if failed:
+        raise MsctlError(
+            f"not verified: {'; '.join(f'{f.path} ({f.why})' for f in failed)}",
+            hint="pull again; a file that fails twice is named above with why",
+        )

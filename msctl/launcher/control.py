@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 AGENT_SRV = "msctl_msgs/srv/AgentRequest"
-VERBS = ("ps", "logs", "restart", "stop", "start", "down", "up", "doctor")
+VERBS = ("ps", "logs", "restart", "stop", "start", "down", "up", "doctor", "bags", "bag_read")
 _ARG_KEYS: dict[str, set[str]] = {
     "ps": set(),
     "logs": {"component", "lines"},
@@ -25,6 +25,9 @@ _ARG_KEYS: dict[str, set[str]] = {
     "down": set(),
     "up": {"assembly", "sim", "speed"},
     "doctor": set(),
+    # The bag shelf an agent serves (msctl.recorder.shelf checks the values).
+    "bags": set(),
+    "bag_read": {"path", "offset", "size"},
 }
 _HOST_CHARS = re.compile(r"[^A-Za-z0-9_]")
 #: Bounds on a request's arguments, checked before they are parsed. The largest request is
