@@ -11,7 +11,10 @@ Inputs, each a plain call with ``now`` (monotonic seconds) so tests drive it wit
   ``<station>/status/<component>``;
 * :meth:`HealthBoard.on_node`: how many live instances of a node the graph holds (a node
   leaves the graph within the Zenoh lease when its process dies or freezes);
-* :meth:`HealthBoard.on_supervisors`: the ``ps`` documents of the supervisors that answered.
+* :meth:`HealthBoard.on_supervisors`: the ``ps`` documents of the supervisors that answered;
+  an agent's document may carry ``rejoin``, what it did at its start with the desired state
+  it kept (a computer that rebooted brought its part back, or refused to): shown as an item
+  ``<row>/agent`` of every row on that computer, and an alarm timed by the agent.
 
 :meth:`HealthBoard.evaluate` turns them into one :class:`BoardSnapshot`: a :class:`Row` per
 module and per station, each with its items, and records an :class:`Alarm` for every level
@@ -519,6 +522,8 @@ class HealthBoard:
         self._started: float | None = None
         self._supervised: dict[str, _Supervised] = {}
         self._supervisors_at: dict[str, float] = {}
+        # host -> (level, message, agent's time) of its agent's rejoin report.
+        self._rejoins: dict[str, tuple[Level, str, float]] = {}
         self._levels: dict[tuple[str, str], Level] = {}
         self.alarms: deque[Alarm] = deque(maxlen=MAX_ALARMS)
         self._new: list[Alarm] = []
@@ -666,6 +671,7 @@ class HealthBoard:
                 continue
             host = clip(document.get("host", ""), MAX_NAME)
             self._supervisors_at[host] = now
+            self._on_rejoin(host, document.get("rejoin"))
             components = document.get("components", [])
             if not isinstance(components, list):
                 continue
@@ -692,6 +698,35 @@ class HealthBoard:
         if changed:
             self._all_dirty()
         self.version += 1
+
+    def _on_rejoin(self, host: str, report: Any) -> None:
+        """An agent's ``rejoin`` report (``{"outcome": "rejoined" | "refused", "at",
+        "message"}``), or its absence (cleared by the next ``up`` or ``down``).
+
+        A new report is an alarm of every row on ``host`` at once, stamped with the agent's
+        time (each board that sees it records the same alarm, which merges as one).
+        """
+        known = self._rejoins.get(host)
+        at = finite(report.get("at")) if isinstance(report, Mapping) else None
+        if at is None:  # none, or malformed: nothing to show
+            if known is not None:
+                del self._rejoins[host]
+                self._all_dirty()
+            return
+        level = OK if report.get("outcome") == "rejoined" else ERROR
+        entry = (level, clip(report.get("message") or "", MAX_MESSAGE), at)
+        if entry == known:
+            return
+        self._rejoins[host] = entry
+        for state in self._rows.values():
+            if state.spec.host != host:
+                continue
+            state.dirty = True
+            key = (state.spec.name, f"{state.spec.name}/agent")
+            alarm = Alarm(at, key[0], key[1], self._levels.get(key), level, entry[1])
+            self._levels[key] = level
+            self.alarms.append(alarm)
+            self._new.append(alarm)
 
     # ------------------------------------------------------------------ alarms
     def take_alarms(self) -> list[Alarm]:
@@ -775,6 +810,11 @@ class HealthBoard:
             for view in components:
                 items.append(_component_item(f"{spec.name}/components/{view.label}", view))
                 counted.append(view.level)
+        rejoin = self._rejoins.get(spec.host)
+        if rejoin is not None:
+            said, told, _ = rejoin
+            items.append(Item(f"{spec.name}/agent", said, told, {"host": spec.host}))
+            counted.append(said)
         for component, kind in spec.planned:
             items.append(
                 Item(

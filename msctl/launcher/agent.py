@@ -22,6 +22,16 @@ components read are generated here. The resolution is written atomically under
 ``ps / logs / restart / stop / start`` to it and handles ``up`` and ``down``. ``down`` stops
 the run (every process group gone before the answer) and the agent stays, idle.
 
+What ``up --all`` asked is kept on disk (:mod:`msctl.launcher.desired`, in the agent's
+directory): written when an ``up`` is accepted, removed when a ``down`` is asked. An agent
+that starts and finds it (the computer rebooted, lost power, or its agent was restarted)
+brings the same part back up by itself, once its router is up and only if this computer's
+data still resolves the same assembly, and says what it did in its ``ps`` document
+(``rejoin``), which the ground's data monitor shows as an item and an alarm of the modules
+on this computer. A desired state it cannot act on (cut, edited, another computer's, an
+assembly this computer's data no longer resolves alike) is refused the same way, never
+started, never a crash.
+
 Everything runs on the agent's one loop thread (the Zenoh thread only queues requests), like
 :class:`~msctl.launcher.run.Launch`, so the supervisor is never touched from two threads.
 """
@@ -33,9 +43,10 @@ import os
 import queue
 import sys
 import threading
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from components import kinds
 from components.assembly import (
@@ -47,6 +58,8 @@ from components.assembly import (
 )
 from components.comm.session import SessionSettings, open_session
 from msctl.errors import MsctlError
+from msctl.launcher import desired as desired_state
+from msctl.launcher import state
 from msctl.launcher.control import (
     AGENT_SRV,
     RequestError,
@@ -76,6 +89,11 @@ LOOP_PAUSE = 0.05
 def agent_dir() -> Path:
     """``$MSCTL_HOME/agent``: the agent's resolution and its router's log."""
     return state_dir() / "agent"
+
+
+def desired_state_path() -> Path:
+    """Where the agent keeps what ``up --all`` asked of this computer (see :mod:`desired`)."""
+    return agent_dir() / desired_state.FILE_NAME
 
 
 def agent_assembly_dir() -> Path:
@@ -232,6 +250,12 @@ class Agent:
         self._printed_events = 0
         self.session: Any = None
         self.node: Any = None
+        #: When this agent's process started (Unix seconds): a rejoin is timed from it.
+        self.started_at = _process_start()
+        #: What the agent did at its start with a desired state it found (``outcome``
+        #: ``rejoined`` or ``refused``, ``at``, ``message``); shown in ``ps`` until the next
+        #: ``up`` or ``down``. ``None``: it found none.
+        self.rejoin: dict[str, Any] | None = None
 
     def log(self, line: str) -> None:
         """One line about what the agent does, prefixed with its host."""
@@ -262,6 +286,7 @@ class Agent:
             f"serving {self.node.fqn.rsplit('/', 1)[0]}/request via {self.endpoint or 'peers'}; "
             "idle until `msctl up --all`"
         )
+        self.rejoin_part()
 
     def _refuse_a_second_supervisor(self) -> None:
         """Stop here if this host's service is already served (another agent, or a foreground
@@ -407,10 +432,13 @@ class Agent:
         raise RequestError(f"{verb} is not something an agent does")  # pragma: no cover
 
     def document(self) -> dict[str, Any]:
-        """What ``ps`` returns: the run's document, or an idle host with no components."""
+        """What ``ps`` returns: the run's document, or an idle host with no components; with
+        ``rejoin`` when the agent found a desired state at its start (see :meth:`rejoin_part`)."""
+        extra = {"rejoin": self.rejoin} if self.rejoin is not None else {}
         if self.launch is not None:
-            return {**self.launch.document(), "agent": True}
+            return {**self.launch.document(), "agent": True, **extra}
         return {
+            **extra,
             "host": self.host,
             "agent": True,
             "template": None,
@@ -439,7 +467,20 @@ class Agent:
             raise RequestError("up needs the resolved assembly (argument 'assembly')")
         sim = args.get("sim")
         speed = float(args.get("speed", 1.0))
-        assembly, plan = self._prepare(args["assembly"], sim)
+        payload, message = self._start_part(args["assembly"], sim, speed)
+        self.rejoin = None  # what was asked now supersedes what the agent did at its start
+        kept = self._keep_desired(args["assembly"], sim, speed, payload["template"])
+        return payload, message if kept else f"{message} ({kept.reason})"
+
+    def _start_part(
+        self, document: Mapping[str, Any], sim: bool | None, speed: float
+    ) -> tuple[dict[str, Any], str]:
+        """Check, resolve and start this computer's part of ``document``.
+
+        Raises:
+            RequestError: If it is refused or could not start (nothing of it is left running).
+        """
+        assembly, plan = self._prepare(document, sim)
         not_built = sorted({k for _, k in plan.not_built})
         if not plan.processes:
             note = f"nothing to start on {self.host}" + (
@@ -522,13 +563,122 @@ class Agent:
         target = write_resolution(agent_assembly_dir(), resolution, mjcf=simulates)
         return load_assembly(target / LOCK_NAME), plan
 
+    def _keep_desired(
+        self, document: Mapping[str, Any], sim: Any, speed: float, template: str
+    ) -> _Kept:
+        """Write what ``up`` asked to disk, for the agent's next start (a reboot)."""
+        path = desired_state_path()
+        wanted = desired_state.DesiredState(
+            host=self.host,
+            template=template,
+            assembly=document,
+            sim=None if sim is None else bool(sim),
+            speed=speed,
+            asked_at=time.time(),
+        )
+        try:
+            desired_state.write(path, wanted)
+        except OSError as exc:
+            # The part runs as asked; only its return after a reboot is lost: say so.
+            reason = (
+                f"not kept on disk ({path}: {exc.strerror or exc}): a reboot will not bring it back"
+            )
+            self.log(f"up {template}: {reason}")
+            return _Kept(False, reason)
+        return _Kept(True)
+
+    def _forget_desired(self) -> str:
+        """Remove the desired state (a ``down`` was asked): a reboot brings nothing back.
+
+        Returns:
+            ``""``, or why it could not be removed (said in the answer and the log).
+        """
+        self.rejoin = None
+        path = desired_state_path()
+        try:
+            desired_state.remove(path)
+        except OSError as exc:
+            reason = (
+                f"could not remove {path} ({exc.strerror or exc}): the agent would bring the "
+                "part back at its next start; remove the file by hand"
+            )
+            self.log(f"down: {reason}")
+            return reason
+        return ""
+
+    def rejoin_part(self) -> None:
+        """At the agent's start: bring back what ``up --all`` asked before it (kept on disk).
+
+        Nothing happens without a desired state. With one, this computer's part is started
+        as the original ``up`` started it (same document, simulation flag and speed), after
+        the same checks (its own data must still resolve the same assembly). What happened
+        is kept in :attr:`rejoin` (so in ``ps``, so at the ground's data monitor) and
+        logged; a refusal starts nothing, and nothing here raises.
+        """
+        path = desired_state_path()
+        try:
+            wanted = desired_state.read(path, self.host)
+        except desired_state.DesiredStateError as exc:
+            self._report_rejoin("refused", f"{self.host} started and found {exc}")
+            return
+        if wanted is None:
+            return
+        asked = time.strftime("%H:%M:%S", time.localtime(wanted.asked_at))
+        previous, this_boot = _previous_run()
+        cause = _why_back(previous, this_boot)
+        self.log(
+            f"{cause}; bringing back its part of {wanted.template} as `msctl up --all` asked at "
+            f"{asked} (kept in {path})"
+        )
+        left = state.groups_left(previous) if previous is not None and this_boot else []
+        if left:
+            self._report_rejoin(
+                "refused",
+                f"{self.host} {cause} but did not bring back {wanted.template}: processes of its "
+                f"previous run still run with no supervisor ({', '.join(left)}); stop them with "
+                f"`msctl down` on {self.host}, then `msctl up --all`",
+            )
+            return
+        try:
+            self._start_part(wanted.assembly, wanted.sim, wanted.speed)
+        except RequestError as exc:
+            self._report_rejoin(
+                "refused", f"{self.host} {cause} but did not bring back {wanted.template}: {exc}"
+            )
+            return
+        except Exception as exc:  # whatever a desired state leads to: a refusal, never a crash
+            self._report_rejoin(
+                "refused",
+                f"{self.host} {cause} but did not bring back {wanted.template}: "
+                f"{type(exc).__name__}: {exc}",
+            )
+            return
+        self._report_rejoin(
+            "rejoined",
+            f"{self.host} {cause} and rejoined: its agent brought back its part of "
+            f"{wanted.template} by itself (`up --all` of {asked})",
+        )
+
+    def _report_rejoin(self, outcome: str, message: str) -> None:
+        self.rejoin = {
+            "outcome": outcome,
+            "at": time.time(),
+            "agent_started": self.started_at,
+            "message": message,
+        }
+        self.log(message)
+
     def _down(self) -> tuple[Any, str]:
+        forgot = self._forget_desired()
         if self.launch is None:
-            return {"host": self.host, "stopped": []}, f"nothing was running on {self.host}"
+            message = f"nothing was running on {self.host}"
+            message += f" ({forgot})" if forgot else ""
+            return {"host": self.host, "stopped": []}, message
         template = self.launch.assembly.template
         stopped = self._stop_run()
         self.log(f"down {template}: stopped {', '.join(stopped) or 'nothing'}; idle")
-        return {"host": self.host, "template": template, "stopped": stopped}, "stopped"
+        answer = f"stopped ({forgot})" if forgot else "stopped"
+        return {"host": self.host, "template": template, "stopped": stopped}, answer
 
     def _stop_run(self) -> list[str]:
         """Stop the run and wait until its processes are gone; returns their names."""
@@ -546,3 +696,49 @@ class Agent:
         if self._lock is not None:
             self._lock.release()
             self._lock = None
+
+
+class _Kept(NamedTuple):
+    """Whether an ``up`` was kept on disk, and if not, why (said in its answer)."""
+
+    ok: bool
+    reason: str = ""
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+
+def _process_start() -> float:
+    """When this process started (Unix seconds); now, if the system does not say."""
+    try:
+        import psutil
+
+        return float(psutil.Process().create_time())
+    except Exception:  # no /proc to read: the agent's own start is near enough
+        return time.time()
+
+
+def _previous_run() -> tuple[dict[str, Any] | None, bool]:
+    """This computer's last run as its state file keeps it, and whether it was written since
+    the computer booted (after a reboot its process ids mean nothing any more)."""
+    previous = state.read_state()
+    if previous is None:
+        return None, False
+    try:
+        import psutil
+
+        written = state.state_path().stat().st_mtime
+        return previous, written >= psutil.boot_time()
+    except Exception:  # cannot tell: treat it as this boot's (its processes are checked)
+        return previous, True
+
+
+def _why_back(previous: Mapping[str, Any] | None, this_boot: bool) -> str:
+    """What brought the agent back, as far as this computer can tell (for the operator)."""
+    if previous is not None and not this_boot:
+        return "rebooted"
+    if previous is not None and previous.get("state") == "stopped":
+        return "restarted its agent"  # its run was stopped in order: no power was lost
+    if previous is not None:
+        return "rebooted or lost power"  # its run ended with no down and nothing is left
+    return "restarted"
