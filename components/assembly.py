@@ -302,6 +302,9 @@ class LockDocument:
         mobile: Whether the assembly moves (floating base in simulation).
         claims: ``"open"``: an unclaimed module takes commands from anyone; ``"required"``:
             only from the holder of its claim (:mod:`components.claims`).
+        operator_timeout: Seconds a module goes without a visible ground station or claim
+            holder before it holds itself (the template's ``[safety] operator_timeout``;
+            ``None``: never).
         secure: Whether every router runs the fleet's generated config (mutual TLS, access
             control; the template's ``[network] secure``).
         units: Slot -> unit serial, in template order.
@@ -333,6 +336,7 @@ class LockDocument:
     artifacts: Artifacts = field(default_factory=Artifacts)
     sources: Sources | None = None
     claims: Literal["open", "required"] = "open"
+    operator_timeout: float | None = None
     secure: bool = False
 
 
@@ -397,6 +401,12 @@ class ResolvedAssembly:
         """``"open"`` or ``"required"``: whether a module takes commands only from the holder
         of its claim even while nobody holds it."""
         return self.lock.claims
+
+    @property
+    def operator_timeout(self) -> float | None:
+        """Seconds a module goes without a visible operator before it holds itself
+        (:mod:`components.joint_manager.presence`); ``None``: never."""
+        return self.lock.operator_timeout
 
     @property
     def secure(self) -> bool:

@@ -1,4 +1,5 @@
-"""Build a joint manager from its module's plan."""
+"""Build a joint manager from its module's plan (and, on its robot computer, the watch of its
+operators' presence: :mod:`components.joint_manager.presence_feed`)."""
 
 from __future__ import annotations
 
@@ -11,16 +12,22 @@ from components.claims import command_rule
 from components.joint_manager.core import JointManagerConfig, JointManagerCore
 from components.joint_manager.interface import JOINT_MANAGER
 from components.joint_manager.kind import KIND
+from components.joint_manager.presence_feed import PresenceFeed, watched
 
 
 def build(
     plan: ComponentPlan, assembly: ResolvedAssembly, options: Mapping[str, Any]
 ) -> BuiltComponent:
-    """A JointManagerCore for ``plan.module``: unit calibration, injections, overrides."""
+    """A JointManagerCore for ``plan.module``: unit calibration, injections, overrides; on
+    the module's own computer, held while its operators are gone (the template's
+    ``[safety] operator_timeout``)."""
     if plan.module is None:
         raise BuildError(f"{plan.name}: a joint manager needs a module")
     module = assembly.module(plan.module)
     joints = module.actuated_joints
+    from msctl.launcher.plan import this_host
+
+    presence = watched(assembly, module.slot, this_host())
     config_fields = {}
     for key, value in plan.params.items():
         if key in JointManagerConfig.__dataclass_fields__:
@@ -37,12 +44,15 @@ def build(
             joints=[j.spec for j in joints],
             calibration={j.spec.name: j.calibration for j in joints},
             config=JointManagerConfig(**config_fields),
+            presence=None if presence is None else presence[0],
         )
     except ValueError as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
     # joint_set is a command input: while the module is claimed, only its holder moves it.
     spec = JOINT_MANAGER.claimed(("joint_set",), command_rule(assembly, module.slot))
     built = BuiltComponent(core, spec, module.namespace, "joint_manager")
+    if presence is not None:
+        built.on_bound = PresenceFeed(built, module.slot, presence[1])
     # The rezero injection saves new offsets back to the unit's own calibration file.
     if module.calibration_file:
         built.extension_defaults = {"rezero": {"calibration_file": module.calibration_file}}

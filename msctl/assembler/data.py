@@ -140,6 +140,14 @@ def _check_finite(path: Path, value: Any, where: str) -> None:
 #: A template's ``claims`` values (see :class:`Template`).
 CLAIM_POLICIES = ("open", "required")
 
+#: Seconds a module may go without a visible operator before it holds itself, where the
+#: template has ground stations and its ``[safety] operator_timeout`` says nothing: a
+#: router drops a cut link's tokens after its lease (about 1 s), so 3 s rides out a
+#: reconnecting link's flap and still stops a robot nobody can reach within seconds.
+OPERATOR_TIMEOUT = 3.0
+#: What a template's ``[safety]`` table may say.
+TEMPLATE_SAFETY_KEYS = ("operator_timeout",)
+
 #: What a template's ``[network]`` table may say.
 NETWORK_KEYS = ("secure",)
 
@@ -758,6 +766,10 @@ class Template:
     connections: tuple[ConnectionDef, ...]
     stations: tuple[StationDef, ...]
     module_types: dict[str, ModuleType] = field(default_factory=dict)
+    #: ``[safety] operator_timeout``: seconds without a visible ground station or claim
+    #: holder before a module holds itself (:mod:`components.joint_manager.presence`);
+    #: ``None``: never (no station and nothing said, or ``operator_timeout = false``).
+    operator_timeout: float | None = None
     #: ``"open"``: an unclaimed module takes commands from anyone; ``"required"``: only from
     #: the holder of its claim (see :mod:`components.claims`).
     claims: str = "open"
@@ -952,6 +964,8 @@ def _parse_template(path: Path) -> Template:
             'claims = "open" (an unclaimed module takes anyone\'s commands; the default)',
         )
 
+    operator_timeout = _operator_timeout(f, bool(stations))
+
     network = f.sub("network", {})
     for key in network.table:
         if key not in NETWORK_KEYS:
@@ -969,8 +983,33 @@ def _parse_template(path: Path) -> Template:
         connections=tuple(connections),
         stations=tuple(stations),
         claims=claims,
+        operator_timeout=operator_timeout,
         secure=network.get("secure", bool, False, "true or false"),
     )
+
+
+def _operator_timeout(f: _Fields, stations: bool) -> float | None:
+    """The template's ``[safety] operator_timeout``: a positive number of seconds, or
+    ``false`` for never; unset, :data:`OPERATOR_TIMEOUT` if the template has stations (with
+    none, nobody would ever attend its modules but a claim holder: off unless asked)."""
+    safety = f.sub("safety", {})
+    for key in safety.table:
+        if key not in TEMPLATE_SAFETY_KEYS:
+            raise InputError(
+                f"{safety.where(key)} is not a template safety setting",
+                hint=f"the template's [safety] table takes {', '.join(TEMPLATE_SAFETY_KEYS)} "
+                "(a module's own limits go in its module type's [safety])",
+            )
+    value = safety.table.get("operator_timeout", OPERATOR_TIMEOUT if stations else False)
+    if value is False:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+        raise InputError(
+            f"{safety.where('operator_timeout')} is {value!r}",
+            hint="give the seconds a module may go without a visible ground station or "
+            "claim holder before it holds itself (e.g. 3.0), or false for never",
+        )
+    return float(value)
 
 
 def _check_connections(template: Template, types: dict[str, ModuleType]) -> None:

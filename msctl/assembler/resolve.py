@@ -466,6 +466,7 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
         description=template.description,
         mobile=template.mobile,
         claims=template.claims,
+        operator_timeout=template.operator_timeout,
         secure=template.secure,
         units={slot: units[slot].serial for slot in units},
         modules=tuple(modules),
