@@ -127,6 +127,9 @@ def test_records_everything_from_the_first_message_and_latched_samples(
     assert who == {
         "recorded_by": f"msctl /msctl_record_{os.getpid()}",
         "host": socket.gethostname(),
+        # An uninterrupted recording says so: no gap, nothing lost upstream.
+        "msctl.gaps": "[]",
+        "msctl.lost": "{}",
     }
 
 

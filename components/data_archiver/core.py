@@ -120,11 +120,16 @@ class SequenceTracker:
 
     def observe(self, topic_id: int, gid: bytes, sequence: int) -> int:
         """Record one sample's number; returns how many were missing just before it."""
+        return self.count(topic_id, gid, sequence) or 0
+
+    def count(self, topic_id: int, gid: bytes, sequence: int) -> int | None:
+        """Record one sample's number; returns how many were missing just before it, or
+        ``None`` when that cannot be known (the publisher's first sample, or a restart)."""
         key = (topic_id, gid)
         last = self._last.get(key)
         self._last[key] = sequence
         if last is None or sequence <= last:
-            return 0
+            return None
         gap = sequence - last - 1
         if gap:
             self.lost[topic_id] = self.lost.get(topic_id, 0) + gap

@@ -42,6 +42,7 @@ from components.data_archiver.core import (
     TopicSelection,
     subscription_qos,
 )
+from components.data_archiver.gaps import Gap, GapWatch
 from msctl.recorder.definitions import message_definition, qos_profiles
 from msctl.recorder.errors import BagWriteError
 from msctl.recorder.writer import BagWriter, TopicSpec
@@ -159,6 +160,11 @@ class Recorder:
         self._dropped = 0
         self._received = 0
         self._sequences = SequenceTracker()
+        # Written by the writer thread only; the others read the snapshots below.
+        self._gaps = GapWatch()
+        self._silent: list[Gap] = []
+        self._gaps_written = 0
+        self._final_gaps: list[Gap] | None = None
         self._unknown: list[str] = []
         self._tokens: list[Any] = []
         self._subscribers: list[Any] = []
@@ -311,6 +317,17 @@ class Recorder:
         """The bag's metadata as of now."""
         return self._writer.metadata()
 
+    def silent(self) -> list[Gap]:
+        """Topics that were flowing and are silent now past their limit (as of the writer
+        thread's last look, at most 0.2 s ago): the recording is not receiving them."""
+        return list(self._silent)
+
+    def gaps(self) -> list[Gap]:
+        """Every interruption so far; after :meth:`stop`, with the ones still open at the
+        end (``end_ns`` ``None``: the topic never came back)."""
+        final = self._final_gaps
+        return list(final if final is not None else self._gaps.gaps)
+
     # ------------------------------------------------------------------------ hot path
     def _on_sample(self, sample: Any) -> None:
         now = time.time_ns()
@@ -359,7 +376,8 @@ class Recorder:
         # the clock is read for every message; it costs ~50 ns).
         pop = self._queue.popleft
         write = self._writer.write
-        observe = self._sequences.observe
+        count = self._sequences.count
+        watch = self._gaps.sample
         unpack = _SEQ_STAMP.unpack_from
         monotonic = time.monotonic
         sleep = time.sleep
@@ -382,15 +400,19 @@ class Recorder:
                     continue
                 self._queued_bytes_out += len(payload)
                 sequence = publish_time = 0
+                missing: int | None = None
                 if attachment is not None:
                     if len(attachment) == 33:
                         sequence, publish_time = unpack(attachment)
-                        observe(topic_id, attachment[17:33], sequence)
+                        missing = count(topic_id, attachment[17:33], sequence)
                     else:
-                        sequence, publish_time = _keyed(attachment, topic_id, self._sequences)
+                        sequence, publish_time, missing = _keyed(
+                            attachment, topic_id, self._sequences
+                        )
                 if not self._first_time:
                     self._first_time = log_time
                 self._last_time = log_time
+                watch(topic_id, log_time, missing)
                 write(topic_id, log_time, payload, publish_time, sequence)
                 if monotonic() >= next_housekeeping:
                     self._housekeeping()
@@ -404,15 +426,17 @@ class Recorder:
     def _write(self, item: tuple[int, Any, Any, Any]) -> None:
         topic_id, log_time, payload, attachment = item
         sequence = publish_time = 0
+        missing: int | None = None
         if attachment is not None:
             if len(attachment) == 33:
                 sequence, publish_time = _SEQ_STAMP.unpack_from(attachment)
-                self._sequences.observe(topic_id, attachment[17:33], sequence)
+                missing = self._sequences.count(topic_id, attachment[17:33], sequence)
             else:
-                sequence, publish_time = _keyed(attachment, topic_id, self._sequences)
+                sequence, publish_time, missing = _keyed(attachment, topic_id, self._sequences)
         if not self._first_time:
             self._first_time = log_time
         self._last_time = log_time
+        self._gaps.sample(topic_id, log_time, missing)
         self._writer.write(topic_id, log_time, payload, publish_time, sequence)
 
     def _write_held(self, held: dict[int, tuple[int, Any, Any, Any]], _: object) -> None:
@@ -421,10 +445,48 @@ class Recorder:
                 self._write(item)
 
     def _housekeeping(self) -> None:
+        self._watch_links()
         self._writer.tick()
+
+    def _watch_links(self) -> None:
+        """Tell the gap watch which topics still have a reachable publisher (the graph's
+        view: a radio link that drops takes its computer's tokens away after the lease),
+        take a snapshot of the topics silent now, and put new gaps into the metadata."""
+        from components.comm.liveliness import EntityKind
+
+        gaps = self._gaps
+        if self._graph is not None and self._topic_keys:
+            offered = {e.topic for e in self._graph.entities() if e.kind is EntityKind.PUBLISHER}
+            for topic_id, parsed in enumerate(self._topic_keys):
+                gaps.publishers(topic_id, parsed.topic in offered)
+        self._silent = gaps.silent(time.time_ns())
+        if len(gaps.gaps) != self._gaps_written:
+            self._gaps_written = len(gaps.gaps)
+            self._annotate()
+
+    def _annotate(self, end_ns: int | None = None) -> None:
+        """The gaps (and the ones still open at ``end_ns``) into ``metadata.yaml``'s
+        ``custom_data``, where any rosbag2 reader finds them."""
+        import json
+
+        gaps = list(self._gaps.gaps)
+        if end_ns is not None:
+            gaps += self._gaps.silent(end_ns)
+        lost = {
+            self._topic_keys[topic_id].topic: n
+            for topic_id, n in sorted(self._sequences.lost.items())
+            if topic_id < len(self._topic_keys)
+        }
+        self._writer.annotate(
+            {
+                "msctl.gaps": json.dumps([g.as_dict() for g in gaps], separators=(",", ":")),
+                "msctl.lost": json.dumps(lost, separators=(",", ":")),
+            }
+        )
 
     def _add_topic(self, topic_id: int, parsed: TopicKey) -> None:
         offered = self._offered(parsed)
+        self._gaps.add_topic(topic_id, parsed.topic)
         definition = message_definition(parsed.type)
         if definition is None:
             self._unknown.append(parsed.type)
@@ -505,6 +567,9 @@ class Recorder:
             # Stopped while paused: the latched samples held are part of the recording.
             held, self._held = self._held, {}
             self._write_held(held, None)
+        end = time.time_ns()
+        self._final_gaps = list(self._gaps.gaps) + self._gaps.silent(end)
+        self._annotate(end)
         self._writer.close()
 
     def _fail(self, message: str) -> None:
@@ -527,12 +592,14 @@ def _who(node: Any, name: str, namespace: str) -> dict[str, str]:
     return {"recorded_by": f"msctl {fqn}", "host": socket.gethostname()}
 
 
-def _keyed(attachment: bytes, topic_id: int, tracker: SequenceTracker) -> tuple[int, int]:
+def _keyed(
+    attachment: bytes, topic_id: int, tracker: SequenceTracker
+) -> tuple[int, int, int | None]:
     from components.comm.attachment import Attachment, AttachmentError
 
     try:
         parsed = Attachment.decode(attachment)
     except AttachmentError:
-        return 0, 0
-    tracker.observe(topic_id, parsed.gid, parsed.sequence_number)
-    return parsed.sequence_number, parsed.source_timestamp
+        return 0, 0, None
+    missing = tracker.count(topic_id, parsed.gid, parsed.sequence_number)
+    return parsed.sequence_number, parsed.source_timestamp, missing

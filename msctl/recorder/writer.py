@@ -282,6 +282,12 @@ class BagWriter:
         self._finish_file()
         self._open_file()
 
+    def annotate(self, data: dict[str, str]) -> None:
+        """Add or replace ``custom_data`` entries; ``metadata.yaml`` is rewritten at the next
+        :meth:`tick` (and at :meth:`close`)."""
+        self._custom_data = {**(self._custom_data or {}), **data}
+        self._metadata_dirty = True
+
     def close(self) -> BagMetadata:
         """Finish the last file and write the final ``metadata.yaml`` (idempotent).
 
