@@ -233,6 +233,10 @@ def test_the_manager_holds_every_joint_refuses_commands_and_says_why() -> None:
     assert level == ERROR
     assert "no operator: gc1 (ground1) unreachable for 3.5 s" in message
     assert values["presence_holds"] == "1" and values["operators"] == "none: held"
+    # Each joint says it too: the module's health monitor reads the joints' statuses.
+    for joint in core.diagnostics(5.5).status[1:]:
+        assert int(joint.level) == ERROR
+        assert joint.message.startswith("held: no operator: gc1 (ground1) unreachable for 3.5 s")
     core.on_joint_set(joint_state([JointSample(WHEEL, None, 1.5, None)]), 6.0)
     assert commands(core) == {}
     assert core.counters["refused_no_operator"] == 1

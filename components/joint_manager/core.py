@@ -1044,6 +1044,11 @@ class JointManagerCore(Core):
         if max(j.last_refusal, j.last_clamp) >= now - cfg.warn_window:
             levels.append(WARN)
             notes.append(j.note)
+        if self.presence is not None and self.presence.held:
+            # On every joint too: the module's health monitor reads the joints' statuses,
+            # so the module's own health says why its motors hold.
+            levels.append(ERROR)
+            notes.insert(0, f"held: {self.presence.reason(now)}")
         level = worst(levels)
         values = {
             "position": _fmt(j.position),

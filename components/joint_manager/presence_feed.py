@@ -32,11 +32,13 @@ if TYPE_CHECKING:
 def stations_of(assembly: ResolvedAssembly) -> dict[Station, tuple[str, ...]]:
     """The assembly's ground stations and the node namespaces that show each one alive: its
     own and its computer's supervisor's."""
+    from components import kinds
     from msctl.launcher.control import host_namespace
 
     found: dict[Station, tuple[str, ...]] = {}
     for plan in assembly.components:
-        if plan.module is not None:
+        # A station kind given to a module (a robot's own recorder) is no station.
+        if plan.module is not None or kinds.get(plan.kind).placement is not kinds.Placement.STATION:
             continue
         station = Station(plan.namespace.strip("/"), plan.host)
         found.setdefault(station, (plan.namespace.rstrip("/"), host_namespace(plan.host)))
