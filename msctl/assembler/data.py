@@ -22,6 +22,7 @@ from typing import Any, TypeVar
 
 from components import kinds
 from components.assembly import BusPlan
+from msctl.assembler import recording as robot_recording
 from msctl.assembler import transforms as tf
 from msctl.assembler.urdf import MOVABLE, ModuleUrdf, parse_module_urdf
 from msctl.errors import InputError, NotFoundError, did_you_mean
@@ -776,6 +777,9 @@ class Template:
     #: ``[network] secure = true``: every computer's router runs the config ``msctl net
     #: config`` generates (mutual TLS, access control), as ``--secure`` does.
     secure: bool = False
+    #: ``[recording] robots = true``: the parameters of the data archiver each robot computer
+    #: runs to record its own modules locally (:mod:`msctl.assembler.recording`); ``None``: off.
+    robot_recording: dict[str, Any] | None = None
 
     def slot(self, name: str) -> SlotDef:
         """The slot called ``name`` (KeyError if none)."""
@@ -985,6 +989,7 @@ def _parse_template(path: Path) -> Template:
         claims=claims,
         operator_timeout=operator_timeout,
         secure=network.get("secure", bool, False, "true or false"),
+        robot_recording=robot_recording.parse(f.sub("recording", {}).table, path),
     )
 
 

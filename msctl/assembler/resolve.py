@@ -36,6 +36,7 @@ from components.assembly import (
 from msctl.assembler import data
 from msctl.assembler import transforms as tf
 from msctl.assembler.data import ModuleType, Template, Unit
+from msctl.assembler.recording import robot_archivers
 from msctl.assembler.urdf import ModulePart, Mount, compose, connector_link
 from msctl.errors import InputError, NotFoundError, did_you_mean
 
@@ -397,6 +398,9 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
                 )
             )
         parts.append(ModulePart(slot, module.urdf, limits, dict(module.connectors)))
+    # [recording] robots: each robot computer records its own modules' topics locally.
+    hosts = [(m.slot, m.host) for m in modules]
+    components += robot_archivers(template.robot_recording, hosts, components)
 
     for station in template.stations:
         for kind_name, component, params in station.components:

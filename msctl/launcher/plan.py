@@ -124,6 +124,10 @@ def plan_host(
         group = component.module or f"{component.name.split('/')[0]}_{component.kind}"
         if kinds.get(component.kind).own_process:
             group = component.name.replace("/", "_")
+        elif component.module and kinds.get(component.kind).placement is not kinds.Placement.MODULE:
+            # A station kind on a module's computer (its own recorder) stays out of the
+            # module's process: its I/O never shares an interpreter with the safety path.
+            group = f"{component.module}_{component.kind}"
         groups.setdefault(group, []).append(
             _run(component.name, component.kind, component.namespace)
         )
