@@ -630,6 +630,8 @@ class Puller:
                         pause = self._budget.delay(size, time.monotonic())
                         if pause:
                             time.sleep(pause)  # the pull's own rate limit (--limit)
+                            # Silence is the host's, never the pull's own pacing.
+                            last_answer = max(last_answer, time.monotonic())
                         args = {"path": remote.path, "offset": offset, "size": size}
                         futures[pool.submit(self._ask, "bag_read", args, self.request_timeout)] = (
                             offset
