@@ -373,9 +373,25 @@ def test_a_host_that_does_not_answer_is_named_and_the_pull_fails(
     robot: Path, net_env: dict[str, str], tmp_path: Path
 ) -> None:
     del robot
-    code, _report, stderr = pull(tmp_path, net_env, "--patience", "1", host="nobody-01")
+    code, report, stderr = pull(tmp_path, net_env, "--patience", "1", host="nobody-01")
     assert code == 3
     assert "nobody-01 did not answer within 1 s" in stderr
+    assert report["ok"] is False and "nobody-01 gave no answer" in report["silent"]
+
+
+@pytest.mark.e2e
+def test_a_second_pull_into_the_same_directory_is_refused(
+    robot: Path, net_env: dict[str, str], tmp_path: Path
+) -> None:
+    import fcntl
+
+    del robot
+    (tmp_path / "in").mkdir()
+    with (tmp_path / "in" / ".pull.lock").open("a+") as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX)  # as a pull running would
+        code, _report, stderr = pull(tmp_path, net_env)
+    assert code == 3 and "another `msctl bag pull` is writing into" in stderr
+    assert str(tmp_path / "in") in stderr
 
 
 def test_the_command_refuses_a_host_that_is_not_a_name(tmp_path: Path) -> None:

@@ -91,7 +91,12 @@ def pull(stage: Stage, *args: str) -> tuple[int, dict[str, Any], str]:
 
 
 def verified_files(into: Path) -> list[Path]:
-    return [p for p in into.rglob("*") if p.is_file() and not p.name.endswith(".part")]
+    """Files verified and renamed (not a ``.part``, nor the pull's ``.pull.lock``)."""
+    return [
+        p
+        for p in into.rglob("*")
+        if p.is_file() and not p.name.endswith(".part") and p.name[0] != "."
+    ]
 
 
 def cut_while_pulling(stage: Stage, into: Path, *args: str) -> tuple[int, dict[str, Any], str]:

@@ -268,7 +268,7 @@ def _when(stamp: int) -> str:
 def pull(
     host: str = typer.Argument(..., help="The computer whose own bags to copy here."),
     into: Path = typer.Option(
-        None, "--into", help="Directory the bags go to [default: $MSCTL_HOME/pulled/HOST]."
+        None, "--into", help="Directory the bags go to (default: $MSCTL_HOME/pulled/HOST)."
     ),
     limit: float = typer.Option(
         0.0, "--limit", help="kB/s at most, leaving the radio room for the rest (0: no limit)."
@@ -279,6 +279,10 @@ def pull(
     dry_run: bool = typer.Option(
         False, "--dry-run", help="List what would be pulled, skipped and left; fetch nothing."
     ),
+    chunk: int = typer.Option(
+        64, "--chunk", help="KiB asked per request (1 to 256).", min=1, max=256
+    ),
+    window: int = typer.Option(4, "--window", help="Requests in flight at once.", min=1, max=32),
     json_output: bool = JSON_OPT,
 ) -> None:
     """Copy HOST's own bags (robot-side recording) here over the fleet, chunk by chunk.
@@ -288,10 +292,11 @@ def pull(
     answer.
     """
     from components.paths import state_dir
+    from msctl.console import print_json
     from msctl.errors import InputError, NetworkError
     from msctl.launcher.plan import SAFE_NAME
     from msctl.plane import connected
-    from msctl.recorder.pull import HostSilent, Puller
+    from msctl.recorder.pull import HostSilent, Puller, PullReport
 
     if not SAFE_NAME.match(host) or "/" in host or ".." in host:
         raise InputError(
@@ -302,11 +307,22 @@ def pull(
     target = into if into is not None else state_dir() / "pulled" / host
     with (
         connected("bag_pull") as node,
-        Puller(node, host, target, patience=patience, limit=limit * 1000) as puller,
+        Puller(
+            node,
+            host,
+            target,
+            chunk=chunk * 1024,
+            window=window,
+            patience=patience,
+            limit=limit * 1000,
+        ) as puller,
     ):
         try:
             files = puller.listing()
         except HostSilent as exc:
+            if json_output:
+                silent = f"{host} gave no answer for {patience:g} s ({exc})"
+                print_json(PullReport(host, target, silent=silent).as_dict())
             raise NetworkError(
                 f"{host} did not answer within {patience:g} s: {exc}",
                 hint=f"check `msctl ps --all` shows {host}'s agent, and its link; then pull again",

@@ -22,10 +22,11 @@ from __future__ import annotations
 
 import base64
 import binascii
+import contextlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -521,7 +522,10 @@ class Puller:
         """
         report = PullReport(self.host, self.into)
         started = time.monotonic()
-        with ThreadPoolExecutor(self.window, thread_name_prefix="bag-pull") as pool:
+        with (
+            _only_pull(self.into),
+            ThreadPoolExecutor(self.window, thread_name_prefix="bag-pull") as pool,
+        ):
             for action in actions:
                 remote = action.file
                 if report.silent and action.kind == FETCH:
@@ -681,6 +685,34 @@ def _chunk_data(answer: Any, remote: RemoteFile, offset: int) -> bytes:
         return base64.b64decode(answer.get("data", ""), validate=True)
     except (binascii.Error, TypeError, ValueError):
         raise Refused(f"the answer for {remote.path} at byte {offset:,} is not base64") from None
+
+
+@contextlib.contextmanager
+def _only_pull(into: Path) -> Iterator[None]:
+    """Hold ``<into>/.pull.lock`` while pulling: two pulls into one directory would write the
+    same ``.part`` files.
+
+    Raises:
+        PullError: If another pull holds it, or the directory cannot be made.
+    """
+    import fcntl
+
+    try:
+        into.mkdir(parents=True, exist_ok=True)
+        handle = (into / ".pull.lock").open("a+")
+    except OSError as exc:
+        raise PullError(f"cannot pull into {into}: {exc.strerror or exc}") from exc
+    try:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise PullError(
+                f"another `msctl bag pull` is writing into {into}",
+                hint="let it finish (or stop it), then pull again: it resumes",
+            ) from None
+        yield
+    finally:
+        handle.close()
 
 
 def _sync_directory(directory: Path) -> None:
