@@ -33,6 +33,7 @@ from msctl.app import app
 from msctl.recorder.bag import inspect
 from msctl.recorder.definitions import message_definition, qos_profiles
 from msctl.recorder.errors import BagError
+from msctl.recorder.metadata import read_metadata
 from msctl.recorder.player import Player, is_command_topic, parse_remaps
 from msctl.recorder.writer import BagWriter, TopicSpec
 
@@ -365,12 +366,16 @@ class Flood:
     def __init__(self, node: Node, topic: str = "chatter", period: float = 0.002) -> None:
         self.publisher = node.publisher(topic, STRING)
         self.sent = 0
+        #: Set: publish nothing (as if the link were down) until cleared.
+        self.paused = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
         self._thread.start()
 
     def _run(self, period: float) -> None:
         while not self._stop.wait(period):
+            if self.paused.is_set():
+                continue
             self.sent += 1
             self.publisher.publish(msg(STRING, data=str(self.sent)))
 
@@ -663,3 +668,62 @@ def test_round_trip_of_a_simulated_dragon(tmp_path: Path) -> None:
         ]
     assert joints and all(len(j.name) == len(j.position) for j in joints)
     assert np.isfinite([p for j in joints for p in j.position]).all()
+
+
+class Lines:
+    """The lines a process writes to a pipe, read on a thread as they come."""
+
+    def __init__(self, pipe: Any) -> None:
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self._thread.start()
+
+    def _read(self, pipe: Any) -> None:
+        for line in pipe:
+            self.lines.append(line.rstrip("\n"))
+
+    def count(self, text: str) -> int:
+        return sum(text in line for line in list(self.lines))
+
+    def text(self) -> str:
+        self._thread.join(timeout=30)
+        return "\n".join(self.lines)
+
+
+@pytest.mark.e2e
+def test_record_tells_each_interruption_and_exits_3_when_it_ends_without_data(
+    tmp_path: Path, env: dict[str, str], talker: Node
+) -> None:
+    """A topic that stops arriving (a link down) is said when it stops and when it comes
+    back, each gap is in the summary and the bag's metadata, and a recording that ended while
+    the topic was silent exits 3 naming it, not 0 with a normal summary."""
+    bag = tmp_path / "bag"
+    flood = Flood(talker, period=0.01)
+    proc = start_record(env, "/robot/chatter", "-o", str(bag), "--json")
+    assert proc.stderr is not None
+    notices = Lines(proc.stderr)
+    try:
+        wait_until(lambda: recorded_so_far(bag) > 100, timeout=60, what="messages on disk")
+        flood.paused.set()
+        wait_until(lambda: notices.count("not receiving: /robot/chatter") == 1, 60, "silence told")
+        flood.paused.clear()
+        wait_until(lambda: notices.count("back: /robot/chatter: silent for") == 1, 60, "return")
+        flood.paused.set()  # and this time it does not come back before the end
+        wait_until(lambda: notices.count("not receiving: /robot/chatter") == 2, 60, "2nd silence")
+    finally:
+        flood.close()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    stderr = notices.text()
+    assert proc.returncode == 3, stderr
+    assert "stopped receiving 1 topic(s) before it ended: /robot/chatter" in stderr, stderr
+    summary = json.loads(out)
+    closed, still_open = summary["gaps"]
+    assert closed["topic"] == still_open["topic"] == "/robot/chatter"
+    assert closed["end_ns"] > closed["start_ns"] and closed["seconds"] > 1.0
+    assert closed["lost"] == 0  # nothing was published meanwhile: nothing is missing
+    assert still_open["end_ns"] is None and still_open["start_ns"] >= closed["end_ns"]
+    custom = read_metadata(bag).custom_data
+    assert json.loads(custom["msctl.gaps"]) == summary["gaps"]
+    assert json.loads(custom["msctl.lost"]) == {}
+    assert strings_of(bag, "/robot/chatter")  # everything received is kept

@@ -93,3 +93,13 @@ def test_the_graph_about_an_unknown_topic_is_ignored() -> None:
     watch = GapWatch()
     watch.publishers(7, present=False)
     assert watch.silent(T0) == []
+
+
+def test_a_pause_is_not_an_interruption() -> None:
+    watch = GapWatch()
+    watch.add_topic(0, "/limb1/joint_states")
+    last = stream(watch, 0, T0, 10 * MS, 20)
+    watch.forget()
+    assert watch.silent(last + 30 * S) == []
+    assert watch.sample(0, last + 30 * S) is None
+    assert watch.gaps == []

@@ -9,10 +9,11 @@ numbers say how many samples a gap swallowed, and the graph says whether the top
 publishers were still reachable meanwhile (a radio link that drops takes their liveliness
 tokens with it, after the routers' lease).
 
-What counts as a gap: a topic silent for longer than its silence limit, which is
-:data:`SILENCE_PERIODS` of its own usual period (learned from the samples), never less than
-:data:`SILENCE_FLOOR_S`. Losses shorter than that (a lossy link drops one sample in twenty)
-are not gaps: the recorder counts them per topic from the sequence numbers.
+What counts as a gap: a topic that was flowing (:data:`FLOWING_SAMPLES` samples at least)
+silent for longer than its silence limit, which is :data:`SILENCE_PERIODS` of its own usual
+period (learned from the samples), never less than :data:`SILENCE_FLOOR_S`. Losses shorter
+than that (a lossy link drops one sample in twenty) are not gaps: the recorder counts them
+per topic from the sequence numbers.
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ SILENCE_FLOOR_S = 1.0
 #: A topic is interrupted after this many of its usual periods without a sample (a 1 Hz
 #: health topic after 10 s, a 100 Hz joint state after the floor).
 SILENCE_PERIODS = 10.0
+#: Samples a topic must have had before its silence counts: one latched sample, or a
+#: topic heard twice, has no rhythm to interrupt.
+FLOWING_SAMPLES = 10
 #: Weight of a new interval in the running estimate of a topic's period.
 _PERIOD_WEIGHT = 0.05
 
@@ -125,7 +129,7 @@ class GapWatch:
             return None
         interval = now_ns - last
         limit = max(self._floor_ns, int(topic.period_ns * self._periods))
-        if interval > limit:
+        if interval > limit and topic.samples > FLOWING_SAMPLES:
             gap = Gap(topic.name, last, now_ns, lost, topic.left)
             topic.left = False
             self.gaps.append(gap)
@@ -148,12 +152,23 @@ class GapWatch:
             topic.left = True
         topic.publishers = present
 
+    def forget(self) -> None:
+        """Forget when each topic was last heard (a paused recording: a pause is not an
+        interruption, and the first sample after it starts afresh)."""
+        for topic in self._topics.values():
+            topic.last_ns = 0
+            topic.left = False
+
     def silent(self, now_ns: int) -> list[Gap]:
         """The gaps open at ``now_ns``: topics that were flowing and are silent past their
         limit (``end_ns`` is ``None``)."""
         found = []
         for topic_id, topic in self._topics.items():
-            if topic.last_ns and now_ns - topic.last_ns > self.limit_ns(topic_id):
+            if (
+                topic.samples >= FLOWING_SAMPLES
+                and topic.last_ns
+                and now_ns - topic.last_ns > self.limit_ns(topic_id)
+            ):
                 found.append(
                     Gap(topic.name, topic.last_ns, None, None, topic.left or not topic.publishers)
                 )

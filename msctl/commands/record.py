@@ -4,6 +4,12 @@ Topics are discovered continuously (a topic that appears later is recorded from 
 message); latched topics get their cached samples. SIGINT and SIGTERM close the bag cleanly;
 in a terminal, space pauses and resumes. A live line shows duration, messages and size; a
 summary is printed at the end (``--json``: one JSON document on stdout).
+
+Through a radio outage the recording goes on and resumes by itself: each interruption of a
+topic is said on stderr when it starts and when it ends, listed in the summary and written
+into the bag's metadata (``custom_data``: ``msctl.gaps``, ``msctl.lost``). A recording that
+ended while topics it had been receiving were silent exits 3 naming them: it never passes
+for a complete one.
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ COMMAND_SETTINGS = {"help": "Record topics into a rosbag2 (MCAP) bag directory."
 
 _SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kKmMgGtT]i?[bB]?|[bB])?\s*$")
 _UNITS = {"": 1, "b": 1, "k": 1e3, "m": 1e6, "g": 1e9, "t": 1e12}
+#: Interruptions listed in the summary (all of them are in the bag's metadata).
+_GAPS_SHOWN = 10
 
 
 def parse_size(text: str) -> int:
@@ -106,12 +114,19 @@ def command(
         signals.on_toggle = lambda: recorder.resume() if recorder.paused else recorder.pause()
         recorder.start()
         err.print(f"recording into {directory}", highlight=False)
+        notices = threading.Thread(
+            target=_tell_gaps, args=(recorder, stop), name="record-gaps", daemon=True
+        )
+        notices.start()
         try:
             with _Keys(signals.on_toggle):
                 _show_progress(recorder, stop)
         finally:
             status = recorder.stop()
+            stop.set()
+            notices.join()
     _summary(recorder, status, json_output)
+    _refuse_silent_end(recorder)
 
 
 class _Signals:
@@ -211,6 +226,47 @@ def _line(recorder: Any, started: float) -> Any:
     return Text(text + hint, style="yellow" if status.paused else "green")
 
 
+def _tell_gaps(recorder: Any, stop: threading.Event) -> None:
+    """Say on stderr, as it happens, when a recorded topic stops arriving and when it comes
+    back (with how long and how many samples it missed): in a terminal and in a log alike,
+    since a recorder on a ground station is most often left running in one."""
+    from msctl.console import err
+
+    told = 0
+    silent: set[str] = set()
+    while not stop.wait(0.25):
+        for gap in recorder.gaps()[told:]:
+            err.print(f"[green]back:[/] {gap.describe()}", highlight=False)
+            silent.discard(gap.topic)
+        told = len(recorder.gaps())
+        now = time.time_ns()
+        for gap in recorder.silent():
+            if gap.topic not in silent:
+                silent.add(gap.topic)
+                err.print(f"[yellow]not receiving:[/] {gap.describe(now)}", highlight=False)
+
+
+def _refuse_silent_end(recorder: Any) -> None:
+    """Exit non-zero when topics that were recorded had stopped arriving before the end:
+    a recording that silently stopped receiving is not a normal one.
+
+    Raises:
+        NetworkError: Naming every such topic, since when, and where the bag says so.
+    """
+    from msctl.errors import NetworkError
+
+    open_gaps = [g for g in recorder.gaps() if g.end_ns is None]
+    if not open_gaps:
+        return
+    names = "; ".join(g.describe(time.time_ns()) for g in open_gaps)
+    raise NetworkError(
+        f"the recording stopped receiving {len(open_gaps)} topic(s) before it ended: {names}",
+        hint=f"the bag holds everything up to then; its gaps are in "
+        f"{recorder.directory}/metadata.yaml (custom_data msctl.gaps); if a link was down, "
+        "check it (`msctl ps --all`, `msctl health`)",
+    )
+
+
 def _clock(seconds: float) -> str:
     minutes, secs = divmod(int(seconds), 60)
     hours, minutes = divmod(minutes, 60)
@@ -235,6 +291,7 @@ def _summary(recorder: Any, status: Any, json_output: bool) -> None:
         "dropped": status.dropped,
         "lost_upstream": status.lost,
         "unknown_types": list(status.unknown_types),
+        "gaps": [g.as_dict() for g in recorder.gaps()],
     }
     if json_output:
         print_json(document)
@@ -252,6 +309,13 @@ def _summary(recorder: Any, status: Any, json_output: bool) -> None:
         )
     if status.lost:
         err.print(f"[yellow]{status.lost:,} message(s) lost before reaching the recorder[/]")
+    gaps = recorder.gaps()
+    if gaps:
+        err.print(f"[yellow]{len(gaps)} interruption(s)[/] (in metadata.yaml, msctl.gaps):")
+        for gap in gaps[:_GAPS_SHOWN]:
+            err.print(f"  {gap.describe(time.time_ns())}", highlight=False)
+        if len(gaps) > _GAPS_SHOWN:
+            err.print(f"  ... and {len(gaps) - _GAPS_SHOWN} more", highlight=False)
     if status.unknown_types:
         err.print(
             "[yellow]recorded without a definition (msctl does not know the type):[/] "

@@ -455,6 +455,10 @@ class Recorder:
         from components.comm.liveliness import EntityKind
 
         gaps = self._gaps
+        if self._paused:
+            gaps.forget()
+            self._silent = []
+            return
         if self._graph is not None and self._topic_keys:
             offered = {e.topic for e in self._graph.entities() if e.kind is EntityKind.PUBLISHER}
             for topic_id, parsed in enumerate(self._topic_keys):
