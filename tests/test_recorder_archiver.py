@@ -108,6 +108,13 @@ def test_status_levels_and_rates() -> None:
     )
     level, message, _ = core.report(RecorderStatus(error="the disk is full"), 14.0)
     assert level is Level.ERROR and "the disk is full" in message
+    # A link down: it still records what arrives, and says what it does not receive.
+    level, message, values = core.report(
+        RecorderStatus(topics=2, gaps=1, silent=("/limb1/joint_states",)), 15.0
+    )
+    assert level is Level.WARN
+    assert message.startswith("not receiving /limb1/joint_states (a link down?)")
+    assert values["gaps"] == "1" and values["not_receiving"] == "/limb1/joint_states"
 
 
 def test_the_core_publishes_its_status_on_diagnostics() -> None:

@@ -158,6 +158,8 @@ class RecorderStatus:
         duration: Seconds from the first to the last message's receive time.
         paused: Whether recording is paused.
         error: Why the recording stopped by itself ("" while fine).
+        gaps: Interruptions of a topic so far (see ``components.data_archiver.gaps``).
+        silent: Topics that were flowing and are not arriving now (a link down).
     """
 
     directory: str = ""
@@ -172,6 +174,8 @@ class RecorderStatus:
     duration: float = 0.0
     paused: bool = False
     error: str = ""
+    gaps: int = 0
+    silent: tuple[str, ...] = ()
 
 
 @dataclass
@@ -247,6 +251,8 @@ class ArchiverCore:
             "lost_upstream": str(status.lost),
             "unknown_types": ", ".join(status.unknown_types),
             "paused": "true" if status.paused else "false",
+            "gaps": str(status.gaps),
+            "not_receiving": ", ".join(status.silent),
         }
         if status.error:
             return Level.ERROR, f"not recording: {status.error}", values
@@ -264,6 +270,14 @@ class ArchiverCore:
             )
         if status.paused:
             return Level.OK, f"paused: {figures}", values
+        if status.silent:
+            # Still recording what arrives; it resumes by itself when the link is back.
+            return (
+                Level.WARN,
+                f"not receiving {', '.join(status.silent)} (a link down?); recording the rest: "
+                f"{figures}",
+                values,
+            )
         return Level.OK, f"recording {status.topics} topic(s): {figures}", values
 
 

@@ -305,6 +305,8 @@ class Recorder:
             duration=(last - first) / 1e9 if first else 0.0,
             paused=self._paused,
             error=self._error,
+            gaps=len(self._gaps.gaps),
+            silent=tuple(g.topic for g in self._silent),
         )
 
     @property
