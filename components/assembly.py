@@ -307,6 +307,8 @@ class LockDocument:
             ``None``: never).
         secure: Whether every router runs the fleet's generated config (mutual TLS, access
             control; the template's ``[network] secure``).
+        network: The links between computers: each class's budget and which computer's
+            link is which (:meth:`msctl.net.radio.Network.as_dict`; empty: the defaults).
         units: Slot -> unit serial, in template order.
         modules: One plan per slot, in template order.
         components: Every component, robot side then ground stations.
@@ -338,6 +340,7 @@ class LockDocument:
     claims: Literal["open", "required"] = "open"
     operator_timeout: float | None = None
     secure: bool = False
+    network: dict[str, Any] = field(default_factory=dict)
 
 
 def encode_lock(lock: LockDocument) -> str:

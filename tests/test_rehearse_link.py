@@ -466,7 +466,15 @@ def test_a_user_file_adds_and_replaces_profiles(
         '[wifi]\nbase = "wifi"\nloss = 0.2\n\n[lan]\ndelay_ms = 1\n\n[mine]\nrate_kbit = 64\n',
     )
     profiles = load_profiles(path)
-    assert list(profiles) == ["lan", "wifi", "field-wifi", "cellular", "earth-moon", "mine"]
+    assert list(profiles) == [
+        "lan",
+        "wifi",
+        "field-wifi",
+        "cellular",
+        "earth-moon",
+        "degraded",
+        "mine",
+    ]
     # Its own name as base: the built-in it replaces, then changed.
     assert profiles["wifi"].up.loss == 0.2 and profiles["wifi"].up.delay_ms == 3
     assert profiles["lan"].up.delay_ms == 1

@@ -26,6 +26,7 @@ from msctl.assembler import recording as robot_recording
 from msctl.assembler import transforms as tf
 from msctl.assembler.urdf import MOVABLE, ModuleUrdf, parse_module_urdf
 from msctl.errors import InputError, NotFoundError, did_you_mean
+from msctl.net import radio
 
 T = TypeVar("T")
 
@@ -149,8 +150,8 @@ OPERATOR_TIMEOUT = 3.0
 #: What a template's ``[safety]`` table may say.
 TEMPLATE_SAFETY_KEYS = ("operator_timeout",)
 
-#: What a template's ``[network]`` table may say.
-NETWORK_KEYS = ("secure",)
+#: What a template's ``[network]`` table may say (link classes: :mod:`msctl.net.radio`).
+NETWORK_KEYS = ("secure", *radio.CLASSES, "links")
 
 
 class _Fields:
@@ -777,6 +778,9 @@ class Template:
     #: ``[network] secure = true``: every computer's router runs the config ``msctl net
     #: config`` generates (mutual TLS, access control), as ``--secure`` does.
     secure: bool = False
+    #: ``[network]``'s link classes and which computer's link is which, as the lock keeps
+    #: them (:meth:`msctl.net.radio.Network.as_dict`).
+    network: dict[str, Any] = field(default_factory=dict)
     #: ``[recording] robots = true``: the parameters of the data archiver each robot computer
     #: runs to record its own modules locally (:mod:`msctl.assembler.recording`); ``None``: off.
     robot_recording: dict[str, Any] | None = None
@@ -990,6 +994,7 @@ def _parse_template(path: Path) -> Template:
         operator_timeout=operator_timeout,
         secure=network.get("secure", bool, False, "true or false"),
         robot_recording=robot_recording.parse(f.sub("recording", {}).table, path),
+        network=radio.parse(network.table, path).as_dict(),
     )
 
 

@@ -39,6 +39,7 @@ from msctl.assembler.data import ModuleType, Template, Unit
 from msctl.assembler.recording import robot_archivers
 from msctl.assembler.urdf import ModulePart, Mount, compose, connector_link
 from msctl.errors import InputError, NotFoundError, did_you_mean
+from msctl.net import radio
 
 #: ``choose(slot, candidate serials) -> serial``, or None when no one can be asked.
 Chooser = Callable[[str, list[str]], str]
@@ -460,6 +461,8 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
         host: HostRole("robot" if plan.modules else "ground", plan.modules, plan.components)
         for host, plan in host_plans.items()
     }
+    # A link class named for a computer of no module or station is a typo: say so here.
+    radio.check_hosts(radio.Network.from_dict(template.network), host_plans, template.path)
     counts: dict[str, int] = {}
     for comp in components:
         counts[comp.kind] = counts.get(comp.kind, 0) + 1
@@ -472,6 +475,7 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
         claims=template.claims,
         operator_timeout=template.operator_timeout,
         secure=template.secure,
+        network=template.network,
         units={slot: units[slot].serial for slot in units},
         modules=tuple(modules),
         components=tuple(components),

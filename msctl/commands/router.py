@@ -94,6 +94,10 @@ def command(
             raise InputError(str(exc)) from None
     try:
         settings = router_settings(listen=endpoints, config_file=config_file, extra=extra)
+        if config_file is not None and (lease := _lease_of(config_file)) is not None:
+            # The config's lease is its links' (the radio's, msctl net config): the 1 s of
+            # msctl's local sessions would drop a radio link at each burst of losses.
+            settings = settings._replace(lease_ms=lease)
         if connect:
             settings = settings._replace(connect=tuple(connect))
         session = open_session(settings)
@@ -188,6 +192,18 @@ def _secure_config(
     for note in notes:
         err.print(f"[yellow]{note}[/]", highlight=False)
     return target
+
+
+def _lease_of(config_file: Path) -> int | None:
+    """The lease (ms) a JSON config sets itself (``transport.link.tx.lease``), else None.
+
+    Only what the file says counts: Zenoh reads an absent lease as its own 10 s default."""
+    try:
+        document = json.loads(config_file.read_text())
+        lease = document["transport"]["link"]["tx"]["lease"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # json5 beyond JSON, or no lease: msctl's own stands
+    return lease if isinstance(lease, int) and not isinstance(lease, bool) else None
 
 
 def _endpoints_of(config_file: Path) -> tuple[tuple[str, ...], list[str]]:

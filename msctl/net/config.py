@@ -6,6 +6,11 @@ router takes its own computer's components on plain TCP on loopback only, and ev
 leaves the computer on mutual TLS with the fleet CA. Components are clients of their local
 router, so no peer-to-peer link can go around the router's access control, and multicast
 scouting is off everywhere.
+
+The links between computers carry the template's budget (:mod:`msctl.net.radio`): high-rate
+telemetry downsampled and large publications held back on the way out of a computer, a
+lease that notices a dead link in seconds, TLS or QUIC. The loopback side, where the
+computer's own components are, is never filtered.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from components.assembly import ResolvedAssembly
-from msctl.net import acl, pki
+from msctl.net import acl, pki, radio
 from msctl.net.endpoints import EndpointError, parse
 
 #: Where a router takes its own computer's components (rmw_zenohd's port, loopback only).
@@ -105,6 +110,7 @@ def router_config(
     off_robot: bool = False,
     listen: Sequence[str] = (),
     connect: Sequence[str] | None = None,
+    network: radio.Network | None = None,
 ) -> dict[str, Any]:
     """The Zenoh config of ``host``'s router.
 
@@ -121,10 +127,11 @@ def router_config(
             (``MSCTL_ROUTER_LISTEN``, e.g. one interface only).
         connect: TLS endpoints to link to in place of the links the topology gives
             (``MSCTL_ROUTER_CONNECT``, e.g. addresses where host names do not resolve).
+        network: The link classes (default: the assembly's, from its template).
 
     Raises:
         NetConfigError: If ``host`` is not in the assembly (and does not run all of it), has
-            no identity, or an endpoint given is not TLS.
+            no identity, or an endpoint given is not TLS or QUIC.
     """
     if not off_robot and host not in assembly.hosts:
         raise NetConfigError(
@@ -147,9 +154,14 @@ def router_config(
         guarded = acl.placed(guarded, placement)
         fleet = acl.placed_principals(fleet, placement)
     identity = pki.read_identity(host, home)
+    network = network or radio.Network.from_dict(assembly.lock.network)
+    link = own_link_class(assembly, host, network)
     tls_listen = list(_tls_only(listen, "MSCTL_ROUTER_LISTEN")) or [
         f"tls/0.0.0.0:{ports.tls_port(host)}"
     ]
+    if not listen and "quic" in _linked_protocols(assembly, host, network):
+        # Robots link to it over QUIC (UDP, the same port); operators still come over TLS.
+        tls_listen.append(f"quic/0.0.0.0:{ports.tls_port(host)}")
     if connect is not None:
         linked = list(_tls_only(connect, "MSCTL_ROUTER_CONNECT"))
     elif off_robot:
@@ -157,8 +169,10 @@ def router_config(
         # routers would mix simulated and real data on the same topics.
         linked = []
     else:
-        linked = [f"tls/{ports.address(o)}:{ports.tls_port(o)}" for o in links(assembly, host)]
-    return {
+        linked = [
+            f"{link.protocol}/{ports.address(o)}:{ports.tls_port(o)}" for o in links(assembly, host)
+        ]
+    document: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": [f"tcp/127.0.0.1:{ports.local_port(host)}", *tls_listen]},
         "connect": {"endpoints": linked},
@@ -167,10 +181,51 @@ def router_config(
         "transport": {"link": {"tls": tls_block(identity, home)}},
         "access_control": acl.router_acl(host, fleet, guarded, domain),
     }
+    if off_robot:
+        return document  # no link leaves this computer: no budget to keep
+    modules = [m.slot for m in assembly.modules if m.host == host]
+    budget = radio.router_settings(link, modules, domain)
+    document["downsampling"] = budget["downsampling"]
+    document["low_pass_filter"] = budget["low_pass_filter"]
+    document["transport"]["link"]["tx"] = budget["transport"]["link"]["tx"]
+    document["transport"]["unicast"] = budget["transport"]["unicast"]
+    return document
+
+
+def own_link_class(
+    assembly: ResolvedAssembly, host: str, network: radio.Network
+) -> radio.LinkClass:
+    """The class whose settings ``host``'s router applies to its links.
+
+    A robot computer's is its own link's. A router others link to (a ground station, or the
+    first robot of a station-less assembly) takes the radio's filters if any link to it is
+    a radio, and the longest lease of them: a lease must outlast the slowest link's
+    silences, and Zenoh has one lease per router.
+    """
+    own = network.link_class(host)
+    linking = [o for o in assembly.hosts if o != host and host in links(assembly, o)]
+    if not linking:
+        return own
+    classes = [network.link_class(o) for o in linking]
+    base = next((c for c in classes if c.name == "radio"), classes[0])
+    lease = max(c.lease_s for c in (*classes, own))
+    return radio.LinkClass(
+        base.name, lease, own.protocol, base.max_message_bytes, dict(base.downsample_hz)
+    )
+
+
+def _linked_protocols(assembly: ResolvedAssembly, host: str, network: radio.Network) -> set[str]:
+    """The protocols of the links other computers open to ``host``."""
+    return {
+        network.link_class(o).protocol
+        for o in assembly.hosts
+        if o != host and host in links(assembly, o)
+    }
 
 
 def _tls_only(endpoints: Sequence[str], setting: str) -> list[str]:
-    """``endpoints`` if each is TLS; a plain one beside a secure router would let anyone in.
+    """``endpoints`` if each is TLS or QUIC (mutual TLS both); a plain one beside a secure
+    router would let anyone in.
 
     The access control takes every plain TCP link as this computer's own components (subject
     ``local``): a plain listener beyond loopback would give the network their rights.
@@ -183,7 +238,7 @@ def _tls_only(endpoints: Sequence[str], setting: str) -> list[str]:
             endpoint = parse(text)
         except EndpointError as exc:
             raise NetConfigError(f"{setting}: {exc}") from None
-        if endpoint.protocol != "tls":
+        if endpoint.protocol not in radio.ENCRYPTED:
             raise NetConfigError(
                 f"{setting}={text}: a secure router takes other computers over mutual TLS "
                 f"only; write it as tls/{text.partition('/')[2] or 'HOST:7448'}, or drop "
