@@ -258,6 +258,8 @@ def test_the_operator_back_lifts_the_hold_and_commands_move_again() -> None:
     assert level == OK
     assert "operator back: gc1 (ground1) visible again after 7.0 s" in message
     assert values["operators"] == "gc1"
+    for joint in core.diagnostics(9.5).status[1:]:  # what the module's health shows
+        assert "operator back: gc1 (ground1)" in joint.message, joint.message
     core.on_joint_set(joint_state([JointSample(WHEEL, None, 1.0, None)]), 9.5)
     assert commands(core)[WHEEL].velocity == 1.0
     feed(core, 20.0)

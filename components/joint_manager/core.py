@@ -1044,11 +1044,17 @@ class JointManagerCore(Core):
         if max(j.last_refusal, j.last_clamp) >= now - cfg.warn_window:
             levels.append(WARN)
             notes.append(j.note)
-        if self.presence is not None and self.presence.held:
+        if self.presence is not None:
             # On every joint too: the module's health monitor reads the joints' statuses,
-            # so the module's own health says why its motors hold.
-            levels.append(ERROR)
-            notes.insert(0, f"held: {self.presence.reason(now)}")
+            # so the module's own health says why its motors hold, and when they may move
+            # again (at OK: the alarm history keeps that message with the change to OK).
+            if self.presence.held:
+                levels.append(ERROR)
+                notes.insert(0, f"held: {self.presence.reason(now)}")
+            else:
+                back = self.presence.lifted(now, cfg.warn_window)
+                if back is not None:
+                    notes.append(back)
         level = worst(levels)
         values = {
             "position": _fmt(j.position),
