@@ -286,7 +286,6 @@ class Agent:
             f"serving {self.node.fqn.rsplit('/', 1)[0]}/request via {self.endpoint or 'peers'}; "
             "idle until `msctl up --all`"
         )
-        self.rejoin_part()
 
     def _refuse_a_second_supervisor(self) -> None:
         """Stop here if this host's service is already served (another agent, or a foreground
@@ -361,7 +360,10 @@ class Agent:
             self._printed_events = len(self.launch.events)
 
     def run(self) -> None:
-        """Loop until :meth:`request_stop`."""
+        """Bring back what ``up --all`` asked before this start (:meth:`rejoin_part`: every
+        service of the agent is served by then), then loop until :meth:`request_stop`."""
+        if not self._stop:
+            self.rejoin_part()
         while not self._stop:
             self.step()
             if self._request_came.wait(LOOP_PAUSE):
