@@ -282,7 +282,7 @@ def pull(
     chunk: int = typer.Option(
         64, "--chunk", help="KiB asked per request (1 to 256).", min=1, max=256
     ),
-    window: int = typer.Option(4, "--window", help="Requests in flight at once.", min=1, max=32),
+    window: int = typer.Option(8, "--window", help="Requests in flight at most.", min=1, max=32),
     json_output: bool = JSON_OPT,
 ) -> None:
     """Copy HOST's own bags (robot-side recording) here over the fleet, chunk by chunk.

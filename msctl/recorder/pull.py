@@ -35,15 +35,20 @@ from typing import Any, NamedTuple
 from msctl.errors import MsctlError
 from msctl.recorder.shelf import MAX_READ, is_plain, sha256_of
 
-#: Bytes asked per request. 64 KiB is 44 TCP segments: on a good Wi-Fi link (3 ms one way)
-#: four in flight keep the link busy; on a 256 kbit/s radio one takes 2 s, so a cut loses at
-#: most a window of them, and halts (sent at a higher priority) pass between fragments.
+#: Bytes asked per request. 64 KiB keeps each answer small: a cut throws away little, and
+#: halts (sent at a higher priority) pass between its fragments.
 CHUNK = 64 * 1024
-#: Requests in flight at once: enough to cover a round trip of tens of ms at Wi-Fi rates
-#: without queueing more on a slow link than a cut would throw away.
-WINDOW = 4
-#: Seconds one chunk request may take before it is asked again (a 64 KiB chunk at
-#: 256 kbit/s, 2 s, behind a window of three others).
+#: Requests in flight at most. The agent answers the requests queued at each turn of its
+#: loop, so more in flight is more per turn: on the rehearsal's wifi profile (two loaded
+#: cores) 64 KiB x 8 pulled 2.2-2.4 MB/s where x 4 pulled 1.0-1.3 and x 1 1.0 (16 KiB x 4:
+#: 0.6; 256 KiB x 4: 1.1-2.2). On a slow link :data:`IN_FLIGHT_SECONDS` bounds it lower.
+WINDOW = 8
+#: Seconds of the link (at the rate seen so far) that may be in flight: at 256 kbit/s one
+#: chunk at a time, since more would only queue answers behind each other, to be asked
+#: again if they outlast their bound and thrown away at a cut.
+IN_FLIGHT_SECONDS = 4.0
+#: Seconds one chunk request may take before it is asked again, at least (it grows with
+#: the bytes in flight on a slow link: :func:`request_timeout`).
 REQUEST_TIMEOUT = 10.0
 #: Seconds with no answer at all from the host before a pull gives up (a pull run later
 #: resumes): a short outage is ridden through, a computer gone is named.
@@ -226,20 +231,37 @@ class ChunkWindow:
         """The bytes a request at ``offset`` returns."""
         return min(self.chunk, self.size - offset)
 
-    def asks(self) -> list[tuple[int, int]]:
-        """``(offset, size)`` of the requests to send now (the window's free places, chunks
-        that failed first)."""
+    @property
+    def bytes_in_flight(self) -> int:
+        """Bytes asked and not answered."""
+        return sum(self.expected(offset) for offset in self._waiting)
+
+    def asks(self, max_bytes: int = 0) -> list[tuple[int, int]]:
+        """``(offset, size)`` of the requests to send now: the window's free places, chunks
+        that failed first.
+
+        Args:
+            max_bytes: Bytes in flight at most (0: no bound); one request always may go.
+        """
         asks = []
+        in_flight = self.bytes_in_flight
         while len(self._waiting) < self.window:
             if self._again:
-                offset = self._again.pop(0)
+                offset = self._again[0]
             elif self._next < self.size:
                 offset = self._next
-                self._next += self.expected(offset)
             else:
                 break
+            size = self.expected(offset)
+            if max_bytes and self._waiting and in_flight + size > max_bytes:
+                break
+            if self._again:
+                self._again.pop(0)
+            else:
+                self._next += size
             self._waiting.add(offset)
-            asks.append((offset, self.expected(offset)))
+            in_flight += size
+            asks.append((offset, size))
         return asks
 
     def arrived(self, offset: int, data: bytes) -> bytes:
@@ -297,6 +319,51 @@ class RateBudget:
         self._then = now
         self._tokens -= size
         return 0.0 if self._tokens >= 0 else -self._tokens / self.rate
+
+
+def request_timeout(in_flight_bytes: int, rate: float, floor: float, ceiling: float) -> float:
+    """Seconds a chunk request may take before it is asked again.
+
+    On a slow link the answers of a window queue behind each other: at 256 kbit/s four
+    64 KiB chunks take 8 s to come through, and a fixed bound would ask the last ones again
+    while they are on their way, sending them twice. So the bound is three times what the
+    link, at the rate seen so far, needs for every byte in flight, never below ``floor``
+    (no rate known yet, or a fast link: a lost request is asked again soon) nor above
+    ``ceiling``.
+
+    Args:
+        in_flight_bytes: Bytes asked and not answered, this request's included.
+        rate: Bytes per second answered so far (0: not known yet).
+        floor: The least bound.
+        ceiling: The largest bound.
+    """
+    if rate <= 0:
+        return floor
+    return min(max(floor, 3.0 * in_flight_bytes / rate), max(ceiling, floor))
+
+
+class RateMeter:
+    """Bytes per second answered, over the whole pull (a radio's rate changes slowly; a
+    short window would chase every burst of loss).
+
+    Args:
+        now: When the pull started (seconds, any clock).
+    """
+
+    def __init__(self, now: float) -> None:
+        self._started = now
+        self._bytes = 0
+        self._seconds = 0.0
+
+    def answered(self, size: int, now: float) -> None:
+        """``size`` bytes came at ``now``."""
+        self._bytes += size
+        self._seconds = now - self._started
+
+    @property
+    def rate(self) -> float:
+        """Bytes per second so far (0 until a second's worth is known)."""
+        return self._bytes / self._seconds if self._seconds >= 1.0 else 0.0
 
 
 # ----------------------------------------------------------------------------- the report
@@ -429,6 +496,8 @@ class Puller:
         self.request_timeout = request_timeout
         self.progress = progress or (lambda path, size: None)
         self._budget = RateBudget(limit, chunk, time.monotonic())
+        self._meter = RateMeter(time.monotonic())
+        self._limit = limit
         self._client = AgentClient(node, f"{host_namespace(host)}/request")
 
     def close(self) -> None:
@@ -605,6 +674,21 @@ class Puller:
         outcome.why = f"not verified twice: {outcome.why}"
         return outcome
 
+    def _rate(self) -> float:
+        """The link's rate as far as known: what came so far, or ``--limit`` if lower."""
+        rate = self._meter.rate
+        if self._limit > 0:
+            return min(rate, self._limit) if rate else self._limit
+        return rate
+
+    def _in_flight_bound(self) -> int:
+        """Bytes in flight at most: :data:`IN_FLIGHT_SECONDS` of the link at its rate (0,
+        no bound beyond the window, until a rate is known). On a fast link the window
+        bounds; on a 256 kbit/s one, a 256 KiB chunk at a time: more would only queue
+        answers behind each other, to be thrown away at a cut."""
+        rate = self._rate()
+        return int(rate * IN_FLIGHT_SECONDS) if rate else 0
+
     def _fetch_part(
         self,
         pool: ThreadPoolExecutor,
@@ -630,16 +714,20 @@ class Puller:
             stream.seek(start)
             try:
                 while not window.done:
-                    for offset, size in window.asks():
+                    for offset, size in window.asks(self._in_flight_bound()):
                         pause = self._budget.delay(size, time.monotonic())
                         if pause:
                             time.sleep(pause)  # the pull's own rate limit (--limit)
                             # Silence is the host's, never the pull's own pacing.
                             last_answer = max(last_answer, time.monotonic())
                         args = {"path": remote.path, "offset": offset, "size": size}
-                        futures[pool.submit(self._ask, "bag_read", args, self.request_timeout)] = (
-                            offset
+                        bound = request_timeout(
+                            window.bytes_in_flight,
+                            self._rate(),
+                            self.request_timeout,
+                            self.patience,
                         )
+                        futures[pool.submit(self._ask, "bag_read", args, bound)] = offset
                     done, _ = wait(futures, timeout=1.0, return_when=FIRST_COMPLETED)
                     silent = False
                     for future in done:
@@ -653,6 +741,7 @@ class Puller:
                         data = _chunk_data(answer, remote, offset)
                         ready = window.arrived(offset, data)
                         last_answer = time.monotonic()
+                        self._meter.answered(len(data), last_answer)
                         if ready:
                             stream.write(ready)
                             stream.flush()
