@@ -82,6 +82,8 @@ def test_config_is_written_and_zenoh_accepts_it(home: Path, tmp_path: Path) -> N
     zenoh.Config.from_file(str(target))  # raises on a key Zenoh does not know
     robot = json.loads(_msctl(home, "net", "config", "hl-wheel-01").stdout)
     assert robot["connect"]["endpoints"] == ["tls/ground1:7448"]
+    # After a radio outage the link is tried again every second at most, not Zenoh's 4 s.
+    assert robot["connect"]["retry"]["period_max_ms"] <= 1000
     component = json.loads(_msctl(home, "net", "config", "hl-wheel-01", "--component").stdout)
     assert component["mode"] == "client"
 

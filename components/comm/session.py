@@ -203,13 +203,7 @@ class SessionSettings(NamedTuple):
             # Latched topics use Zenoh's advanced publisher, which orders its cache by
             # timestamp; rmw_zenoh turns timestamping on for the same reason.
             "timestamping/enabled": True,
-            # Retry a lost router quickly (Zenoh's default first retry is after 1 s): a
-            # restarted router must carry data again within a second.
-            "connect/retry": {
-                "period_init_ms": 100,
-                "period_max_ms": 1000,
-                "period_increase_factor": 1.5,
-            },
+            "connect/retry": RECONNECT,
         }
         if self.listen:
             values["listen/endpoints"] = list(self.listen)
@@ -224,6 +218,18 @@ class SessionSettings(NamedTuple):
             except Exception as exc:
                 raise SessionConfigError(f"Zenoh rejected {path}={value!r}: {exc}") from exc
         return config
+
+
+#: How often a lost link is tried again (``connect/retry``), for sessions and routers alike.
+#: Zenoh's default starts after 1 s and backs off to 4 s: after a radio outage the routers
+#: then stay apart up to 4 s longer than the outage, and a restarted router is not reached
+#: within a second. A try is a TCP SYN (and, once answered, the handshake): on a link that
+#: is down, a few bytes a second.
+RECONNECT: dict[str, Any] = {
+    "period_init_ms": 100,
+    "period_max_ms": 1000,
+    "period_increase_factor": 1.5,
+}
 
 
 def identity_tls(name: str) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from components.assembly import ResolvedAssembly
+from components.comm.session import RECONNECT
 from msctl.net import acl, pki, radio
 from msctl.net.endpoints import EndpointError, parse
 
@@ -175,7 +176,8 @@ def router_config(
     document: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": [f"tcp/127.0.0.1:{ports.local_port(host)}", *tls_listen]},
-        "connect": {"endpoints": linked},
+        # Links back within a second of the radio's return, not Zenoh's backoff's 4 s.
+        "connect": {"endpoints": linked, "retry": dict(RECONNECT)},
         "scouting": {"multicast": {"enabled": False}, "delay": 0},
         "timestamping": {"enabled": True},
         "transport": {"link": {"tls": tls_block(identity, home)}},
