@@ -43,9 +43,9 @@ CHUNK = 64 * 1024
 #: cores) 64 KiB x 8 pulled 2.2-2.4 MB/s where x 4 pulled 1.0-1.3 and x 1 1.0 (16 KiB x 4:
 #: 0.6; 256 KiB x 4: 1.1-2.2). On a slow link :data:`IN_FLIGHT_SECONDS` bounds it lower.
 WINDOW = 8
-#: Seconds of the link (at the rate seen so far) that may be in flight: at 256 kbit/s one
-#: chunk at a time, since more would only queue answers behind each other, to be asked
-#: again if they outlast their bound and thrown away at a cut.
+#: Seconds of the link (at the rate seen so far) that may be in flight: at 256 kbit/s
+#: (32 kB/s) 128 kB, one or two chunks, since more would only queue answers behind each
+#: other, to be asked again if they outlast their bound and thrown away at a cut.
 IN_FLIGHT_SECONDS = 4.0
 #: Seconds one chunk request may take before it is asked again, at least (it grows with
 #: the bytes in flight on a slow link: :func:`request_timeout`).
@@ -343,20 +343,28 @@ def request_timeout(in_flight_bytes: int, rate: float, floor: float, ceiling: fl
 
 
 class RateMeter:
-    """Bytes per second answered, over the whole pull (a radio's rate changes slowly; a
-    short window would chase every burst of loss).
+    """Bytes per second answered, from the first request on, over the whole pull (a radio's
+    rate changes slowly; a short window would chase every burst of loss).
 
     Args:
-        now: When the pull started (seconds, any clock).
+        now: When the first request left (seconds, any clock); ``None``: not yet, see
+            :meth:`asked`.
     """
 
-    def __init__(self, now: float) -> None:
+    def __init__(self, now: float | None = None) -> None:
         self._started = now
         self._bytes = 0
         self._seconds = 0.0
 
+    def asked(self, now: float) -> None:
+        """A request left at ``now``: the clock starts at the first."""
+        if self._started is None:
+            self._started = now
+
     def answered(self, size: int, now: float) -> None:
         """``size`` bytes came at ``now``."""
+        self.asked(now)
+        assert self._started is not None
         self._bytes += size
         self._seconds = now - self._started
 
@@ -496,7 +504,7 @@ class Puller:
         self.request_timeout = request_timeout
         self.progress = progress or (lambda path, size: None)
         self._budget = RateBudget(limit, chunk, time.monotonic())
-        self._meter = RateMeter(time.monotonic())
+        self._meter = RateMeter()
         self._limit = limit
         self._client = AgentClient(node, f"{host_namespace(host)}/request")
 
@@ -682,12 +690,12 @@ class Puller:
         return rate
 
     def _in_flight_bound(self) -> int:
-        """Bytes in flight at most: :data:`IN_FLIGHT_SECONDS` of the link at its rate (0,
-        no bound beyond the window, until a rate is known). On a fast link the window
-        bounds; on a 256 kbit/s one, a 256 KiB chunk at a time: more would only queue
-        answers behind each other, to be thrown away at a cut."""
+        """Bytes in flight at most: :data:`IN_FLIGHT_SECONDS` of the link at its rate, and
+        two chunks until a rate is known (a first full window on a 256 kbit/s link would
+        queue 16 s of answers). On a fast link the window bounds; on a 256 kbit/s one, one or
+        two 64 KiB chunks (:data:`IN_FLIGHT_SECONDS`)."""
         rate = self._rate()
-        return int(rate * IN_FLIGHT_SECONDS) if rate else 0
+        return max(int(rate * IN_FLIGHT_SECONDS), self.chunk) if rate else 2 * self.chunk
 
     def _fetch_part(
         self,
@@ -727,6 +735,7 @@ class Puller:
                             self.request_timeout,
                             self.patience,
                         )
+                        self._meter.asked(time.monotonic())
                         futures[pool.submit(self._ask, "bag_read", args, bound)] = offset
                     done, _ = wait(futures, timeout=1.0, return_when=FIRST_COMPLETED)
                     silent = False
