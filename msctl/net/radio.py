@@ -297,16 +297,27 @@ def router_settings(link: LinkClass, modules: Iterable[str], domain: int = 0) ->
 
     Returns:
         Top-level Zenoh config sections: ``downsampling``, ``low_pass_filter`` and
-        ``transport`` (``link/tx`` lease and keep-alive, ``unicast`` handshake timeouts),
-        to be merged into the router's config.
+        ``transport`` (``link/tx``: lease, keep-alive, how long a blocked sample may wait
+        before the link is closed; ``unicast``: handshake timeouts), to be merged into the
+        router's config.
     """
     lease_ms = round(link.lease_s * 1000)
     handshake_ms = round(max(MIN_HANDSHAKE_S, HANDSHAKE_LEASES * link.lease_s) * 1000)
+    tx: dict[str, Any] = {
+        "lease": lease_ms,
+        "keep_alive": KEEP_ALIVES_PER_LEASE,
+        # A reliable sample that finds the link's queue full waits for room; Zenoh closes the
+        # link after 5 s of that. A slow link is not a dead one (the lease says which): on
+        # the Moon's link, TCP's window grows one round trip (2.56 s) at a time, and the
+        # declarations a reopened link carries took longer than 5 s, so the link was closed
+        # again, and again (three times in a minute, measured).
+        "queue": {"congestion_control": {"block": {"wait_before_close": handshake_ms * 1000}}},
+    }
     settings: dict[str, Any] = {
         "downsampling": [],
         "low_pass_filter": [],
         "transport": {
-            "link": {"tx": {"lease": lease_ms, "keep_alive": KEEP_ALIVES_PER_LEASE}},
+            "link": {"tx": tx},
             "unicast": {"open_timeout": handshake_ms, "accept_timeout": handshake_ms},
         },
     }
