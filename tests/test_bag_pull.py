@@ -59,6 +59,17 @@ def test_a_file_still_recorded_is_left_for_later() -> None:
     assert action.kind == LEFT and "still being recorded" in action.why
 
 
+def test_a_file_left_unfinished_by_a_killed_recorder_is_pulled_as_it_is() -> None:
+    cut = RemoteFile("bag", "b_3.mcap", 100, SHA, complete=False, abandoned=True)
+    action = decide(cut, None, None)
+    assert action.kind == FETCH and "msctl bag recover" in action.why
+    assert decide(cut, SHA, None).kind == SKIP
+    # Finished there since (its recorder was only quiet): it replaces the cut copy here...
+    assert decide(remote("b_3.mcap"), "cd" * 32, None, here_cut=True).kind == FETCH
+    # ... and only a copy pulled cut short.
+    assert decide(remote("b_3.mcap"), "cd" * 32, None, here_cut=False).kind == CONFLICT
+
+
 def test_a_file_here_with_the_same_sha256_is_skipped() -> None:
     assert decide(remote(), SHA, None).kind == SKIP
 
@@ -227,6 +238,20 @@ def test_an_mcap_file_being_written_is_incomplete_and_not_hashed(tmp_path: Path)
     (listed,) = shelf.listing(tmp_path)["bags"]
     (mcap,) = [f for f in listed["files"] if f["name"].endswith(".mcap")]
     assert listed["recording"] and not mcap["complete"] and mcap["sha256"] is None
+    assert not mcap["abandoned"]
+
+
+def test_an_unfinished_file_left_unwritten_is_abandoned_and_hashed(tmp_path: Path) -> None:
+    bag = write_bag(tmp_path / "killed", 0.1, 1, finished=False)
+    (path,) = bag.glob("*.mcap")
+    then = time.time() - shelf.STALE_SECONDS - 5
+    os.utime(path, (then, then))  # as a recorder killed that long ago left it
+    (listed,) = shelf.listing(tmp_path)["bags"]
+    (mcap,) = [f for f in listed["files"] if f["name"].endswith(".mcap")]
+    assert mcap["abandoned"] and not mcap["complete"] and not listed["recording"]
+    assert mcap["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    (remote_mcap,) = [f for f in remote_files(shelf.listing(tmp_path), "h") if f.abandoned]
+    assert remote_mcap.sha256 == mcap["sha256"]
 
 
 def test_the_shelf_refuses_any_path_outside_it_naming_it(tmp_path: Path) -> None:
@@ -285,6 +310,10 @@ def robot(tmp_path_factory: pytest.TempPathFactory, net_env: dict[str, str]) -> 
     write_bag(home / "bags" / "limb1_data_archiver_a", 1.0, 4)
     write_bag(home / "bags" / "limb1_data_archiver_b", 0.2, 2)
     write_bag(home / "bags" / "limb1_data_archiver_open", 0.05, 1, finished=False)
+    # Still being written, as far as the agent can tell, for the module's whole run.
+    later = time.time() + 3600
+    for path in (home / "bags" / "limb1_data_archiver_open").glob("*.mcap"):
+        os.utime(path, (later, later))
     env = {k: v for k, v in os.environ.items() if not k.startswith(("MSCTL_", "ZENOH_"))}
     env.update(net_env, MSCTL_HOME=str(home), MSCTL_HOST=ROBOT)
     # Started again if it gave up at once: an agent probes its router for 0.5 s

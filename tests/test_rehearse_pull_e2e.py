@@ -74,15 +74,24 @@ def recorded(stage: Stage) -> dict[str, Any]:
     stopped = stage.on(GROUND, "stop", ARCHIVER, timeout=120)
     assert stopped.returncode == 0, stopped.stderr
 
+    last: list[Any] = []
+
     def finished() -> dict[str, Any] | None:
         done = stage.on(GROUND, "bag", "pull", ROBOT, "--dry-run", "--json", timeout=120)
+        last[:] = [done.returncode, done.stdout[-2000:], done.stderr[-2000:]]
         if done.returncode != 0:
             return None
         listing = json.loads(done.stdout)
         actions = [f["action"] for f in listing["files"]]
         return listing if actions and all(a == "fetch" for a in actions) else None
 
-    return wait_until(finished, timeout=120, what=f"{ROBOT}'s bag finished", interval=1.0)
+    try:
+        # Each try is an msctl start on the ground station: seconds apiece at load 40.
+        return wait_until(finished, timeout=300, what=f"{ROBOT}'s bag finished", interval=1.0)
+    except AssertionError as exc:
+        shelf = stage.computer_home(ROBOT) / "bags"
+        on_disk = sorted(f"{p.relative_to(shelf)} {p.stat().st_size}" for p in shelf.rglob("*"))
+        raise AssertionError(f"{exc}; last dry run: {last}; on {ROBOT}: {on_disk}") from None
 
 
 def pull(stage: Stage, *args: str) -> tuple[int, dict[str, Any], str]:
@@ -117,9 +126,10 @@ def cut_while_pulling(stage: Stage, into: Path, *args: str) -> tuple[int, dict[s
 
 
 def pace(recorded: dict[str, Any]) -> str:
-    """``--limit`` (kB/s) that makes pulling the bag take about 10 s."""
+    """``--limit`` (kB/s) that makes pulling the bag take about 30 s: long enough for the
+    outage to fall inside it, an msctl start away on a machine at load 40."""
     total = sum(f["size"] for f in recorded["files"])
-    return f"{max(total / 1000 / 10, 1.0):.1f}"
+    return f"{max(total / 1000 / 30, 1.0):.1f}"
 
 
 def same_as_robot(stage: Stage, into: Path, recorded: dict[str, Any]) -> None:
@@ -190,6 +200,12 @@ def test_the_pulled_bag_opens_with_rosbags_and_holds_limb1_joint_states(
     if not (bag / "metadata.yaml").is_file():
         code, _report, stderr = pull(stage, "--into", str(into))
         assert code == 0, stderr
+    if any(f.get("abandoned") for f in recorded["files"]) or list(bag.glob(".*.cut")):
+        # The recorder was stopped too hard to finish its last file (at load 40 its 3 s
+        # between SIGINT and SIGKILL can run out): the copy is completed here, as a field
+        # team would.
+        done = stage.msctl("bag", "recover", str(bag))
+        assert done.returncode == 0, done.stderr
     store = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
         (states,) = [c for c in reader.connections if c.topic == "/limb1/joint_states"]

@@ -349,6 +349,7 @@ def _print_plan(host: str, target: Path, actions: list, json_output: bool) -> No
                         "path": a.file.path,
                         "action": a.kind,
                         "size": a.file.size,
+                        "abandoned": a.file.abandoned,
                         "offset": a.offset,
                         "why": a.why,
                     }
@@ -404,7 +405,10 @@ def _print_report(report: Any, json_output: bool) -> None:
         return
     for f in report.having(PULLED):
         resumed = f" (resumed at {f.resumed_from:,} bytes)" if f.resumed_from else ""
-        err.print(f"[green]pulled[/]   {escape(f.path)} {_size(f.size)}{resumed}", highlight=False)
+        note = f": [yellow]{escape(f.why)}[/]" if f.why else ""
+        err.print(
+            f"[green]pulled[/]   {escape(f.path)} {_size(f.size)}{resumed}{note}", highlight=False
+        )
     for f in report.having(NOT_READY):
         err.print(f"[yellow]left[/]     {escape(f.path)}: {escape(f.why)}", highlight=False)
     for f in report.having(FAILED):

@@ -15,4 +15,8 @@ A bag is what ``ros2 bag record -s mcap`` makes on Jazzy: a directory holding
 - :mod:`~msctl.recorder.recorder`: the live recorder (graph discovery, subscriptions, a
   bounded queue, the writer thread).
 - :mod:`~msctl.recorder.player`: republishing a bag onto the data plane.
+- :mod:`~msctl.recorder.shelf`: a computer's own bags (``MSCTL_HOME/bags``), listed and read
+  by its agent for ``msctl bag pull``, nothing outside them.
+- :mod:`~msctl.recorder.pull`: ``msctl bag pull HOST``: chunked copies over the fleet that
+  resume after a cut and verify every file.
 """

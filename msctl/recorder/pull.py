@@ -57,6 +57,8 @@ PATIENCE = 30.0
 RETRY_PAUSE = 0.25
 #: What a file being fetched is called until its SHA-256 matched.
 PART_SUFFIX = ".part"
+#: Beside a file pulled cut short (``.<name>.cut``): a later pull may replace it.
+CUT_MARK = ".{}.cut"
 #: The bag file rewritten while a bag is recorded; every other file is final once complete.
 METADATA = "metadata.yaml"
 
@@ -76,6 +78,8 @@ class RemoteFile(NamedTuple):
         size: Bytes.
         sha256: Its SHA-256 (hex) when complete, else ``None``.
         complete: Whether it is finished (an MCAP file ends with its magic).
+        abandoned: Unfinished and no longer written (its recorder was killed): served as it
+            is, with its SHA-256; ``msctl bag recover`` completes the copy.
     """
 
     bag: str
@@ -83,6 +87,7 @@ class RemoteFile(NamedTuple):
     size: int
     sha256: str | None
     complete: bool
+    abandoned: bool = False
 
     @property
     def path(self) -> str:
@@ -123,12 +128,14 @@ def remote_files(listing: Any, host: str) -> list[RemoteFile]:
                     int(entry["size"]),
                     entry.get("sha256"),
                     bool(entry["complete"]),
+                    bool(entry.get("abandoned", False)),
                 )
             except (TypeError, KeyError, ValueError):
                 raise bad(f"a file of bag {name} is not described as one") from None
             if not isinstance(remote.name, str) or not is_plain(remote.name):
                 raise bad(f"file name {remote.name!r} in bag {name} is not a plain name")
-            if remote.size < 0 or (remote.complete and not _is_sha256(remote.sha256)):
+            served = remote.complete or remote.abandoned
+            if remote.size < 0 or (served and not _is_sha256(remote.sha256)):
                 raise bad(f"{remote.path} has no valid size or SHA-256")
             found.append(remote)
         files += sorted(found, key=lambda f: (f.name == METADATA, f.name))
@@ -164,27 +171,40 @@ class Action(NamedTuple):
     why: str = ""
 
 
-def decide(remote: RemoteFile, here_sha256: str | None, part_size: int | None) -> Action:
+#: Why a file pulled as it was left unfinished (:attr:`RemoteFile.abandoned`) is pulled.
+CUT_SHORT = (
+    "cut short there (its recorder was stopped before finishing it): `msctl bag recover` the "
+    "bag here completes it"
+)
+
+
+def decide(
+    remote: RemoteFile, here_sha256: str | None, part_size: int | None, here_cut: bool = False
+) -> Action:
     """What to do with ``remote``, given what this computer has of it.
 
     Args:
         remote: The file as listed.
-        here_sha256: The SHA-256 of the finished file of that name here (``None``: none).
+        here_sha256: The SHA-256 of the file of that name here (``None``: none).
         part_size: The size of its ``.part`` here (``None``: none).
+        here_cut: The file here was pulled cut short (:data:`CUT_MARK` beside it): one
+            finished since may replace it.
     """
-    if not remote.complete:
-        return Action(LEFT, remote, why="still being recorded there (or cut short by a crash)")
+    if not (remote.complete or remote.abandoned):
+        return Action(LEFT, remote, why="still being recorded there")
+    why = CUT_SHORT if remote.abandoned else ""
     if here_sha256 is not None:
         if here_sha256 == remote.sha256:
             return Action(SKIP, remote, why="already here, verified")
-        if remote.name != METADATA:
+        if remote.name != METADATA and not here_cut:
             # A finished MCAP file never changes: two different ones of one name is a mix-up
             # (another computer's bag, a damaged copy), never overwritten unasked.
             return Action(CONFLICT, remote, why="a different file of that name is already here")
-        return Action(FETCH, remote, why="changed there (the bag was still recording)")
+        return Action(FETCH, remote, why=why or "changed there since it was pulled")
     if part_size is not None and 0 < part_size <= remote.size:
-        return Action(FETCH, remote, part_size, why=f"resuming at byte {part_size:,}")
-    return Action(FETCH, remote)
+        resuming = f"resuming at byte {part_size:,}"
+        return Action(FETCH, remote, part_size, why=f"{resuming}; {why}" if why else resuming)
+    return Action(FETCH, remote, why=why)
 
 
 class ShortRead(ValueError):
@@ -585,9 +605,11 @@ class Puller:
         for remote in files:
             final = self.local_path(remote)
             part = final.with_name(final.name + PART_SUFFIX)
-            here = sha256_of(final) if remote.complete and final.is_file() else None
+            served = remote.complete or remote.abandoned
+            here = sha256_of(final) if served and final.is_file() else None
             part_size = part.stat().st_size if part.is_file() else None
-            actions.append(decide(remote, here, part_size))
+            cut = final.with_name(CUT_MARK.format(final.name)).is_file()
+            actions.append(decide(remote, here, part_size, cut))
         return actions
 
     # ------------------------------------------------------------------ fetching
@@ -670,10 +692,17 @@ class Puller:
                 return outcome
             digest = sha256_of(part)
             if digest == remote.sha256:
+                cut = final.with_name(CUT_MARK.format(final.name))
+                if remote.abandoned:
+                    cut.touch()
                 os.replace(part, final)
+                if not remote.abandoned:
+                    cut.unlink(missing_ok=True)
                 _sync_directory(final.parent)
+                notes = [CUT_SHORT] if remote.abandoned else []
                 if attempt == 2:
-                    outcome.why = "SHA-256 matched at the second try"
+                    notes.append("SHA-256 matched at the second try")
+                outcome.why = "; ".join(notes)
                 return outcome
             part.unlink(missing_ok=True)
             outcome.why = f"SHA-256 {digest[:12]}... here, {remote.sha256[:12]}... on {self.host}"
@@ -715,7 +744,11 @@ class Puller:
 
         window = ChunkWindow(remote.size, start, self.chunk, self.window)
         futures: dict[Future[Any], int] = {}
-        last_answer = time.monotonic()
+        # Seconds waited with a request out and no answer: the host's silence. Time the pull
+        # spends pacing itself (--limit) with nothing asked is not; a request that failed at
+        # once (a lapsed route) and was asked again does not end it.
+        silent_for = 0.0
+        tick = time.monotonic()
         mode = "r+b" if part.is_file() else "wb"
         with part.open(mode) as stream:
             stream.truncate(start)
@@ -725,9 +758,10 @@ class Puller:
                     for offset, size in window.asks(self._in_flight_bound()):
                         pause = self._budget.delay(size, time.monotonic())
                         if pause:
+                            idle = not futures
                             time.sleep(pause)  # the pull's own rate limit (--limit)
-                            # Silence is the host's, never the pull's own pacing.
-                            last_answer = max(last_answer, time.monotonic())
+                            if idle:
+                                tick = time.monotonic()
                         args = {"path": remote.path, "offset": offset, "size": size}
                         bound = request_timeout(
                             window.bytes_in_flight,
@@ -738,30 +772,30 @@ class Puller:
                         self._meter.asked(time.monotonic())
                         futures[pool.submit(self._ask, "bag_read", args, bound)] = offset
                     done, _ = wait(futures, timeout=1.0, return_when=FIRST_COMPLETED)
-                    silent = False
+                    answered = failed = False
                     for future in done:
                         offset = futures.pop(future)
                         try:
                             answer = future.result()
                         except ServiceTimeout:
                             window.failed(offset)
-                            silent = True
+                            failed = True
                             continue
                         data = _chunk_data(answer, remote, offset)
                         ready = window.arrived(offset, data)
-                        last_answer = time.monotonic()
-                        self._meter.answered(len(data), last_answer)
+                        answered = True
+                        self._meter.answered(len(data), time.monotonic())
                         if ready:
                             stream.write(ready)
                             stream.flush()
                             outcome.fetched += len(ready)
                             self.progress(remote.path, len(ready))
-                    if time.monotonic() - last_answer > self.patience:
-                        raise HostSilent(
-                            f"the last chunk of {remote.path} came "
-                            f"{time.monotonic() - last_answer:.0f} s ago"
-                        )
-                    if silent:
+                    now = time.monotonic()
+                    silent_for = 0.0 if answered else silent_for + (now - tick)
+                    tick = now
+                    if silent_for > self.patience:
+                        raise HostSilent(f"no chunk of {remote.path} came for {silent_for:.0f} s")
+                    if failed:
                         time.sleep(RETRY_PAUSE)  # a lapsed route answers "no server" at once
                 os.fsync(stream.fileno())
             finally:

@@ -17,7 +17,10 @@ other path is refused, naming it.
 An MCAP file is complete once its writer finished it: it then ends with the MCAP magic
 (the footer's). A file still being recorded (or cut short by a crash, which ``msctl bag
 recover`` completes) does not, and is listed as incomplete: a pull leaves it for later. Its
-SHA-256 is not computed: it would be stale at once.
+SHA-256 is not computed: it would be stale at once. One left unwritten for
+:data:`STALE_SECONDS` is *abandoned* (its recorder was killed, or the power lost): it will not
+change, so it is hashed and served as it is, and the ground completes its copy with ``msctl
+bag recover``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import base64
 import hashlib
 import os
 import re
+import time
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +46,10 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: A bag or file name the shelf serves: what the recorder makes (``limb1_data_archiver_
 #: 2026_11_27-21_30_00``, ``..._0.mcap``, ``metadata.yaml``), never a path.
 PLAIN_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,199}$")
+
+#: Seconds an unfinished MCAP file must go unwritten to count as abandoned: a recorder
+#: writes out its chunks at least every second while anything is recorded.
+STALE_SECONDS = 10.0
 
 #: SHA-256 of complete files by (path, size, modification time): a finished file never
 #: changes, so each is hashed once per agent, not at every listing.
@@ -92,8 +100,8 @@ def listing(root: Path | None = None) -> dict[str, Any]:
 
     Returns:
         ``{"root": ..., "bags": [{"name", "recording", "files": [{"name", "size",
-        "complete", "sha256"}]}]}``, bags and files by name; ``sha256`` is ``None`` for an
-        incomplete file, and ``recording`` says a bag has one (still written, or cut short).
+        "complete", "abandoned", "sha256"}]}]}``, bags and files by name; ``sha256`` is
+        ``None`` for a file still being written, and ``recording`` says a bag has one.
     """
     root = shelf_dir() if root is None else root
     bags = []
@@ -107,15 +115,19 @@ def listing(root: Path | None = None) -> dict[str, Any]:
                 continue
             stat = path.stat()
             whole = complete(path, stat.st_size)
+            # Unfinished and untouched for a while: its recorder was stopped too hard to
+            # finish it (SIGKILL, power lost). It will not change: served as it is.
+            abandoned = not whole and time.time() - stat.st_mtime > STALE_SECONDS
             files.append(
                 {
                     "name": path.name,
                     "size": stat.st_size,
                     "complete": whole,
-                    "sha256": _digest(path, stat) if whole else None,
+                    "abandoned": abandoned,
+                    "sha256": _digest(path, stat) if whole or abandoned else None,
                 }
             )
-        recording = not all(f["complete"] for f in files)
+        recording = not all(f["complete"] or f["abandoned"] for f in files)
         bags.append({"name": folder.name, "recording": recording, "files": files})
     return {"root": str(root), "bags": bags}
 
