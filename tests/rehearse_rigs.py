@@ -12,7 +12,8 @@ import json
 import os
 import subprocess
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -108,3 +109,23 @@ class Stage:
         done = self.msctl("rehearse", "status", "--json")
         assert done.returncode == 0, done.stderr
         return json.loads(done.stdout)
+
+
+@contextmanager
+def rehearsed(stage: Stage, *more: str, timeout: float = 600.0) -> Iterator[Stage]:
+    """``msctl rehearse up dragon --link wifi --detach MORE`` for the block, then ``msctl
+    rehearse down``, also on failure; the down must leave none of its namespaces."""
+    from msctl.rehearse.computers import namespaces
+    from msctl.rehearse.rehearsal import namespace_prefix
+
+    up = stage.msctl(
+        "rehearse", "up", "dragon", "--link", "wifi", "--detach", *more, timeout=timeout
+    )
+    try:
+        assert up.returncode == 0, up.stderr
+        yield stage
+    finally:
+        down = stage.msctl("rehearse", "down", timeout=180)
+        prefix = namespace_prefix(stage.home / "rehearse")
+        assert down.returncode == 0, down.stderr
+        assert not [n for n in namespaces() if n.startswith(prefix)], "namespaces left behind"

@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage, rehearsed
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(1200), ROOT_REHEARSAL]
 
@@ -66,14 +66,9 @@ COUNT = textwrap.dedent(
 
 @pytest.fixture(scope="module")
 def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
-    stage = Stage(tmp_path_factory.mktemp("budget"))
-    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=900)
-    try:
-        assert up.returncode == 0, up.stderr
+    with rehearsed(Stage(tmp_path_factory.mktemp("budget")), timeout=900) as stage:
         wait_until(lambda: health_shows_every_module(stage), 300, "every module OK at the ground")
         yield stage
-    finally:
-        stage.msctl("rehearse", "down", timeout=180)
 
 
 def health(stage: Stage) -> dict[str, Any] | None:

@@ -28,7 +28,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage, rehearsed
 
 from msctl.rehearse.computers import namespaces
 from msctl.rehearse.rehearsal import namespace_prefix
@@ -42,13 +42,8 @@ pytestmark = [
 
 @pytest.fixture(scope="module")
 def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
-    stage = Stage(tmp_path_factory.mktemp("rehearse"))
-    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=600)
-    try:
-        assert up.returncode == 0, up.stderr
+    with rehearsed(Stage(tmp_path_factory.mktemp("rehearse"))) as stage:
         yield stage
-    finally:
-        stage.msctl("rehearse", "down", timeout=120)
 
 
 def health(stage: Stage, host: str = GROUND) -> tuple[int, dict[str, Any]]:

@@ -22,10 +22,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
-
-from msctl.rehearse.computers import namespaces
-from msctl.rehearse.rehearsal import namespace_prefix
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage, rehearsed
 
 pytestmark = [
     pytest.mark.e2e,
@@ -42,17 +39,8 @@ BOUND = 120.0
 
 @pytest.fixture(scope="module")
 def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
-    stage = Stage(tmp_path_factory.mktemp("rehearse-presence"))
-    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=600)
-    try:
-        assert up.returncode == 0, up.stderr
+    with rehearsed(Stage(tmp_path_factory.mktemp("rehearse-presence"))) as stage:
         yield stage
-    finally:
-        stage.msctl("rehearse", "link", GROUND, "--up")
-        done = stage.msctl("rehearse", "down", timeout=120)
-        prefix = namespace_prefix(stage.home / "rehearse")
-        assert done.returncode == 0, done.stderr
-        assert not [n for n in namespaces() if n.startswith(prefix)], "namespaces left behind"
 
 
 def health(stage: Stage, host: str) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROOT_REHEARSAL, Stage
+from rehearse_rigs import GROUND, ROOT_REHEARSAL, Stage, rehearsed
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
@@ -49,12 +49,8 @@ def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
     )
     stage = Stage(root / "home", env={"MSCTL_ASSEMBLIES_DIR": str(templates)})
     stage.home.mkdir()
-    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=600)
-    try:
-        assert up.returncode == 0, up.stderr
+    with rehearsed(stage):
         yield stage
-    finally:
-        stage.msctl("rehearse", "down", timeout=120)
 
 
 def robot_bag(stage: Stage) -> Path | None:

@@ -24,7 +24,7 @@ from typing import Any
 import psutil
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage, rehearsed
 
 from msctl.launcher import desired
 
@@ -37,13 +37,8 @@ PROBE = str(Path(__file__).with_name("rejoin_probe.py"))
 
 @pytest.fixture(scope="module")
 def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
-    stage = Stage(tmp_path_factory.mktemp("rejoin"))
-    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=600)
-    try:
-        assert up.returncode == 0, up.stderr
+    with rehearsed(Stage(tmp_path_factory.mktemp("rejoin"))) as stage:
         yield stage
-    finally:
-        stage.msctl("rehearse", "down", timeout=120)
 
 
 class Probe:
