@@ -716,7 +716,8 @@ def test_record_tells_each_interruption_and_exits_3_when_it_ends_without_data(
         out, _ = proc.communicate(timeout=60)
     stderr = notices.text()
     assert proc.returncode == 3, stderr
-    assert "stopped receiving 1 topic(s) before it ended: /robot/chatter" in stderr, stderr
+    said = " ".join(stderr.split())  # the error line is wrapped at the console's width
+    assert "stopped receiving 1 topic(s) before it ended: /robot/chatter" in said, stderr
     summary = json.loads(out)
     closed, still_open = summary["gaps"]
     assert closed["topic"] == still_open["topic"] == "/robot/chatter"

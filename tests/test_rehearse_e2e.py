@@ -273,23 +273,16 @@ def test_outages_of_the_ground_link_heal_by_themselves(stage: Stage) -> None:
             seen = stage.spawn(
                 "hl-limb-01", "topic", "echo", "/limb1/joint_set", "--once", "--timeout", "120"
             )
-            wait_until(
-                lambda seen=seen: (
-                    seen.poll() is not None
-                    or not stage.on(
-                        GROUND,
-                        "topic",
-                        "pub",
-                        "/limb1/joint_set",
-                        "sensor_msgs/msg/JointState",
-                        "{name: [limb1_joint2], position: [0.0]}",
-                        "--once",
-                        "--fire-and-forget",
-                    ).returncode
-                ),
-                timeout=120,
-                what="a command published on the ground",
-            )
+
+            def published(seen: subprocess.Popen[str] = seen) -> bool:
+                """Publish one command; whether the robot's echo has seen one (and exited)."""
+                stage.on(
+                    GROUND, "topic", "pub", "/limb1/joint_set", "sensor_msgs/msg/JointState",
+                    "{name: [limb1_joint2], position: [0.0]}", "--once", "--fire-and-forget",
+                )  # fmt: skip
+                return seen.poll() is not None
+
+            wait_until(published, timeout=120, what="a command from the ground seen on the robot")
             out, err = seen.communicate(timeout=150)
             assert seen.returncode == 0 and "limb1_joint2" in out, err
             # Robot -> ground: every module's health, from its own computer, OK again.
