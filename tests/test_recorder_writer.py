@@ -88,8 +88,9 @@ def test_definition_has_dependencies_after_80_equals_and_msg_lines() -> None:
     text = message_definition(JOINT_STATE)
     assert text is not None
     assert text.startswith("std_msgs/Header header\nstring[] name\n")
-    assert f"{'=' * 80}\nMSG: std_msgs/msg/Header\n" in text
-    assert f"{'=' * 80}\nMSG: builtin_interfaces/msg/Time\nint32 sec\nuint32 nanosec\n" in text
+    # Named as the field names them, as rosbag2 writes them (tests/test_bag_foxglove.py).
+    assert f"\n\n{'=' * 80}\nMSG: std_msgs/Header\n" in text
+    assert f"{'=' * 80}\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n" in text
     assert message_definition("nobody_msgs/msg/Custom") is None
 
 

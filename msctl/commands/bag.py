@@ -93,7 +93,16 @@ def info(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
 
 
 @app.command("recover")
-def recover(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
+def recover(
+    bag: Path = BAG_ARG,
+    fix_schemas: bool = typer.Option(
+        False,
+        "--fix-schemas",
+        help="Also rewrite message definitions written by msctl before it followed rosbag2 "
+        "('MSG: pkg/msg/Type', which Foxglove cannot decode) as 'MSG: pkg/Type'.",
+    ),
+    json_output: bool = JSON_OPT,
+) -> None:
     """Complete a bag a crash left unfinished: rebuild file summaries and metadata.yaml."""
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
 
@@ -113,7 +122,7 @@ def recover(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
         def advance(name: str, done: int, total: int) -> None:
             progress.update(task, description=name, completed=done, total=total)
 
-        report = run(bag, progress=advance)
+        report = run(bag, progress=advance, fix_schemas=fix_schemas)
     if json_output:
         print_json(
             {
@@ -127,6 +136,7 @@ def recover(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
                         "lost_bytes": f.lost_bytes,
                         "damaged_chunks": f.damaged_chunks,
                         "orphans": f.orphans,
+                        "fixed_schemas": f.fixed_schemas,
                         "problems": f.problems,
                     }
                     for f in report.files
@@ -140,10 +150,12 @@ def recover(bag: Path = BAG_ARG, json_output: bool = JSON_OPT) -> None:
         line = f"{outcome.path.name}: {outcome.action}, {outcome.messages:,} messages"
         if outcome.salvaged:
             line += f" ({outcome.salvaged:,} read out of a cut-short chunk)"
+        if outcome.fixed_schemas:
+            line += f", {outcome.fixed_schemas} schema(s) rewritten in rosbag2's form"
         err.print(line, highlight=False)
         for problem in outcome.problems:
             err.print(f"  [yellow]{problem}[/]", highlight=False)
-    if not report.rebuilt:
+    if not report.rebuilt and not any(f.action == "schemas fixed" for f in report.files):
         err.print(f"{bag}: every file was complete; metadata.yaml rewritten from the files")
     verdict = "some data was lost (above)" if report.lost_anything else "nothing lost"
     err.print(

@@ -1,9 +1,11 @@
 """What a bag says about each topic's type and QoS, taken from msctl's own type registry.
 
 Message definitions are written in rosbag2's ``ros2msg`` form: the type's own ``.msg`` text
-first, then every type it uses (recursively, each once), each after a line of 80 ``=`` and a
-line ``MSG: pkg/msg/Type``. Field types are written as ``.msg`` files write them
-(``std_msgs/Header header``).
+first, then every type it uses (depth first, each once), each after an empty line, a line of
+80 ``=`` and a line ``MSG: pkg/Type``: the dependency named the way the field names it
+(``std_msgs/Header header`` -> ``MSG: std_msgs/Header``), exactly as rosbag2 writes it
+(rosbag2_cpp's ``LocalMessageDefinitionSource``). Strict readers (Foxglove's ros2msg parser)
+match those names exactly; ``pkg/msg/Type`` there makes every nested type unreadable.
 
 QoS profiles are written in the version-9 form (a list of maps, enum values as words,
 infinite durations as ``{sec: 9223372036, nsec: 854775807}``), once per publisher: what the
@@ -12,6 +14,7 @@ publishers offered, as ``ros2 bag record`` stores it.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -37,21 +40,51 @@ def message_definition(type_name: str) -> str | None:
         types.definition(canonical)
     except UnknownTypeError:
         return None
-    order: list[str] = []
-    pending = [canonical]
-    while pending:
-        name = pending.pop(0)
-        if name in order:
-            continue
-        order.append(name)
-        for _, desc in types.definition(name)[1]:
-            nested = _nested(desc)
-            if nested and nested not in order and nested not in pending:
-                pending.append(nested)
-    parts = [_msg_text(types, order[0])]
-    for name in order[1:]:
-        parts.append(f"{SEPARATOR}\nMSG: {name}\n{_msg_text(types, name)}")
-    return "".join(parts)
+    seen: set[str] = set()
+
+    # rosbag2_cpp's LocalMessageDefinitionSource, step for step: depth first, each level's
+    # dependencies in the sorted order of their names as the fields write them, each once.
+    def full_text(name: str) -> str:
+        text = _msg_text(types, name)
+        for dependency in sorted(_dependencies(types, name)):
+            if dependency not in seen:
+                seen.add(dependency)
+                text += f"\n{SEPARATOR}\nMSG: {dependency}\n"
+                text += full_text(normalize_type_name(dependency))
+        return text
+
+    return full_text(canonical)
+
+
+def _dependencies(types: Any, name: str) -> set[str]:
+    """The message types a type's fields use, named as the fields name them (``pkg/Name``)."""
+    out = set()
+    for _, desc in types.definition(name)[1]:
+        nested = _nested(desc)
+        if nested:
+            pkg, _, short = nested.split("/")
+            out.add(f"{pkg}/{short}")
+    return out
+
+
+#: A dependency's name line as msctl wrote it before it followed rosbag2 (``MSG: pkg/msg/Type``).
+_LONG_MSG_LINE = re.compile(
+    r"^MSG: ([A-Za-z][A-Za-z0-9_]*)/msg/([A-Za-z][A-Za-z0-9_]*)[ \t]*$", re.M
+)
+
+
+def needs_fixing(definition: str) -> bool:
+    """Whether a ``ros2msg`` definition names a dependency ``pkg/msg/Type`` (Foxglove fails)."""
+    return _LONG_MSG_LINE.search(definition) is not None
+
+
+def fixed_definition(definition: str) -> str:
+    """A ``ros2msg`` definition with each ``MSG: pkg/msg/Type`` line written ``MSG: pkg/Type``.
+
+    Only the name lines change: the fields already say ``pkg/Type``, which is what a strict
+    reader matches the names against. A definition already in rosbag2's form comes back as it is.
+    """
+    return _LONG_MSG_LINE.sub(r"MSG: \1/\2", definition)
 
 
 def _msg_text(types: Any, name: str) -> str:

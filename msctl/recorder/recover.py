@@ -41,6 +41,7 @@ class FileRecovery:
         damaged_chunks: Whole chunks skipped (CRC mismatch).
         orphans: Messages dropped because their channel's description was lost.
         problems: What was found wrong, one line each.
+        fixed_schemas: Schemas rewritten in rosbag2's form (``--fix-schemas``).
     """
 
     path: Path
@@ -51,6 +52,7 @@ class FileRecovery:
     damaged_chunks: int = 0
     orphans: int = 0
     problems: list[str] = field(default_factory=list)
+    fixed_schemas: int = 0
 
 
 @dataclass
@@ -73,13 +75,18 @@ class RecoveryReport:
 
 
 def recover(
-    directory: Path, progress: Callable[[str, int, int], None] | None = None
+    directory: Path,
+    progress: Callable[[str, int, int], None] | None = None,
+    fix_schemas: bool = False,
 ) -> RecoveryReport:
     """Rebuild every unfinished file of a bag and its ``metadata.yaml``.
 
     Args:
         directory: The bag directory.
         progress: Called with ``(file name, bytes done, bytes total)`` as files are read.
+        fix_schemas: Also rebuild finished files whose ``ros2msg`` schemas name dependencies
+            ``MSG: pkg/msg/Type`` (msctl before it followed rosbag2; Foxglove cannot decode
+            them), writing ``MSG: pkg/Type``; the messages are copied byte for byte.
 
     Raises:
         BagError: If the directory is not a bag (no metadata and no data files).
@@ -102,11 +109,15 @@ def recover(
     infos: list[FileInfo] = []
     for path in paths:
         info = _file_info(path)
-        if info.complete:
+        stale_schemas = fix_schemas and info.complete and _has_stale_schemas(path)
+        if info.complete and not stale_schemas:
             outcomes.append(FileRecovery(path, "kept", messages=info.message_count))
         else:
             metadata_so_far = rebuilt_metadata(old, [*infos, info], _topics([*infos, info]))
-            outcomes.append(_rebuild(path, old, metadata_so_far))
+            outcome = _rebuild(path, old, metadata_so_far, fix_schemas)
+            if stale_schemas:
+                outcome.action = "schemas fixed"
+            outcomes.append(outcome)
             info = _file_info(path)
         infos.append(info)
         done += path.stat().st_size if path.exists() else 0
@@ -126,9 +137,27 @@ def _topics(infos: list[FileInfo]) -> list[TopicRecord]:
     return [t for info in infos for t in info.topics]
 
 
-def _rebuild(path: Path, old: BagMetadata, metadata: BagMetadata) -> FileRecovery:
+def _has_stale_schemas(path: Path) -> bool:
+    """Whether a finished file holds a ``ros2msg`` schema in msctl's old ``MSG:`` form."""
+    from mcap.reader import make_reader
+
+    from msctl.recorder.definitions import needs_fixing
+
+    with open(path, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    schemas = summary.schemas.values() if summary else ()
+    return any(
+        s.encoding == "ros2msg" and needs_fixing(s.data.decode(errors="replace")) for s in schemas
+    )
+
+
+def _rebuild(
+    path: Path, old: BagMetadata, metadata: BagMetadata, fix_schemas: bool = False
+) -> FileRecovery:
     from mcap.records import Channel, Metadata, Schema
     from mcap.writer import CompressionType, Writer
+
+    from msctl.recorder.definitions import fixed_definition, needs_fixing
 
     outcome = FileRecovery(path, "rebuilt")
     temporary = path.with_name(f".{path.name}.recovering")
@@ -172,8 +201,14 @@ def _rebuild(path: Path, old: BagMetadata, metadata: BagMetadata) -> FileRecover
                     )
                     outcome.messages += 1
                 elif isinstance(record, Schema):
+                    data = record.data
+                    if fix_schemas and record.encoding == "ros2msg":
+                        text = data.decode(errors="replace")
+                        if needs_fixing(text):
+                            data = fixed_definition(text).encode()
+                            outcome.fixed_schemas += 1
                     schema_ids[record.id] = writer.register_schema(
-                        record.name, record.encoding, record.data
+                        record.name, record.encoding, data
                     )
                 elif isinstance(record, Channel):
                     channel_ids[record.id] = writer.register_channel(
