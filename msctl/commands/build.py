@@ -8,10 +8,17 @@ msctl build --wheelhouse wh --platform manylinux2014_aarch64 --python-version 3.
                                               fill wh for a robot (download only)
 msctl build --offline --wheelhouse wh         on the robot: no network at all
 msctl build --all                             every robot computer's agent builds its own
+msctl build --timeout 600                     a package still building after 600 s is stopped
+
+SIGTERM or SIGINT (Ctrl-C) stops the build: every running step's process group is ended,
+then the build exits (143 / 130) naming what it stopped, and only then is the workspace's
+build lock released.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +76,11 @@ def command(
         False, "--all", help="Ask every robot computer's agent to build its own workspace."
     ),
     timeout: float = typer.Option(
-        1800.0, "--timeout", help="With --all: seconds to wait for every agent."
+        None,
+        "--timeout",
+        help="Seconds one package's build may take (default: no bound); it is stopped, "
+        "with what it started, and fails. With --all: seconds to wait for every agent "
+        "(default 1800).",
     ),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON document."),
 ) -> None:
@@ -80,6 +91,8 @@ def command(
 
     if jobs is not None and jobs < 1:
         raise InputError(f"--jobs must be at least 1, not {jobs}")
+    if timeout is not None and not timeout > 0:
+        raise InputError(f"--timeout must be a number of seconds above 0, not {timeout}")
     if all_hosts:
         from msctl.commands.update import refuse_with_all
         from msctl.workspace.remote import build_all
@@ -104,7 +117,7 @@ def command(
             },
         )
 
-        build_all(list(packages_up_to or []), offline, json_output, timeout)
+        build_all(list(packages_up_to or []), offline, json_output, timeout or 1800.0)
         return
     if (platform or python_version) and wheelhouse is None:
         raise InputError(
@@ -137,6 +150,7 @@ def command(
         wheels=wheels.absolute() if wheels else None,
         force=force,
         keep_going=not stop_on_error,
+        timeout=timeout,
         **({"jobs": jobs} if jobs else {}),
     )
     result = _build(graph, keys, options)
@@ -183,7 +197,31 @@ def _build(graph: Any, keys: list[str], options: Any) -> Any:
             done = status in ("built", "up to date", "failed", "blocked", "skipped")
             progress.update(row(name), stage=shown, completed=1 if done else 0)
 
-        return Builder(graph, options, event).run(keys)
+        builder = Builder(graph, options, event)
+        with _stopped_by_signals(builder):
+            return builder.run(keys)
+
+
+#: Exit status of a build stopped by each signal (128 + its number, as a shell reports).
+_SIGNALS = {"SIGTERM": 143, "SIGINT": 130}
+
+
+@contextmanager
+def _stopped_by_signals(builder: Any) -> Iterator[None]:
+    """SIGTERM and SIGINT stop ``builder`` (its steps' process groups ended) instead of
+    killing msctl: Python would die at SIGTERM leaving the build's children running under
+    PID 1, and release the build lock while they still wrote the build state."""
+    import signal
+
+    def stop(number: int, _frame: Any) -> None:
+        builder.stop(f"msctl build got {signal.Signals(number).name}")
+
+    previous = {name: signal.signal(getattr(signal, name), stop) for name in _SIGNALS}
+    try:
+        yield
+    finally:
+        for name, handler in previous.items():
+            signal.signal(getattr(signal, name), handler)
 
 
 def _report(result: Any, graph: Any, json_output: bool) -> None:
@@ -192,6 +230,8 @@ def _report(result: Any, graph: Any, json_output: bool) -> None:
 
     from msctl.console import err, out, print_json
 
+    for note in result.notes:
+        err.print(f"[yellow]{escape(note)}[/]", highlight=False)
     if json_output:
         print_json(result.to_dict())
     elif result.nothing_done and result.packages:
@@ -232,6 +272,15 @@ def _report(result: Any, graph: Any, json_output: bool) -> None:
         )
     for message in result.errors:
         err.print(f"[red]doit:[/] {escape(message)}", highlight=False)
+    if result.stopped:
+        name = result.stopped.rsplit(" ", 1)[-1]
+        stopped = [p.name for p in result.packages if p.status == "failed"]
+        raise MsctlError(
+            f"build stopped: {result.stopped}; its running steps were ended"
+            + (f" ({', '.join(stopped)} not built)" if stopped else ""),
+            hint="build again to finish it (what was built stays built)",
+            exit_code=_SIGNALS.get(name, 1),
+        )
     if not result.ok:
         parts = []
         if failed:

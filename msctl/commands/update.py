@@ -89,6 +89,11 @@ def command(
     ws = workspace_dir(workspace)
     repos_file, overlays = files_in_use(ws, repos, overlay or [])
     repositories = load(repos_file, overlays)
+    if lock is not None:
+        from msctl.workspace.update import refuse_unwritable
+
+        # Before the update: a lock that cannot be written must not cost a whole update.
+        refuse_unwritable(lock, "--lock")
     if show_status:
         _show_status(ws, repos_file, overlays, repositories, lock, json_output)
         return

@@ -16,6 +16,12 @@ change runs nothing. A failure names the package, the step and the last lines of
 (``.msctl/build/logs/<name>.log``); the packages that do not depend on it still build
 (doit's ``--continue``), those that do are reported blocked, and the outcome is a failure.
 
+Each step runs in a process group of its own, so a package's ``timeout`` or a
+:meth:`Builder.stop` (``msctl build`` got SIGTERM or SIGINT) ends the step and every process
+it started, and the build returns only once they are gone. doit rewrites its state file
+in place, so a crash can leave it truncated: an unreadable one is set aside and the state
+rebuilt from the packages (every package is built again), said in :attr:`BuildResult.notes`.
+
 How each type builds:
 
 - Python: its external requirements (``pip install``, offline from the wheelhouse: the
@@ -31,6 +37,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import threading
 import time
@@ -63,6 +70,8 @@ COLCON_HINT = (
 )
 #: Called with (package name, status or step, detail) as the build goes on.
 Events = Callable[[str, str, str], None]
+#: Seconds a stopped step's processes have after SIGTERM before they get SIGKILL.
+STOP_GRACE_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,8 @@ class BuildOptions:
         wheels: Build Python packages' wheels into this directory instead of installing.
         force: Build every selected package, changed or not.
         keep_going: Build the independent packages after a failure.
+        timeout: Seconds one package's build may take (``None``: no bound); a package
+            over it is stopped, with every process it started, and fails naming it.
         python: The interpreter of the environment to install into.
         colcon: The colcon program (``None``: not available).
     """
@@ -93,6 +104,7 @@ class BuildOptions:
     wheels: Path | None = None
     force: bool = False
     keep_going: bool = True
+    timeout: float | None = None
     python: str = field(default_factory=target_python)
     colcon: str | None = field(default_factory=lambda: shutil.which("colcon"))
 
@@ -139,6 +151,8 @@ class BuildResult:
         wheelhouse: The wheelhouse task's result, when there is one.
         seconds: Wall time of the whole build.
         errors: Errors of doit itself (not of a package).
+        notes: What the build did beyond building (its state rebuilt, say), one line each.
+        stopped: Why the build was stopped before its end (``""``: it was not).
     """
 
     workspace: Path
@@ -146,6 +160,8 @@ class BuildResult:
     wheelhouse: PackageResult | None = None
     seconds: float = 0.0
     errors: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    stopped: str = ""
 
     @property
     def ok(self) -> bool:
@@ -153,6 +169,7 @@ class BuildResult:
         bad = {"failed", "blocked", "not run"}
         return (
             not self.errors
+            and not self.stopped
             and all(p.status not in bad for p in self.packages)
             and (self.wheelhouse is None or self.wheelhouse.status not in bad)
         )
@@ -174,6 +191,8 @@ class BuildResult:
             "packages": [p.to_dict() for p in self.packages],
             "wheelhouse": self.wheelhouse.to_dict() if self.wheelhouse else None,
             "errors": self.errors,
+            "notes": self.notes,
+            "stopped": self.stopped,
         }
 
 
@@ -226,6 +245,22 @@ class Builder:
         self._serial = threading.Lock()
         self._environment: dict[str, str] | None = None
         self._environment_lock = threading.Lock()
+        # The steps running now (each its own process group), and why the build stops.
+        self._running: set[subprocess.Popen[bytes]] = set()
+        # Reentrant: with one job doit runs a step in the main thread, where a signal
+        # handler calling stop() may interrupt _call while it holds the lock.
+        self._running_lock = threading.RLock()
+        self._stopped = ""
+
+    def stop(self, why: str) -> None:
+        """Stop the build: every running step's process group gets SIGTERM (SIGKILL after
+        :data:`STOP_GRACE_S`), and no further package starts. :meth:`run` returns once the
+        running steps are gone. Safe from a signal handler or another thread."""
+        self._stopped = self._stopped or why
+        with self._running_lock:
+            running = list(self._running)
+        for process in running:
+            _signal_group(process, signal.SIGTERM)
 
     # ------------------------------------------------------------------ paths
     def stamp(self, key: str) -> Path:
@@ -457,14 +492,20 @@ class Builder:
 
         package = self.graph.packages[key]
         result = self.results[key]
+        if self._stopped:
+            result.status, result.step, result.message = "failed", "stopped", self._stopped
+            return TaskFailed(f"{package.name}: not started ({self._stopped})")
         log = self.log(key)
         log.parent.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()
+        deadline = started + self.options.timeout if self.options.timeout else None
         try:
             with log.open("w", encoding="utf-8") as out:
                 for step in self._all_steps(key, package):
+                    if self._stopped:
+                        raise _Failed(step.label, f"stopped before it ran ({self._stopped})")
                     self.events(package.name, step.label, "")
-                    self._run(step, out, log)
+                    self._run(step, out, log, deadline, package.name)
         except _Failed as failure:
             result.status, result.step, result.message = "failed", failure.step, failure.message
             result.log, result.seconds = str(log), time.monotonic() - started
@@ -520,7 +561,14 @@ class Builder:
                 "robot), copy DIR here, and build with --offline --wheelhouse DIR",
             )
 
-    def _run(self, step: Step, out: Any, log: Path) -> None:
+    def _run(
+        self,
+        step: Step,
+        out: Any,
+        log: Path,
+        deadline: float | None = None,
+        package: str = "",
+    ) -> None:
         out.write(f"$ {' '.join(step.argv)}\n")
         out.flush()
         start = out.tell()
@@ -533,11 +581,22 @@ class Builder:
         try:
             if step.serial:
                 with self._serial:
-                    code = self._call(step, out, env)
+                    code = self._call(step, out, env, deadline)
             else:
-                code = self._call(step, out, env)
+                code = self._call(step, out, env, deadline)
         except FileNotFoundError:
             raise _Failed(step.label, f"{step.argv[0]} is not installed (not on PATH)") from None
+        except subprocess.TimeoutExpired:
+            out.write(f"\n[msctl build: stopped after --timeout {self.options.timeout:g} s]\n")
+            out.flush()
+            raise _Failed(
+                step.label,
+                f"{package or 'the package'} took longer than --timeout "
+                f"{self.options.timeout:g} s: stopped it (and every process it started); "
+                f"its log: {log}",
+            ) from None
+        if self._stopped:
+            raise _Failed(step.label, f"stopped ({self._stopped}); its log: {log}")
         if code != 0:
             out.flush()
             raise _Failed(step.label, f"exit status {code}; last lines of {log}:\n{_tail(log)}")
@@ -547,17 +606,43 @@ class Builder:
             with self._environment_lock:
                 self._environment = None  # pip installed things: read the environment again
 
-    @staticmethod
-    def _call(step: Step, out: Any, env: dict[str, str]) -> int:
-        return subprocess.run(
-            step.argv,
-            cwd=step.cwd,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            env=env,
-            check=False,
-        ).returncode
+    def _call(
+        self, step: Step, out: Any, env: dict[str, str], deadline: float | None = None
+    ) -> int:
+        """Run one step in a process group of its own and wait for it; at ``deadline`` or
+        a :meth:`stop`, its whole group is ended (a build tool's children too).
+
+        Raises:
+            subprocess.TimeoutExpired: When ``deadline`` passed (the group is gone).
+        """
+        with self._running_lock:
+            if self._stopped:
+                return -signal.SIGTERM
+            process = subprocess.Popen(
+                step.argv,
+                cwd=step.cwd,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                start_new_session=True,
+            )
+            self._running.add(process)
+        ended = False
+        try:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                code = process.wait(remaining)
+            except subprocess.TimeoutExpired:
+                _signal_group(process, signal.SIGTERM)
+                raise
+            ended = not self._stopped
+            return code
+        finally:
+            if not ended:
+                _end_group(process)
+            with self._running_lock:
+                self._running.discard(process)
 
     # ------------------------------------------------------------------ running
     def run(self, keys: Sequence[str]) -> BuildResult:
@@ -578,6 +663,11 @@ class Builder:
         }
         names = [f"{t['basename']}:{t['name']}" if "name" in t else t["basename"] for t in tasks]
         self.state.mkdir(parents=True, exist_ok=True)
+        notes = []
+        if names:
+            note = _set_aside_unreadable(self.state / "doit.json")
+            if note:
+                notes.append(note)
         if names:
             argv = [
                 "run",
@@ -604,6 +694,8 @@ class Builder:
             self.wheelhouse_result,
             time.monotonic() - started,
             reporter.errors,
+            notes,
+            self._stopped,
         )
 
     def _event(self, task_name: str, status: str, detail: str = "") -> None:
@@ -647,6 +739,57 @@ def _without_entry_point_plugins() -> Iterator[None]:
         yield
     finally:
         doit.plugin.entry_points_impl = original
+
+
+def _signal_group(process: subprocess.Popen[bytes], number: int) -> None:
+    """Send ``number`` to the process group a step leads (it may be gone already)."""
+    try:
+        os.killpg(process.pid, number)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _end_group(process: subprocess.Popen[bytes]) -> None:
+    """Make sure a stopped step and every process of its group are gone: it gets
+    :data:`STOP_GRACE_S` after its SIGTERM, then SIGKILL; what its leader left behind (a
+    ``sleep`` in a script whose shell exited at the SIGTERM) goes with it."""
+    if process.poll() is None:
+        _signal_group(process, signal.SIGTERM)
+        try:
+            process.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            _signal_group(process, signal.SIGKILL)
+            process.wait()
+    # The leader is reaped; what is left of its group (if anything) goes too.
+    _signal_group(process, signal.SIGKILL)
+
+
+def _set_aside_unreadable(db: Path) -> str:
+    """Set doit's state file aside when it cannot be read (doit rewrites it in place, so
+    a power cut can leave it truncated), and say so; ``""`` when it is fine or absent.
+
+    doit would stop every later build at it with a traceback; without it, doit knows
+    nothing built and builds every package again, which is the state rebuilt.
+    """
+    try:
+        text = db.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return ""
+    except (OSError, UnicodeDecodeError) as exc:
+        why = str(exc)
+    else:
+        try:
+            if isinstance(json.loads(text), dict):
+                return ""
+            why = "not a JSON object"
+        except ValueError as exc:
+            why = f"not valid JSON ({exc})"
+    aside = db.with_name(db.name + ".unreadable")
+    os.replace(db, aside)
+    return (
+        f"build state {db} was unreadable ({why}): set aside as {aside.name}, and rebuilt "
+        "from the packages (every package is built again)"
+    )
 
 
 def _recipe(config: dict[str, Any]) -> Any:

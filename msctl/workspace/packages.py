@@ -237,6 +237,8 @@ def link(root: Path, packages: Sequence[Package], notes: Sequence[str] = ()) -> 
                 hint="rename one, or put COLCON_IGNORE in the directory of the one not meant",
             )
         by_key[package.key] = package
+    for package in by_key.values():
+        _refuse_unknown_depends(package, by_key)
     edges = {
         key: tuple(
             dict.fromkeys(
@@ -248,6 +250,27 @@ def link(root: Path, packages: Sequence[Package], notes: Sequence[str] = ()) -> 
     graph = Graph(root, dict(sorted(by_key.items())), edges, list(notes))
     _refuse_cycles(graph)
     return graph
+
+
+def _refuse_unknown_depends(package: Package, by_key: dict[str, Package]) -> None:
+    """A command package's ``depends`` names workspace packages only (unlike a Python or
+    ROS package's, which name external ones too): a name that is not one is a typo, and
+    building without it would build the package before what it needs.
+
+    Raises:
+        InputError: Naming the package, the unknown dependency and the file.
+    """
+    if package.type != "command":
+        return
+    for name in package.depends:
+        if canonical(name) not in by_key:
+            known = [p.name for p in by_key.values() if p.key != package.key]
+            raise InputError(
+                f"{package.manifest}: package {package.name!r} depends on {name!r}, "
+                "which is no package of the workspace",
+                hint=did_you_mean(name, known)
+                or "fix the name in 'depends', or clone the repository holding it (`msctl update`)",
+            )
 
 
 def _refuse_cycles(graph: Graph) -> None:

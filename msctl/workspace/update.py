@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from msctl.errors import nearest
+from msctl.errors import InputError, nearest
 from msctl.workspace import state_dir
 from msctl.workspace.git import Clone, GitError, Target, remote_versions, run_git, same_remote
 from msctl.workspace.repos import Repository, dump_repos, looks_like_commit
@@ -497,6 +497,38 @@ def lock_text(workspace: Path, repositories: Sequence[Repository], note: str = "
             )
     header = f"msctl update --lock of {workspace}, {time.strftime('%Y-%m-%d %H:%M:%S %z')}"
     return dump_repos(exact, header + (f"\n{note}" if note else ""))
+
+
+def refuse_unwritable(path: Path, flag: str) -> None:
+    """Refuse, before any work, a file :func:`write_atomically` could not write.
+
+    Probes the directory it would be written in (or, not there yet, the nearest one that
+    is) with a temporary file, removed at once: permissions, a read-only mount, a full disk
+    and a path through a file all show, whoever runs (root passes ``os.access``).
+
+    Raises:
+        InputError: Naming the flag, the path and why.
+    """
+    path = path.expanduser()
+    if path.is_dir():
+        raise InputError(f"{flag} {path} is a directory", hint="give a file name, e.g. exact.repos")
+    folder = path.absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(
+            f"{flag} {path} cannot be written: {folder} is not a directory",
+            hint="choose another path",
+        )
+    try:
+        handle, probe = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
+    except OSError as exc:
+        raise InputError(
+            f"{flag} {path} cannot be written: {exc.strerror or exc} ({folder})",
+            hint="choose a path you can write, or fix the directory's permissions",
+        ) from None
+    os.close(handle)
+    os.unlink(probe)
 
 
 def write_atomically(path: Path, text: str) -> None:
