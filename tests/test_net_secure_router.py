@@ -173,10 +173,12 @@ def test_a_ros_enclave_config_in_rmw_zenoh_form_joins(tmp_path: Path) -> None:
 
     assembly = resolved_assembly(tmp_path / "asm", "dragon")
     pki.init_fleet(list(assembly.hosts), [], home=tmp_path)
-    pki.issue("/field/viewer", home=tmp_path)
+    viewer = pki.issue("/field/viewer", home=tmp_path)
     ports = netconfig.Ports(local=free_port(), tls=free_port())
     router_config = netconfig.router_config(assembly, ROBOT, home=tmp_path, ports=ports)
-    assert {"id": "ros_enclaves", "cert_common_names": ["/field/viewer"]} in (
+    # Named by its certificate's CN: its path and this issuance's token.
+    assert viewer.certificate_cn.startswith("/field/viewer#")
+    assert {"id": "ros_enclaves", "cert_common_names": [viewer.certificate_cn]} in (
         router_config["access_control"]["subjects"]
     )
     router = _open(router_config)

@@ -246,6 +246,13 @@ def identity_tls(name: str) -> dict[str, Any]:
     for common_name in (name, f"operator:{name}"):
         folder = net / "identities" / common_name.replace(":", "-")
         if (folder / "cert.pem").is_file() and (folder / "key.pem").is_file():
+            mode = (folder / "key.pem").stat().st_mode & 0o777
+            if mode & 0o077:
+                # `MSCTL_HOME/net` is copied between computers, and a copy can lose modes.
+                raise SessionConfigError(
+                    f"MSCTL_IDENTITY={name!r}: private key {folder / 'key.pem'} is open to "
+                    f"others (mode {mode:04o}): run `chmod 600 {folder / 'key.pem'}`"
+                )
             return {
                 "root_ca_certificate": str(net / "ca" / "ca.pem"),
                 "connect_certificate": str(folder / "cert.pem"),
@@ -256,6 +263,15 @@ def identity_tls(name: str) -> dict[str, Any]:
         f"MSCTL_IDENTITY={name!r}: no such identity in {net / 'identities'}; run "
         f"`msctl net add-operator {name}` (or `msctl net show` for the known ones)"
     )
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """A Zenoh error's message without the Rust source location it ends with
+    (``... at /root/.cargo/.../orchestrator.rs:447.``): a line for the operator, not us."""
+    import re
+
+    text = re.sub(r"\s+at\s+\S+\.rs:\d+(:\d+)?\.?", "", str(exc)).strip()
+    return text.rstrip("!").strip() or type(exc).__name__
 
 
 def _endpoints(text: str, variable: str) -> tuple[str, ...]:
@@ -307,7 +323,7 @@ def open_session(settings: SessionSettings | None = None) -> Any:
     except Exception as exc:
         raise SessionOpenError(
             f"cannot open a Zenoh {settings.mode} session (connect {list(settings.connect)}, "
-            f"listen {list(settings.listen)}): {exc}"
+            f"listen {list(settings.listen)}): {zenoh_reason(exc)}"
         ) from exc
     if settings.mode in ("peer", "client") and settings.connect:
         # Forget the sessions closed since (a script may open and close many in its life).

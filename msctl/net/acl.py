@@ -96,24 +96,34 @@ class FleetPrincipals:
         operators: Operator common names (``operator:alice``), revoked ones left out.
         enclaves: ROS enclaves (``/field/viewer``) with an identity from the fleet CA: they
             read and write like any member, never a guarded input.
+        certificates: Name -> the CN of its current certificate (``robot1#9f3a01c2``),
+            which a subject names: a certificate revoked or replaced has another CN and
+            matches nobody. A name missing here is admitted by no certificate.
     """
 
     robots: list[str]
     stations: list[str]
     operators: list[str] = field(default_factory=list)
     enclaves: list[str] = field(default_factory=list)
+    certificates: dict[str, str] = field(default_factory=dict)
 
 
 def principals(
-    assembly: ResolvedAssembly, operators: Iterable[str], enclaves: Iterable[str] = ()
+    assembly: ResolvedAssembly,
+    operators: Iterable[str],
+    enclaves: Iterable[str] = (),
+    certificates: Mapping[str, str] | None = None,
 ) -> FleetPrincipals:
-    """Robot and station computers from the assembly, operators and enclaves as given."""
+    """Robot and station computers from the assembly, operators, enclaves and the CN of
+    each one's certificate as given."""
     robots = [h for h, role in assembly.lock.host_plans.items() if role.role == "robot"]
     stations = [h for h, role in assembly.lock.host_plans.items() if role.role == "ground"]
     for host in assembly.hosts:
         if host not in robots and host not in stations:
             robots.append(host)
-    return FleetPrincipals(robots, stations, sorted(operators), sorted(enclaves))
+    return FleetPrincipals(
+        robots, stations, sorted(operators), sorted(enclaves), dict(certificates or {})
+    )
 
 
 def guarded_inputs(assembly: ResolvedAssembly) -> list[GuardedInput]:
@@ -188,7 +198,9 @@ def placed_principals(fleet: FleetPrincipals, placement: Mapping[str, str]) -> F
     stations = [
         s for s in dict.fromkeys(placement.get(h, h) for h in fleet.stations) if s not in robots
     ]
-    return FleetPrincipals(robots, stations, list(fleet.operators), list(fleet.enclaves))
+    return FleetPrincipals(
+        robots, stations, list(fleet.operators), list(fleet.enclaves), dict(fleet.certificates)
+    )
 
 
 def _qualify(name: str, base: str) -> str:
@@ -206,13 +218,19 @@ def router_acl(
     """The ``access_control`` block of ``host``'s router."""
     station_router = host in fleet.stations
     subjects: list[dict[str, Any]] = [{"id": LOCAL, "link_protocols": ["tcp"]}]
+
+    def certified(names: Iterable[str]) -> list[str]:
+        # By certificate, never by name: an empty list would leave the subject matching
+        # any link, so a subject nobody's certificate names is left out instead.
+        return [fleet.certificates[n] for n in names if n in fleet.certificates]
+
     for other in [*fleet.robots, *fleet.stations]:
-        if other != host:
-            subjects.append({"id": _host_subject(other), "cert_common_names": [other]})
-    if fleet.operators:
-        subjects.append({"id": OPERATORS, "cert_common_names": list(fleet.operators)})
-    if fleet.enclaves:
-        subjects.append({"id": ROS_ENCLAVES, "cert_common_names": list(fleet.enclaves)})
+        if other != host and certified([other]):
+            subjects.append({"id": _host_subject(other), "cert_common_names": certified([other])})
+    if certified(fleet.operators):
+        subjects.append({"id": OPERATORS, "cert_common_names": certified(fleet.operators)})
+    if certified(fleet.enclaves):
+        subjects.append({"id": ROS_ENCLAVES, "cert_common_names": certified(fleet.enclaves)})
     every = [s["id"] for s in subjects]
 
     def subject_of(name: str) -> str:

@@ -69,10 +69,20 @@ class Ports:
 
 
 def tls_block(identity: pki.Identity, home: Path | None) -> dict[str, Any]:
-    """``transport/link/tls`` for an identity: the same key serves listening and connecting."""
+    """``transport/link/tls`` for an identity: the same key serves listening and connecting.
+
+    Raises:
+        NetConfigError: If the identity was revoked, or has no certificate or key here.
+        pki.KeyModeError: If others may read its key.
+    """
+    name = identity.common_name
+    try:
+        # Never "run net init" for a revoked identity: say it is revoked, and how to lift it.
+        pki.refuse_revoked(name, home)
+    except pki.RevokedError as exc:
+        raise NetConfigError(f"identity {name!r}: {exc}") from None
     for path in (identity.cert, identity.key):
         if not path.is_file():
-            name = identity.common_name
             fix = (
                 f"run `msctl net add-operator {name.removeprefix(pki.OPERATOR_PREFIX)}`"
                 if identity.role == "operator"
@@ -80,6 +90,7 @@ def tls_block(identity: pki.Identity, home: Path | None) -> dict[str, Any]:
                 "MSCTL_HOME/net to this computer (all but ca/ca.key)"
             )
             raise NetConfigError(f"identity {name!r} has no {path.name} at {path}: {fix}")
+    pki.check_key_mode(identity.key)
     return {
         "root_ca_certificate": str(pki.ca_cert(home)),
         "listen_private_key": str(identity.key),
@@ -141,11 +152,11 @@ def router_config(
             "run the whole assembly here with `msctl up`"
         )
     ports = ports or Ports()
-    revoked = pki.revoked_names(home)
-    names = [cn for cn in pki.common_names(home) if cn not in revoked]
-    operators = [cn for cn in names if pki.role_of(cn) == "operator"]
-    enclaves = [cn for cn in names if pki.role_of(cn) == "ros enclave"]
-    fleet = acl.principals(assembly, operators, enclaves)
+    # Each identity by its current certificate's CN: a revoked or replaced one matches none.
+    certificates = pki.admitted(home)
+    operators = [n for n in certificates if pki.role_of(n) == "operator"]
+    enclaves = [n for n in certificates if pki.role_of(n) == "ros enclave"]
+    fleet = acl.principals(assembly, operators, enclaves, certificates)
     guarded = acl.guarded_inputs(assembly)
     if off_robot:
         # Access control follows where the components run, not where the template puts
