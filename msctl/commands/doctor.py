@@ -27,6 +27,7 @@ def command(
     import os
     import socket
 
+    from rich.markup import escape
     from rich.table import Table
 
     from components.comm.session import SessionConfigError, SessionSettings, open_session
@@ -40,13 +41,21 @@ def command(
         try:
             session = open_session(settings)
         except SessionConfigError as exc:
-            findings.append(
-                doctor.Finding(
-                    host, "router", doctor.ERROR, f"{exc}: run `msctl up` or `msctl router`"
-                )
+            # No router is the situation a preflight runs in: every other check still runs.
+            findings += doctor.this_computer(
+                host,
+                None,
+                settings.connect,
+                settings.domain,
+                router_error=f"{doctor.clean(exc)}: run `msctl up` or `msctl router`",
             )
             if all_hosts:
-                findings += _unasked(host)
+                try:
+                    findings += _unasked(host)
+                except Exception as exc:  # the plan unreadable: said, not the end of it
+                    findings.append(
+                        doctor.Finding(host, "reachable", doctor.ERROR, doctor.clean(exc))
+                    )
         else:
             try:
                 findings += doctor.this_computer(
@@ -66,7 +75,10 @@ def command(
         colours = {doctor.OK: "green", doctor.WARN: "yellow", doctor.ERROR: "red"}
         table = Table("host", "check", "status", "detail")
         for f in findings:
-            table.add_row(f.host, f.check, f"[{colours[f.status]}]{f.status}[/]", f.detail)
+            table.add_row(
+                escape(f.host), escape(f.check), f"[{colours[f.status]}]{f.status}[/]",
+                escape(f.detail),
+            )  # fmt: skip
         out.print(table)
     if status == doctor.ERROR:
         raise typer.Exit(1)

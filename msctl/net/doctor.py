@@ -198,6 +198,33 @@ def router(
     return Finding(host, "router", status, detail, link)
 
 
+def senders(host: str, session: Any, assembly: Any, domain: int = 0) -> Finding:
+    """Nothing but their declared senders publishes the modules' raw motor commands and
+    feedback, by the roles the interfaces declare (:func:`components.roles.intruders`): a
+    bag played onto the live assembly, a stray script or a second motor interface is named
+    here (each module also refuses and counts its samples)."""
+    from components.comm.graph import snapshot
+    from components.comm.liveliness import EntityKind
+    from components.roles import intruders
+
+    publishers: dict[str, list[str]] = {}
+    for entity in snapshot(session, domain).entities():
+        if entity.kind is EntityKind.PUBLISHER and entity.topic is not None:
+            publishers.setdefault(entity.topic, []).append(entity.node_fqn)
+    found = intruders(assembly, publishers)
+    if not found:
+        return Finding(
+            host, "senders", OK, "only their own components publish the modules' motor topics"
+        )
+    named = "; ".join(
+        f"{i.node} publishes {i.topic} ({i.role.value}: only {', '.join(i.allowed)} may)"
+        for i in found
+    )
+    return Finding(
+        host, "senders", WARN, f"{named}: stop it (the module refuses it, counting)", len(found)
+    )
+
+
 def _leaves(endpoint: str) -> bool:
     """Whether ``endpoint`` reaches beyond this computer (one it cannot read: yes)."""
     from msctl.net.endpoints import EndpointError, parse
@@ -209,14 +236,19 @@ def _leaves(endpoint: str) -> bool:
 
 
 def certificates(host: str, home: Path | None, now: datetime | None = None) -> list[Finding]:
-    """Every identity of the fleet: verifies against the CA, not expiring within 7 days."""
+    """Every identity of the fleet: verifies against the CA, not expiring within 7 days; one
+    whose certificate cannot be read is an ERROR naming its file, and the others are still
+    checked."""
     from msctl.net import pki
 
     if not pki.trusts(home):
         return [Finding(host, "certificates", WARN, "no fleet CA: run `msctl net init`")]
     now = now or datetime.now(UTC)
     found = []
-    for identity in pki.identities(home):
+    identities, broken = pki.scan(home)
+    for cert, why in broken:
+        found.append(Finding(host, f"cert {cert.parent.name}", ERROR, why))
+    for identity in identities:
         problem = pki.verify(identity.cert, home)
         left = identity.expires - now if identity.expires else None
         if problem:
@@ -231,14 +263,14 @@ def certificates(host: str, home: Path | None, now: datetime | None = None) -> l
                 host,
                 f"cert {identity.common_name}",
                 ERROR,
-                "expired: `msctl net revoke` and issue it again",
+                f"expired: {pki.reissue_hint(identity.common_name)}",
             )
         elif left < EXPIRY_WARN:
             row = Finding(
                 host,
                 f"cert {identity.common_name}",
                 WARN,
-                f"expires in {left.days} days: issue it again",
+                f"expires in {left.days} days: {pki.reissue_hint(identity.common_name)}",
             )
         else:
             row = Finding(
@@ -246,6 +278,20 @@ def certificates(host: str, home: Path | None, now: datetime | None = None) -> l
             )
         found.append(row)
     return found
+
+
+def key_modes(host: str, home: Path | None) -> list[Finding]:
+    """The private keys under ``MSCTL_HOME/net`` (the CA's, every identity's) are 0600:
+    ``MSCTL_HOME/net`` is copied between computers, and a copy can lose the modes."""
+    from msctl.net import pki
+
+    loose = pki.loose_keys(home)
+    if not loose:
+        where = pki.net_dir(home)
+        if not where.is_dir():
+            return [Finding(host, "key modes", OK, f"no private keys here ({where})")]
+        return [Finding(host, "key modes", OK, f"every private key in {where} is 0600")]
+    return [Finding(host, "key modes", ERROR, why, str(key)) for key, why in loose]
 
 
 def devices(host: str, assembly: Any, simulated: bool, sys_root: Path = Path("/")) -> list[Finding]:
@@ -341,6 +387,13 @@ def worst(findings: Iterable[Finding]) -> str:
     return ERROR if ERROR in statuses else WARN if WARN in statuses else OK
 
 
+def clean(exc: BaseException) -> str:
+    """An exception as one line for the operator: no Rust source path, no traceback."""
+    from components.comm.session import zenoh_reason
+
+    return " ".join(zenoh_reason(exc).split())
+
+
 def this_computer(
     host: str,
     session: Any,
@@ -348,27 +401,71 @@ def this_computer(
     domain: int = 0,
     clock_timeout: float = 1.0,
     now_ns: Callable[[], int] | None = None,
+    router_error: str | None = None,
 ) -> list[Finding]:
     """Every check of this computer, through an open ``session`` (a supervisor's or agent's,
-    for ``msctl doctor --all``; the command's own otherwise)."""
+    for ``msctl doctor --all``; the command's own otherwise).
+
+    Each check runs whatever the others found: with no router (``session`` ``None``) the
+    certificates, keys, buses, disk and Python are still checked, and a check that fails
+    in itself is an ERROR naming it, never the end of the preflight.
+
+    Args:
+        router_error: Why no session could be opened (with ``session`` ``None``).
+    """
     import time
 
-    from components.assembly import AssemblyError, load_assembly, lock_path, state_dir
+    from components.assembly import lock_path, state_dir
 
-    try:
-        assembly = load_assembly()
-    except AssemblyError:
-        assembly = None
-    found = version(host, lock_path() if assembly else None)
-    found.append(router(host, session, list(endpoints)))
-    offset, source = measure_clock_offset(
-        session, f"{domain}/**", now_ns or time.time_ns, clock_timeout
-    )
-    found.append(clock_offset(host, offset, source))
-    found += certificates(host, None)
+    found: list[Finding] = []
+
+    def run(check: str, step: Callable[[], Finding | list[Finding]]) -> None:
+        try:
+            result = step()
+        except Exception as exc:  # a preflight reports every check, whatever one raised
+            found.append(Finding(host, check, ERROR, f"could not be checked: {clean(exc)}"))
+            return
+        found.extend(result if isinstance(result, list) else [result])
+
+    assembly = _assembly(found, host)
+    run("msctl version", lambda: version(host, lock_path() if assembly else None))
+    if session is None:
+        detail = router_error or f"no router at {', '.join(endpoints)}"
+        found.append(Finding(host, "router", ERROR, detail))
+        found.append(Finding(host, "clock", WARN, "not compared: no router to take samples from"))
+    else:
+        run("router", lambda: router(host, session, list(endpoints)))
+
+        def clock() -> Finding:
+            offset, source = measure_clock_offset(
+                session, f"{domain}/**", now_ns or time.time_ns, clock_timeout
+            )
+            return clock_offset(host, offset, source)
+
+        run("clock", clock)
+        if assembly is not None:
+            run("senders", lambda: senders(host, session, assembly, domain))
+    run("certificates", lambda: certificates(host, None))
+    run("key modes", lambda: key_modes(host, None))
     simulated = assembly is None or host not in {m.host for m in assembly.modules}
     if assembly is not None:
-        found += devices(host, assembly, simulated)
-    found.append(disk(host, state_dir()))
-    found += python_env(host, simulated)
+        run("buses", lambda: devices(host, assembly, simulated))
+    run("disk", lambda: disk(host, state_dir()))
+    run("python", lambda: python_env(host, simulated))
     return found
+
+
+def _assembly(found: list[Finding], host: str) -> Any:
+    """The resolved assembly, or ``None`` (no lock: ``version`` says so; a broken one is an
+    ERROR here)."""
+    from components.assembly import AssemblyError, load_assembly, lock_path
+
+    try:
+        return load_assembly()
+    except AssemblyError as exc:
+        if lock_path().is_file():
+            found.append(Finding(host, "assembly", ERROR, clean(exc)))
+        return None
+    except Exception as exc:  # a preflight reports every check, whatever one raised
+        found.append(Finding(host, "assembly", ERROR, f"could not be read: {clean(exc)}"))
+        return None

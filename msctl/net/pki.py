@@ -390,7 +390,13 @@ def scan(home: Path | None = None) -> tuple[list[Identity], list[tuple[Path, str
             name = name_of(_cn_file(cert.parent) or subject_cn(cert))
             found.append(read_identity(name, home))
         except PkiError as exc:
-            broken.append((cert, str(exc)))
+            why = str(exc)
+            if str(cert) not in why:  # whose it is unknown too: no CN file, no CN read
+                why = (
+                    f"{cert} is not a readable certificate ({why}): copy {cert.parent.name}/ "
+                    "again from where `msctl net init` ran, or delete it there and issue it again"
+                )
+            broken.append((cert, why))
     found.sort(key=lambda i: (("host", "operator", "ros enclave").index(i.role), i.common_name))
     return found, broken
 
