@@ -11,6 +11,8 @@ from typing import Any
 
 import typer
 
+from msctl.errors import MsctlError
+
 app = typer.Typer(help="Bags: describe, replay, recover after a crash.", no_args_is_help=True)
 
 BAG_ARG = typer.Argument(..., help="The bag directory (or one .mcap file).")
@@ -103,7 +105,9 @@ def recover(
     ),
     json_output: bool = JSON_OPT,
 ) -> None:
-    """Complete a bag a crash left unfinished: rebuild file summaries and metadata.yaml."""
+    """Complete a bag a crash left unfinished: rebuild file summaries and metadata.yaml
+    (an unreadable metadata.yaml is rebuilt from the MCAP files)."""
+    from rich.markup import escape
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
 
     from msctl.console import err, print_json
@@ -143,9 +147,12 @@ def recover(
                 ],
                 "message_count": report.metadata.message_count,
                 "lost_anything": report.lost_anything,
+                "notes": report.notes,
             }
         )
         return
+    for note in report.notes:
+        err.print(f"[yellow]{escape(note)}[/]", highlight=False)
     for outcome in report.files:
         line = f"{outcome.path.name}: {outcome.action}, {outcome.messages:,} messages"
         if outcome.salvaged:
@@ -155,8 +162,13 @@ def recover(
         err.print(line, highlight=False)
         for problem in outcome.problems:
             err.print(f"  [yellow]{problem}[/]", highlight=False)
+    alone = bag.is_file() and not (report.directory / "metadata.yaml").exists()
     if not report.rebuilt and not any(f.action == "schemas fixed" for f in report.files):
-        err.print(f"{bag}: every file was complete; metadata.yaml rewritten from the files")
+        err.print(
+            f"{bag}: every file was complete"
+            + ("" if alone else "; metadata.yaml rewritten from the files"),
+            highlight=False,
+        )
     verdict = "some data was lost (above)" if report.lost_anything else "nothing lost"
     err.print(
         f"recovered {bag}: {report.metadata.message_count:,} messages on "
@@ -233,6 +245,12 @@ def play(
         err.print(
             f"published {report.published:,} messages on {len(report.topics)} topic(s)",
             highlight=False,
+        )
+    if report.skipped:
+        # A topic asked for and not played is a failure, even when the rest played.
+        raise MsctlError(
+            f"{len(report.skipped)} topic(s) not played: {', '.join(sorted(report.skipped))}",
+            hint="see why above; `msctl bag info` shows each topic's type",
         )
 
 

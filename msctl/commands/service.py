@@ -87,10 +87,12 @@ def call(
     """Call a service once and print its response."""
     from components.comm.services import ServiceError, ServiceTimeout
     from components.comm.types import UnknownTypeError, normalize_type_name
+    from msctl.commands.topic import checked_name
     from msctl.console import out, print_json
     from msctl.plane import build_message, connected, find_type, parse_values, to_plain, to_yaml
 
-    if timeout <= 0 or timeout != timeout:
+    checked_name(service, "service")
+    if timeout <= 0 or timeout != timeout or timeout == float("inf"):
         raise InputError(f"--timeout must be a positive number of seconds, not {timeout}")
     # Input first, network after: a typo in VALUES or the type fails at once.
     fields = parse_values(values)

@@ -38,6 +38,32 @@ class _Stopper:
             signal.signal(signum, handler)
 
 
+def checked_name(name: str, what: str = "topic") -> str:
+    """``name`` qualified, or an InputError saying why ROS 2 would refuse it.
+
+    Checked before any session opens: an illegal name is the operator's typo, answered at
+    once in one line, never an internal error from deep in the data plane.
+
+    Raises:
+        InputError: Naming the name and what is wrong with it.
+    """
+    from components.comm.names import NameError_, qualify
+
+    try:
+        return qualify(name, "/")
+    except NameError_ as exc:
+        raise InputError(
+            f"{what} {name!r} is not a legal ROS 2 {what} name: {exc}",
+            hint="names are /-separated parts of letters, digits and '_', "
+            "each not starting with a digit (e.g. /limb1/joint_read)",
+        ) from None
+
+
+def _count(value: int, flag: str) -> None:
+    if value < 0:
+        raise InputError(f"{flag} must be 0 (no limit) or a number of messages, not {value}")
+
+
 @app.command("list")
 def list_topics(
     show_types: bool = typer.Option(False, "--show-types", "-t", help="Show each topic's type."),
@@ -184,6 +210,10 @@ def echo(
     from msctl.console import out
     from msctl.plane import connected, to_plain, to_yaml
 
+    checked_name(topic)
+    _count(count, "--times")
+    if not (timeout >= 0 and math.isfinite(timeout)):
+        raise InputError(f"--timeout must be a number of seconds >= 0, not {timeout}")
     limit = 1 if once else count
     inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
     with connected("echo") as node, _Stopper() as stop:
@@ -253,6 +283,8 @@ def pub(
     from msctl.console import err
     from msctl.plane import build_message, connected, parse_values
 
+    checked_name(topic)
+    _count(times, "--times")
     if rate <= 0 or not math.isfinite(rate):
         raise InputError(f"--rate must be a positive number of messages per second, not {rate}")
     if wait_matching is not None and not (wait_matching >= 0 and math.isfinite(wait_matching)):
@@ -381,8 +413,11 @@ def hz(
     from msctl.console import out, print_json
     from msctl.plane import connected
 
+    checked_name(topic)
     if window < 2:
         raise InputError(f"--window {window}: a rate needs at least 2 samples in the window")
+    if not (duration >= 0 and math.isfinite(duration)):
+        raise InputError(f"--for must be a number of seconds >= 0, not {duration}")
     stamps: list[float] = []
     lock = threading.Lock()
 

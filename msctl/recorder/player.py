@@ -251,6 +251,12 @@ class Player:
         """Make the publisher of a topic, before its first message."""
         if topic.name in self._publishers or topic.name in self.report.skipped:
             return
+        if not topic.type:
+            self.report.skipped[topic.name] = (
+                "the bag names no type for it (its channel has no schema): nothing to "
+                "publish it as"
+            )
+            return
         if topic.encoding not in ("ros2msg", "") and not _known(topic.type):
             self.report.skipped[topic.name] = (
                 f"its type {topic.type} is defined as {topic.encoding}, which msctl cannot read"

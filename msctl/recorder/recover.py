@@ -62,6 +62,7 @@ class RecoveryReport:
     directory: Path
     files: list[FileRecovery]
     metadata: BagMetadata
+    notes: list[str] = field(default_factory=list)
 
     @property
     def lost_anything(self) -> bool:
@@ -82,22 +83,42 @@ def recover(
     """Rebuild every unfinished file of a bag and its ``metadata.yaml``.
 
     Args:
-        directory: The bag directory.
+        directory: The bag directory, or one ``.mcap`` file (its bag's, which is then
+            recovered whole, or a file alone, rebuilt in place with no ``metadata.yaml``).
         progress: Called with ``(file name, bytes done, bytes total)`` as files are read.
         fix_schemas: Also rebuild finished files whose ``ros2msg`` schemas name dependencies
             ``MSG: pkg/msg/Type`` (msctl before it followed rosbag2; Foxglove cannot decode
             them), writing ``MSG: pkg/Type``; the messages are copied byte for byte.
+
+    An unreadable ``metadata.yaml`` is rebuilt from the files (the old one kept as
+    ``metadata.yaml.unreadable``), said in :attr:`RecoveryReport.notes`.
 
     Raises:
         BagError: If the directory is not a bag (no metadata and no data files).
         BagWriteError: If the rebuilt files cannot be written (the bag is left as it was).
     """
     directory = Path(directory)
+    if directory.is_file():
+        return _recover_file(directory, progress, fix_schemas)
     if not directory.is_dir():
         raise BagError(f"no such bag directory: {directory}")
-    old = read_metadata(directory) if (directory / METADATA_FILE).exists() else BagMetadata()
+    notes: list[str] = []
+    old = BagMetadata()
+    if (directory / METADATA_FILE).exists():
+        try:
+            old = read_metadata(directory)
+        except BagError as exc:
+            # The files are the record; metadata.yaml only summarizes them (a crash while
+            # it was rewritten, a hand edit): rebuilt from the files, the old one kept aside.
+            aside = directory / f"{METADATA_FILE}.unreadable"
+            notes.append(
+                f"{exc.message}: rebuilt from the MCAP files (the old one kept as {aside.name})"
+            )
     paths = [directory / f.path for f in old.files if (directory / f.path).exists()]
     paths += [p for p in data_files(directory) if p not in paths]
+    if not paths and notes:
+        # With no metadata to name them, any MCAP file here is the bag's (a renamed bag).
+        paths = sorted(directory.glob("*.mcap"))
     if not paths:
         raise BagError(
             f"{directory} is not a bag: no {METADATA_FILE} names a data file there, and no "
@@ -127,10 +148,51 @@ def recover(
     if not metadata.ros_distro:
         metadata.ros_distro = ROS_DISTRO
     try:
+        if notes:
+            os.replace(directory / METADATA_FILE, directory / f"{METADATA_FILE}.unreadable")
         write_metadata(directory, metadata)
     except OSError as exc:
         raise BagWriteError(f"cannot write {directory / METADATA_FILE}: {exc}") from exc
-    return RecoveryReport(directory, outcomes, metadata)
+    return RecoveryReport(directory, outcomes, metadata, notes)
+
+
+def _recover_file(
+    path: Path, progress: Callable[[str, int, int], None] | None, fix_schemas: bool
+) -> RecoveryReport:
+    """Recover one ``.mcap`` file: the bag it belongs to, if its directory is one (its
+    ``metadata.yaml`` must agree with it), else the file alone (no ``metadata.yaml``)."""
+    directory = path.parent
+    listed: set[str] = set()
+    try:
+        if (directory / METADATA_FILE).exists():
+            listed = {f.path for f in read_metadata(directory).files}
+    except BagError:
+        listed = set()
+    if path.name in listed or path in data_files(directory):
+        report = recover(directory, progress, fix_schemas)
+        report.notes.insert(0, f"{path.name} is part of the bag {directory}: recovered the bag")
+        return report
+    if path.suffix != ".mcap":
+        raise BagError(
+            f"{path} is not a bag: give a bag directory or one .mcap file",
+        )
+    info = _file_info(path)
+    stale_schemas = fix_schemas and info.complete and _has_stale_schemas(path)
+    if info.complete and not stale_schemas:
+        outcome = FileRecovery(path, "kept", messages=info.message_count)
+    else:
+        found = _topics([info])
+        metadata = rebuilt_metadata(BagMetadata(), [info], found)
+        outcome = _rebuild(path, BagMetadata(), metadata, fix_schemas)
+        if stale_schemas:
+            outcome.action = "schemas fixed"
+        info = _file_info(path)
+    if progress is not None:
+        progress(path.name, path.stat().st_size, path.stat().st_size)
+    metadata = rebuilt_metadata(BagMetadata(), [info], _topics([info]))
+    return RecoveryReport(
+        directory, [outcome], metadata, [f"{path.name} recovered alone (not part of a bag)"]
+    )
 
 
 def _topics(infos: list[FileInfo]) -> list[TopicRecord]:
