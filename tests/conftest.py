@@ -82,20 +82,62 @@ def pytest_configure(config: pytest.Config) -> None:
         runtime.CYDR_CACHE_DIR = cache
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Run the modules with the most end-to-end tests first, each module's tests in order.
+#: Test modules that stand on one shared rehearsal of ``dragon`` (the ``dragon`` fixture), in
+#: the order they run: one worker takes them as one unit (:func:`pytest_xdist_make_scheduler`),
+#: so the rehearsal is stood up once, not once per module (each costs one to two minutes of
+#: both cores). The last one ends it (``down --all``, then ``rehearse down``).
+DRAGON_REHEARSAL = (
+    "tests/test_rehearse_e2e.py",
+    "tests/test_rehearse_presence_e2e.py",
+    "tests/test_rehearse_rejoin_e2e.py",
+)
 
-    xdist's ``loadscope`` hands whole modules to the workers in collection order: a long
-    module collected last ran alone at the end while the other workers sat idle (the
-    suite's tail). Longest-first is the classic fix; the count of ``e2e`` tests in a module
-    stands in for its length.
+
+def scope_of(nodeid: str) -> str:
+    """The unit of work xdist hands one worker for a test: its module, or the shared
+    rehearsal's modules together."""
+    module = nodeid.split("::", 1)[0]
+    return DRAGON_REHEARSAL[0] if module in DRAGON_REHEARSAL else module
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``loadscope`` with :func:`scope_of` for its units (the module, as before, except the
+    modules of the shared rehearsal, which go to one worker together)."""
+    if config.getvalue("dist") != "loadscope":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class RehearsalScopes(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return scope_of(nodeid)
+
+    return RehearsalScopes(config, log)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Run the longest units of work first, each unit's tests in order.
+
+    xdist's ``loadscope`` hands whole units (:func:`scope_of`) to the workers in collection
+    order: a long unit collected last ran alone at the end while the other workers sat idle
+    (the suite's tail). Longest-first is the classic fix. A unit's length is estimated: a
+    rehearsal (namespaces, five computers' agents) outweighs any count of ``e2e`` tests,
+    which stands in for the length of the rest.
     """
     del config
     weight: dict[str, int] = {}
     for item in items:
-        module = item.nodeid.split("::", 1)[0]
-        weight[module] = weight.get(module, 0) + (item.get_closest_marker("e2e") is not None)
-    items.sort(key=lambda item: -weight[item.nodeid.split("::", 1)[0]])
+        scope = scope_of(item.nodeid)
+        rehearsal = scope.startswith("tests/test_rehearse_") and scope.endswith("_e2e.py")
+        weight.setdefault(scope, 1000 if rehearsal else 0)
+        weight[scope] += item.get_closest_marker("e2e") is not None
+    order = {module: i for i, module in enumerate(DRAGON_REHEARSAL)}
+    items.sort(
+        key=lambda item: (
+            -weight[scope_of(item.nodeid)],
+            scope_of(item.nodeid),
+            order.get(item.nodeid.split("::", 1)[0], 0),
+        )
+    )
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -268,3 +310,14 @@ def net_env(endpoint: str) -> dict[str, str]:
         "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
         "MSCTL_ZENOH_MULTICAST": "0",
     }
+
+
+@pytest.fixture(scope="session")
+def dragon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """One rehearsal of ``dragon`` on ``wifi`` links shared by :data:`DRAGON_REHEARSAL`'s
+    modules (a ``rehearse_rigs.Stage``), taken down at the end of the session, also on
+    failure, leaving no namespace."""
+    from rehearse_rigs import Stage, rehearsed
+
+    with rehearsed(Stage(tmp_path_factory.mktemp("dragon"))) as stage:
+        yield stage

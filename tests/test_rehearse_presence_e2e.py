@@ -16,13 +16,12 @@ from __future__ import annotations
 import json
 import re
 import time
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage, rehearsed
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
 
 pytestmark = [
     pytest.mark.e2e,
@@ -38,9 +37,9 @@ BOUND = 120.0
 
 
 @pytest.fixture(scope="module")
-def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
-    with rehearsed(Stage(tmp_path_factory.mktemp("rehearse-presence"))) as stage:
-        yield stage
+def stage(dragon: Stage) -> Stage:
+    """The suite's shared rehearsal of dragon (conftest.DRAGON_REHEARSAL)."""
+    return dragon
 
 
 def health(stage: Stage, host: str) -> dict[str, Any]:

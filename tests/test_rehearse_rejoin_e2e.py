@@ -17,16 +17,17 @@ from __future__ import annotations
 import json
 import sys
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import psutil
 import pytest
 from conftest import wait_until
-from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage, rehearsed
+from rehearse_rigs import GROUND, ROBOTS, ROOT_REHEARSAL, Stage
 
 from msctl.launcher import desired
+from msctl.rehearse.computers import namespaces
+from msctl.rehearse.rehearsal import namespace_prefix
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(900), ROOT_REHEARSAL]
 
@@ -36,9 +37,9 @@ PROBE = str(Path(__file__).with_name("rejoin_probe.py"))
 
 
 @pytest.fixture(scope="module")
-def stage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stage]:
-    with rehearsed(Stage(tmp_path_factory.mktemp("rejoin"))) as stage:
-        yield stage
+def stage(dragon: Stage) -> Stage:
+    """The suite's shared rehearsal of dragon (conftest.DRAGON_REHEARSAL)."""
+    return dragon
 
 
 class Probe:
@@ -264,6 +265,17 @@ def test_a_rebooted_computer_rejoins_and_the_ground_says_so(stage: Stage) -> Non
     print(f"not OK at the ground at the end (other than host metrics): {not_ok()}")
 
 
+def test_reboot_brings_the_agent_back_alone(stage: Stage) -> None:
+    done = stage.msctl("rehearse", "reboot", "hl-limb-02")
+    assert done.returncode == 0, done.stderr
+    assert "processes killed" in done.stderr
+    wait_until(
+        lambda: "/msctl/hl_limb_02/request" in stage.on(GROUND, "service", "list").stdout,
+        timeout=120,
+        what="hl-limb-02's agent back on the fleet",
+    )
+
+
 def test_after_down_all_a_reboot_brings_nothing_back(stage: Stage) -> None:
     done = stage.on(GROUND, "down", "--all", timeout=180)
     assert done.returncode == 0, done.stderr
@@ -329,7 +341,14 @@ def test_a_desired_state_cut_short_is_refused_and_shown_at_the_ground(stage: Sta
     assert not path.exists()  # a down clears it
 
 
-def test_rehearse_down_leaves_nothing(stage: Stage) -> None:
+def test_down_all_then_rehearse_down_leaves_nothing(stage: Stage) -> None:
+    """The last test on the shared rehearsal (conftest.DRAGON_REHEARSAL): it ends it."""
+    done = stage.on(GROUND, "down", "--all", timeout=180)
+    assert done.returncode == 0, done.stderr
+    root = stage.home / "rehearse"
+    prefix = namespace_prefix(root)
     done = stage.msctl("rehearse", "down")
     assert done.returncode == 0, done.stderr
-    assert not (stage.home / "rehearse").exists()
+    assert not [n for n in namespaces() if n.startswith(prefix)]
+    assert not root.exists()
+    assert not list(Path("/etc/netns").glob(prefix + "*"))
