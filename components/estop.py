@@ -27,6 +27,11 @@ from components.messages import TRIGGER
 HALT_TIMEOUT = 2.0
 #: Seconds between two sends of a request that reached no server.
 RESEND_PAUSE = 0.05
+#: Seconds with no answer before a request is sent again, the earlier copies still waiting.
+REPEAT_EVERY = 0.25
+#: Seconds between two looks at the answers (each answer is stamped when it came, on
+#: Zenoh's thread: the look's period does not enter the acknowledgement time).
+POLL = 0.005
 
 
 @dataclass(frozen=True)
@@ -111,31 +116,43 @@ class Estop:
         first = time.monotonic()
         deadline = first + timeout
         # Every request leaves before any answer is awaited: all modules at once.
-        calls = {slot: clients[slot].call_async(request, timeout, urgent=True) for slot in chosen}
+        copies = {s: [clients[s].call_async(request, timeout, urgent=True)] for s in chosen}
         for slot in chosen:
             clients[slot].announce()
         answers: dict[str, Acknowledgement] = {}
-        while calls:
-            resend: list[str] = []
-            for slot, call in calls.items():
-                try:
-                    response = call.result()
-                    ok, message = bool(response.success), str(response.message)
-                except ServiceError as exc:
-                    if call.reached_nobody and deadline - time.monotonic() > RESEND_PAUSE:
-                        # The router knew no server for it (a radio link's route lapsed for a
-                        # moment): it goes again until the deadline, as safety traffic must.
-                        # A halt taken twice is one halt.
-                        resend.append(slot)
-                        continue
-                    ok, message = False, str(exc)
-                seconds = None if call.answered is None else call.answered - first
-                answers[slot] = Acknowledgement(slot, ok, message, seconds)
-            calls = {}
-            if resend:
-                time.sleep(RESEND_PAUSE)
-                left = max(deadline - time.monotonic(), RESEND_PAUSE)
-                calls = {s: clients[s].call_async(request, left, urgent=True) for s in resend}
+        while len(answers) < len(chosen):
+            now = time.monotonic()
+            for slot in chosen:
+                if slot in answers:
+                    continue
+                calls = copies[slot]
+                answered = next((c for c in calls if c.answered is not None), None)
+                if answered is not None:
+                    try:
+                        response = answered.result(0.0)
+                        ok, message = bool(response.success), str(response.message)
+                    except ServiceError as exc:  # an error reply, or not a response
+                        ok, message = False, str(exc)
+                    answers[slot] = Acknowledgement(slot, ok, message, answered.answered - first)
+                    continue
+                newest = calls[-1]
+                ended = all(c.done.is_set() for c in calls)
+                if now >= deadline or (ended and deadline - now <= RESEND_PAUSE):
+                    why = newest.error() if newest.done.is_set() else None
+                    answers[slot] = Acknowledgement(
+                        slot, False, str(why or _silence(clients[slot], timeout)), None
+                    )
+                    continue
+                # A copy that reached nobody (the router knew no server: a radio link's route
+                # lapsed for a moment) goes again at once; one that is only unanswered goes
+                # again every REPEAT_EVERY, the earlier ones still waiting (a link that closed
+                # while it waited lost it for good). A halt taken twice is one halt.
+                due = RESEND_PAUSE if newest.reached_nobody else REPEAT_EVERY
+                if now - newest.started >= due:
+                    left = max(deadline - now, RESEND_PAUSE)
+                    calls.append(clients[slot].call_async(request, left, urgent=True))
+            if len(answers) < len(chosen):
+                time.sleep(POLL)
         return [answers[slot] for slot in chosen]
 
     def close(self) -> None:
@@ -150,3 +167,11 @@ class Estop:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _silence(client: Any, timeout: float) -> str:
+    """Why a module whose copies all waited to the deadline gave no answer."""
+    return (
+        f"no server answered {client.service} ({client.srv_type}) within {timeout:g} s; "
+        "check it is running (`msctl service list`)"
+    )

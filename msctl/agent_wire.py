@@ -69,6 +69,13 @@ def decode_response(data: bytes) -> AgentResponse:
     return AgentResponse(success, texts[0], texts[1])
 
 
+class _Request(NamedTuple):
+    """An agent request as :meth:`AgentClient.call_async` sends it."""
+
+    verb: str
+    args: str
+
+
 class AgentClient(ServiceClient):
     """A client of one supervisor's request service: the same graph token, key, attachment
     and errors as a :class:`ServiceClient` (whose :meth:`call_raw` it uses), with the request
@@ -98,6 +105,9 @@ class AgentClient(ServiceClient):
         self._seq = itertools.count(1)
         self._token = node.session.liveliness().declare_token(self.token_key)
         self._closed = False
+        # What ServiceClient.call_async codes with (a request with ``verb`` and ``args``).
+        self._serialize = lambda request: encode_request(request.verb, request.args)
+        self._deserialize = decode_response
 
     def ask(self, verb: str, args: str, timeout: float) -> AgentResponse:
         """Send one request and wait for the answer.
@@ -114,6 +124,11 @@ class AgentClient(ServiceClient):
             raise ServiceError(
                 f"service {self.service} sent a response that is not a {AGENT_SRV}_Response"
             ) from exc
+
+    def ask_repeating(self, verb: str, args: str, timeout: float, every: float) -> AgentResponse:
+        """:meth:`ask`, sent again every ``every`` seconds with no answer, the first answer
+        taken (:meth:`ServiceClient.call_repeating`: only for a verb safe to repeat)."""
+        return self.call_repeating(_Request(verb, args), timeout, every)
 
     def call(self, request: Any, timeout: float = 2.0) -> AgentResponse:
         """:meth:`ask` with a request that has ``verb`` and ``args`` (as a registry-made

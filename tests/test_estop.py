@@ -56,9 +56,10 @@ def session_settings(router_endpoint: str) -> SessionSettings:
 
 class StandIn:
     """A joint manager's halt and recover (a node named joint_manager in the module's
-    namespace), answering at once, or never when ``silent``."""
+    namespace), answering at once, or never when ``silent``; the answers to its first
+    ``lose`` halts are lost (a radio link that closed while they were on it)."""
 
-    def __init__(self, session: Any, slot: str, silent: bool = False) -> None:
+    def __init__(self, session: Any, slot: str, silent: bool = False, lose: int = 0) -> None:
         self.node = Node(session, "joint_manager", f"/{slot}")
         self.calls: list[str] = []
         self.pending: list[Any] = []
@@ -66,7 +67,7 @@ class StandIn:
         def serve(verb: str) -> Any:
             def answer(pending: Any) -> None:
                 self.calls.append(verb)
-                if silent:
+                if silent or (verb == "halt" and self.calls.count("halt") <= lose):
                     self.pending.append(pending)  # never answered
                     return
                 pending.reply(msg(f"{TRIGGER}_Response", success=True, message=f"{verb} done"))
@@ -108,10 +109,10 @@ def env(router_endpoint: str, tmp_path: Path) -> dict[str, str]:
 def modules(open_sessions) -> Iterator[Any]:
     made: list[StandIn] = []
 
-    def make(slot: str, silent: bool = False) -> StandIn:
+    def make(slot: str, silent: bool = False, lose: int = 0) -> StandIn:
         session = open_sessions()
         wait_until(lambda: list(session.info.routers_zid()), what="the router link")
-        made.append(StandIn(session, slot, silent))
+        made.append(StandIn(session, slot, silent, lose))
         return made[-1]
 
     try:
@@ -169,6 +170,34 @@ def test_a_halt_that_reached_nobody_goes_again_until_its_deadline(open_sessions,
         node.close()
 
 
+def test_a_halt_whose_answer_was_lost_is_sent_again_and_acknowledged(
+    open_sessions, modules
+) -> None:
+    # A radio link that closed while the halt or its answer was on it lost it for good:
+    # nothing resends it when the link reopens. The e-stop sends it again while it has no
+    # answer, the earlier copies still waiting, until its deadline.
+    lossy = modules("limb1", lose=2)
+    modules("limb2")
+    session = open_sessions()
+    wait_until(lambda: list(session.info.routers_zid()), what="the router link")
+    node = Node(session, "operator", "/ground1")
+    try:
+        with Estop(node, ["limb1", "limb2"]) as estop:
+            wait_until(
+                lambda: all(a.ok for a in estop.recover(timeout=5.0)) or None,
+                20.0,
+                "both modules answering",
+            )
+            answers = estop.halt(timeout=20.0)
+            assert [(a.module, a.ok, a.message) for a in answers] == [
+                ("limb1", True, "halt done"),
+                ("limb2", True, "halt done"),
+            ]
+            assert lossy.calls.count("halt") == 3  # two answers lost, the third came
+    finally:
+        node.close()
+
+
 def test_msctl_estop_names_each_module_and_a_silent_one_fails_the_command(env, modules) -> None:
     modules("limb1")
     silent = modules("limb2", silent=True)
@@ -182,7 +211,9 @@ def test_msctl_estop_names_each_module_and_a_silent_one_fails_the_command(env, m
     assert not rows["limb2"]["ok"] and rows["limb2"]["seconds"] is None
     assert "limb2 did not acknowledge" in result.stderr
     assert "stop them at the robot" in result.stderr
-    assert silent.calls == ["halt"]  # it was asked, it just never answered
+    # It was asked (again while it did not answer: an answer lost is asked for again), it
+    # just never answered.
+    assert silent.calls and set(silent.calls) == {"halt"}
 
     # Named modules only; the human form: one line per module with its time.
     named = msctl(env, "estop", "limb1")

@@ -72,7 +72,8 @@ def node(endpoint: str) -> Iterator[Node]:
 
 class StandIn:
     """A supervisor's request service for ``host`` in this process: it answers ``ps`` with
-    ``document``, refuses with ``refusal``, or never answers when ``silent``."""
+    ``document``, refuses with ``refusal``, or never answers when ``silent``; the answers to
+    its first ``lose`` requests are lost (a radio link that closed while they were on it)."""
 
     def __init__(
         self,
@@ -81,19 +82,27 @@ class StandIn:
         document: dict[str, Any] | None = None,
         refusal: str = "",
         silent: bool = False,
+        lose: int = 0,
     ) -> None:
         self.node = Node(node.session, "supervisor", host_namespace(host))
         self.pending: list[Any] = []  # requests a silent one keeps, never answered
+        self.asked: list[str] = []  # the verbs of the requests that reached it
         response = registry().msg_class(registry().service(AGENT_SRV).response)
 
         def serve(pending: Any) -> None:
-            if silent:
-                self.pending.append(pending)
+            self.asked.append(pending.request.verb)
+            if silent or len(self.asked) <= lose:
+                self.pending.append(pending)  # its answer lost on the way back
                 return
             payload = json.dumps(document or {"host": host, "components": []})
             pending.reply(response(success=not refusal, message=refusal, payload=payload))
 
         self.node.service("request", AGENT_SRV, serve, deferred=True)
+
+    def answer_pending(self, document: dict[str, Any]) -> None:
+        """Answer the first request it kept (a server that was only slow)."""
+        response = registry().msg_class(registry().service(AGENT_SRV).response)
+        self.pending[0].reply(response(success=True, message="", payload=json.dumps(document)))
 
     def close(self) -> None:
         self.node.close()
@@ -161,6 +170,8 @@ def test_a_host_back_within_the_grace_is_answered_not_gone(node: Node) -> None:
     import threading
 
     made: list[StandIn] = []
+    # The stand-in's types made first: made cold in the timer, they took 3.6 s (a loaded machine).
+    registry().msg_class(registry().service(AGENT_SRV).response)
     timer = threading.Timer(0.4, lambda: made.append(StandIn(node, "late")))
     timer.start()
     try:
@@ -169,7 +180,7 @@ def test_a_host_back_within_the_grace_is_answered_not_gone(node: Node) -> None:
         timer.join()
         for one in made:
             one.close()
-    assert asked.answers == {host_namespace("late"): {"host": "late", "components": []}}
+    assert asked.answers == {host_namespace("late"): {"host": "late", "components": []}}, asked
     assert not asked.silent
 
 
@@ -195,6 +206,51 @@ def test_a_supervisor_call_with_a_grace_reaches_a_host_whose_route_came_back(
         for one in made:
             one.close()
     assert answer == {"host": "later", "components": []}
+
+
+def test_a_request_whose_answer_was_lost_is_sent_again_and_answered(
+    node: Node, stand_in: Callable[..., StandIn]
+) -> None:
+    # A radio link that closes while a query waits loses it for good: the verbs that are
+    # safe to repeat are sent again, so the host is answered, not named unreachable.
+    from components.comm.services import ServiceTimeout
+    from msctl.launcher.control import call_supervisor
+
+    lossy = stand_in("lossy", lose=2)
+    answer = call_supervisor(node, "lossy", "up", timeout=30.0, attempt=0.5)
+    assert answer == {"host": "lossy", "components": []}
+    assert lossy.asked == ["up", "up", "up"]
+    # Sent once, an answer lost is a host that never answered, however long it is waited for.
+    once = stand_in("once", lose=1)
+    with pytest.raises(ServiceTimeout, match="no server answered"):
+        call_supervisor(node, "once", "ps", timeout=1.0)
+    assert once.asked == ["ps"]
+    # The fleet's own requests (ps --all, doctor --all, down --all) are sent again too.
+    asked = fleet.ask_hosts(node, "ps", ["lossy2"], timeout=9.0, found={})
+    assert asked.silent  # no such host yet
+    stand_in("lossy2", lose=1)
+    asked = fleet.ask_hosts(node, "ps", ["lossy2"], timeout=9.0, found={})
+    assert asked.answers == {host_namespace("lossy2"): {"host": "lossy2", "components": []}}
+
+
+def test_a_slow_answer_to_an_earlier_copy_still_counts(
+    node: Node, stand_in: Callable[..., StandIn]
+) -> None:
+    # A server slower than the repeat (an agent answers its requests in order, and its `up`
+    # starts processes first): the first copy's answer is taken when it comes.
+    slow = stand_in("slow", silent=True)
+    import threading
+
+    timer = threading.Timer(1.5, lambda: slow.answer_pending({"host": "slow", "late": True}))
+    timer.start()
+    try:
+        from msctl.launcher.control import call_supervisor
+
+        answer = call_supervisor(node, "slow", "up", timeout=20.0, attempt=0.4)
+    finally:
+        timer.join()
+    assert answer == {"host": "slow", "late": True}
+    assert len(slow.asked) >= 3
 
 
 def test_each_silence_says_why(node: Node, stand_in: Callable[..., StandIn]) -> None:

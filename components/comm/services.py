@@ -400,6 +400,46 @@ class ServiceClient:
         )
         return call
 
+    def call_repeating(self, request: Any, timeout: float, every: float) -> Any:
+        """Send ``request``, and again every ``every`` seconds with no answer, until one of
+        them is answered or ``timeout`` seconds have passed; every copy waits to the end.
+
+        For a request that is safe to repeat, over a link that may close while it waits: a
+        closed link loses the query or its answer for good (nothing resends it when the link
+        reopens). Earlier copies stay open, so a server that takes longer than ``every`` to
+        answer (and answers its requests in order) is still heard.
+
+        Raises:
+            NoServer: If every copy ended early with no answer (the network knew no server).
+            ServiceTimeout: If no copy was answered within ``timeout`` seconds.
+            ServiceError: If the server answered with an error or an undecodable response.
+        """
+        deadline = time.monotonic() + timeout
+        calls: list[PendingCall] = []
+        sent = 0
+        while True:
+            now = time.monotonic()
+            calls.append(self.call_async(request, timeout=max(deadline - now, 0.1)))
+            sent += 1
+            again = min(deadline, now + every)
+            while time.monotonic() < again:
+                answered = next((c for c in calls if c.answered is not None), None)
+                if answered is not None:
+                    return answered.result(0.0)
+                if all(c.done.is_set() for c in calls):
+                    return calls[-1].result(0.0)  # raises: why the last copy got no answer
+                calls[-1].done.wait(0.05)
+            if time.monotonic() >= deadline - 0.05:
+                # The last copies may still be ending: their answers are not awaited.
+                answered = next((c for c in calls if c.answered is not None), None)
+                if answered is not None:
+                    return answered.result(0.0)
+                times = f" (asked {sent} times)" if sent > 1 else ""
+                raise ServiceTimeout(
+                    f"no server answered {self.service} ({self.srv_type}) within {timeout:g} s"
+                    f"{times}; check it is running (`msctl service list`)"
+                )
+
     def close(self) -> None:
         """Undeclare the client's token (idempotent)."""
         if self._closed:
@@ -456,7 +496,7 @@ class PendingCall:
                 drops.drop(client.service, "malformed", f"{type(exc).__name__}: {exc}")
                 self._error = ServiceError(
                     f"service {client.service} sent a response that is not a "
-                    f"{client.parts.response}"
+                    f"{client.srv_type} response"
                 )
         self.answered = now
         self.done.set()
@@ -477,6 +517,11 @@ class PendingCall:
                     f"{self._timeout:g} s; check it is running (`msctl service list`)"
                 )
         self.done.set()
+
+    def error(self) -> ServiceError | None:
+        """Why the call failed (an error reply, or no answer once it is over); ``None`` while
+        it is in flight or when it was answered."""
+        return self._error
 
     @property
     def reached_nobody(self) -> bool:

@@ -194,6 +194,7 @@ def call_supervisor(
     args: dict[str, Any] | None = None,
     timeout: float = 5.0,
     grace: float = 0.0,
+    attempt: float | None = None,
 ) -> dict[str, Any]:
     """Send a request to ``host``'s supervisor and return its decoded payload.
 
@@ -208,6 +209,10 @@ def call_supervisor(
             moment is not an agent gone). Only for a verb that is safe to repeat: a query
             that ended early may still have reached its server (a link that dropped while
             it waited), and an agent takes the same ``up`` twice as one.
+        attempt: Seconds with no answer before the request is sent again (the earlier
+            copies still waiting), until ``timeout``; ``None`` sends it once. A radio link
+            that closes while a query waits loses the query or its answer for good (nothing
+            resends it when the link reopens): only a verb that is safe to repeat.
 
     Raises:
         ServiceTimeout: If nobody answers for that host.
@@ -223,9 +228,9 @@ def call_supervisor(
     try:
         request = registry().msg_class(client.parts.request)(verb=verb, args=encode_args(args))
         while True:
-            left = timeout - (time.monotonic() - started)
+            left = max(timeout - (time.monotonic() - started), 0.1)
             try:
-                response = client.call(request, timeout=max(left, 0.1))
+                response = client.call_repeating(request, left, attempt or left)
                 break
             except NoServer:
                 if time.monotonic() - started + 0.25 >= min(grace, timeout):

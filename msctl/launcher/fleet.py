@@ -188,6 +188,12 @@ def at_once(work: Callable[[T], R], items: Sequence[T]) -> list[R]:
 #: gone (a busy agent that missed its lease is back within that), and the pause between.
 NO_SERVER_GRACE = 2.0
 NO_SERVER_PAUSE = 0.25
+#: A request is sent again after a share of its bound with no answer (never sooner than
+#: :data:`MIN_ATTEMPT` seconds), the earlier copies still waiting: a radio link that closes
+#: while a query waits loses the query or its answer for good, and nothing resends it when
+#: the link reopens. The verbs asked this way (ps, doctor, down) are safe to repeat.
+ATTEMPTS = 3
+MIN_ATTEMPT = 2.0
 
 
 def ask_hosts(
@@ -236,8 +242,9 @@ def ask_hosts(
         while True:
             asked_at = time.monotonic()
             budget = timeout - (asked_at - started)
+            every = max(MIN_ATTEMPT, timeout / ATTEMPTS)
             try:
-                response = clients[namespace].ask(verb, request, timeout=budget)
+                response = clients[namespace].ask_repeating(verb, request, budget, every)
                 break
             except ServiceTimeout:
                 # Timed by the clock, not by the error's wording: a query that ended well

@@ -127,6 +127,11 @@ def _wait_rebuilt(
 #: Seconds ``up --all`` keeps asking a host whose route has lapsed (on field Wi-Fi a link
 #: flaps for a second or two) before naming it unreachable.
 UP_GRACE = 3.0
+#: Seconds ``up --all`` waits for one answer before asking again: a radio link that closed
+#: while the request or its answer was on it lost it for good (seen on the ``degraded``
+#: profile: parts started, and ``up --all`` named their hosts unreachable). The agent takes
+#: the same ``up`` again as one, answered as soon as the first is done.
+UP_ATTEMPT = 10.0
 
 
 def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> None:
@@ -196,7 +201,9 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         def ask(host: str) -> tuple[str, Any]:
             try:
                 if host_namespace(host) not in present:
-                    call_supervisor(node, host, "ps", timeout=10.0, grace=UP_GRACE)
+                    call_supervisor(
+                        node, host, "ps", timeout=10.0, grace=UP_GRACE, attempt=UP_ATTEMPT / 2
+                    )
                 answer = call_supervisor(
                     node,
                     host,
@@ -204,6 +211,7 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
                     {"assembly": document, "sim": sim, "speed": speed},
                     answer_bound,
                     grace=UP_GRACE,
+                    attempt=UP_ATTEMPT,
                 )
             except ServiceError as exc:  # a timeout says how long it waited, and for what
                 return "unreachable", str(exc)
