@@ -14,8 +14,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from components.roles import Role
+
 #: The drive topic of a robot, relative to its namespace (``/cmd_vel`` for a lone robot).
 CMD_VEL = "cmd_vel"
+#: The inputs a whole robot has (relative to its namespace), with their roles: the drive is a
+#: command (operators, the claim holder of the modules it moves). See :mod:`components.roles`.
+ROBOT_INPUTS: dict[str, Role] = {CMD_VEL: Role.COMMAND}
 
 
 def robots_of(assembly: Any) -> dict[str, str]:
@@ -110,3 +115,11 @@ def cmd_vel_topics(assembly: Any) -> dict[str, str]:
         if wheeled:
             out[robot] = robot_cmd_vel(assembly, robot)
     return out
+
+
+def robot_inputs_of(assembly: Any) -> dict[str, tuple[Role, str]]:
+    """Every robot's own inputs (:data:`ROBOT_INPUTS`) fully qualified, with their role and
+    the robot's root module: the ``cmd_vel`` of each robot that drives."""
+    return {
+        topic: (ROBOT_INPUTS[CMD_VEL], robot) for robot, topic in cmd_vel_topics(assembly).items()
+    }

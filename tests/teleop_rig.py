@@ -40,7 +40,8 @@ class EmulatedMotors:
         self.velocity = dict.fromkeys(self.names, 0.0)
         self.commands: list[JointSample] = []
         self._lock = threading.Lock()
-        self.node = Node(session, "motors", module.namespace)
+        # As the module's motor interface: the joint manager takes feedback from it only.
+        self.node = Node(session, "motor_interface", module.namespace)
         self._states = self.node.publisher("joint_states", JOINT_STATE, SENSOR)
         self.node.subscription("joint_commands", JOINT_STATE, self._on_commands)
         self._stop = threading.Event()

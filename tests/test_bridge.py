@@ -404,3 +404,42 @@ def test_the_bridge_kind_checks_its_parameters_at_assemble() -> None:
         kinds.check_params(bridge_kind, {"topics": "", "services": ""})
     with pytest.raises(kinds.KindError, match="fully qualified"):
         kinds.check_params(bridge_kind, {"topics": "chatter"})
+
+
+def test_a_ros_node_never_speaks_for_a_modules_motors_through_the_bridge(
+    domain: int, session_settings: SessionSettings
+) -> None:
+    """A ROS publisher of a module's feedback (``joint_states``) and raw commands
+    (``joint_commands``), by the roles msctl's interfaces declare, is skipped even with
+    ``--all`` and named, and nothing reaches msctl's plane; a command (``joint_set``) and
+    plain data are still bridged (issue 32, item 2: the bridge's exclusions from the roles)."""
+    from sensor_msgs.msg import JointState
+
+    with bridge(session_settings, domain, topics="*") as relays, RosPeer(domain) as peer:
+        session = open_session(session_settings)
+        node = Node(session, "zenoh_side", domain=domain)
+        heard: dict[str, int] = {}
+        try:
+            names = ("/limb9/joint_states", "/limb9/joint_commands", "/limb9/joint_set")
+            for name in names:
+                node.subscription(
+                    name,
+                    "sensor_msgs/msg/JointState",
+                    lambda _m, n=name: heard.__setitem__(n, heard.get(n, 0) + 1),
+                )
+            publishers = [peer.node.create_publisher(JointState, n, 10) for n in names]
+            sample = JointState(name=["limb9_joint1"], position=[0.1])
+            publish_until(
+                lambda: [p.publish(sample) for p in publishers],
+                lambda: heard.get("/limb9/joint_set", 0) > 0,
+            )
+            status = relays.status()
+            for name, role in (("/limb9/joint_states", "feedback"),
+                               ("/limb9/joint_commands", "raw_command")):  # fmt: skip
+                assert status.skipped[name].startswith(role), status.skipped
+                assert "never bridged from ROS" in status.skipped[name]
+                assert name not in heard
+            assert "/limb9/joint_set" not in status.skipped
+        finally:
+            node.close()
+            session.close()

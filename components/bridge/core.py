@@ -18,6 +18,7 @@ from components.comm.qos import QoS
 from components.config import require
 from components.executor.core import Core
 from components.messages import Level, diagnostic_array, diagnostic_status
+from components.roles import RULES, Role
 
 #: Topics every ROS 2 node has, never bridged by ``--all`` (each side has its own).
 ROS_TOPICS = frozenset({"/rosout", "/parameter_events"})
@@ -104,6 +105,20 @@ class Selection:
             and not service.startswith(CONTROL_PREFIX)
             and not _hidden(service)
         )
+
+
+def refused_into_msctl(topic: str, role: Role | None) -> str:
+    """Why a ROS publisher's ``topic`` is not carried into msctl's plane ("" when it is),
+    from the role msctl's interfaces declare for it (:mod:`components.roles`).
+
+    Raw motor commands and feedback come only from the module's own components (their
+    senders are checked by node at run time, and the bridge is not one): never from ROS, even
+    when named. Commands stay bridged (a ROS node moving a joint through ``joint_set`` is
+    what the bridge is for); the joint managers keep them on the claim holder.
+    """
+    if role is None or not RULES[role].own_senders:
+        return ""
+    return f"{role.value} (only {RULES[role].who} publishes it): never bridged from ROS"
 
 
 def relay_qos(offered: Iterable[QoS]) -> QoS:

@@ -44,6 +44,7 @@ from components.bridge.core import (
     Direction,
     RelayStatus,
     Selection,
+    refused_into_msctl,
     relay_qos,
 )
 from components.comm.attachment import CURRENT_SIZE, Attachment, AttachmentError
@@ -54,6 +55,7 @@ from components.comm.qos import QoS
 from components.comm.services import ServiceClient, ServiceError, ServiceServer
 from components.comm.topics import Publisher, data_key
 from components.comm.types import UnknownTypeError, normalize_type_name, registry
+from components.roles import declared_names, role_of
 
 log = logging.getLogger("msctl.bridge")
 
@@ -318,6 +320,9 @@ class Bridge:
 
         self.session = session
         self.selection = selection
+        # What each of msctl's inputs is, read once: a ROS publisher never speaks for a
+        # robot's motors (components.bridge.core.refused_into_msctl).
+        self._roles = declared_names()
         self.domain = domain
         self.call_timeout = call_timeout
         self.discovery_period = discovery_period
@@ -464,6 +469,10 @@ class Bridge:
                 _TopicToRos(self, t, n, q)
             )
         for topic, infos in dpublishers.items():
+            refused = refused_into_msctl(topic, role_of(topic, self._roles))
+            if refused:
+                self._skip(topic, refused)
+                continue
             names = {_type_name(i.topic_type) for i in infos}
             if len(names) > 1 or None in names:
                 self._skip(

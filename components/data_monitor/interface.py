@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from components.data_monitor.core import DIAGNOSTIC_STATUS, GET_ALARMS, health_handler
 from components.executor.interface import Every, InterfaceSpec, Publish, Serve, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY
+from components.roles import Role
 
 if TYPE_CHECKING:
     from components.data_monitor.board import WatchedSpec
@@ -27,7 +28,7 @@ DATA_MONITOR = InterfaceSpec(
         Publish("/diagnostics_agg", DIAGNOSTIC_ARRAY),
         Publish("/diagnostics_toplevel_state", DIAGNOSTIC_STATUS),
     ),
-    serve=(Serve("~/alarms", GET_ALARMS, "on_get_alarms"),),
+    serve=(Serve("~/alarms", GET_ALARMS, "on_get_alarms", role=Role.QUERY),),
     every=(Every(TICK_PERIOD, "tick"),),
 )
 """The data monitor's static interface (without the per-module health subscriptions)."""
@@ -37,7 +38,9 @@ def data_monitor_interface(watched: list[WatchedSpec]) -> InterfaceSpec:
     """:data:`DATA_MONITOR` plus one subscription per watched module (``/<slot>/health``)
     and station (``/<station>/diagnostics``, where its data archivers report)."""
     subscribe = tuple(
-        Subscribe(spec.health_topic, DIAGNOSTIC_ARRAY, health_handler(spec.name))
+        Subscribe(
+            spec.health_topic, DIAGNOSTIC_ARRAY, health_handler(spec.name), role=Role.TELEMETRY
+        )
         for spec in watched
     )
     return InterfaceSpec(

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from components.comm.qos import QoS
+from components.roles import Role
 
 if TYPE_CHECKING:
     from components.claims import ClaimRule
@@ -30,6 +31,9 @@ class Subscribe:
     ``claim``, when given (by the builder, which knows the module), makes it a command
     input: while the module is claimed, only the claim's holder (and the rule's relays) are
     taken (:mod:`components.claims`).
+    ``role`` says what the input is (:class:`~components.roles.Role`); every input of a
+    registered kind declares one, and a module's builder derives ``senders`` and ``claim``
+    from it (:func:`components.roles.bind`).
     """
 
     topic: str
@@ -38,6 +42,7 @@ class Subscribe:
     qos: QoS = field(default_factory=QoS)
     senders: tuple[str, ...] | None = None
     claim: ClaimRule | None = None
+    role: Role | None = None
 
 
 @dataclass(frozen=True)
@@ -55,13 +60,15 @@ class Serve:
 
     ``urgent`` requests are handled before anything queued (samples, timers, other
     requests), as soon as the handler running finishes, and answered at Zenoh's real-time
-    priority: a halt never waits behind data.
+    priority: a halt never waits behind data. ``role`` says what the request is
+    (:class:`~components.roles.Role`: a halt, a control request, a question...).
     """
 
     service: str
     srv_type: str
     handler: str
     urgent: bool = False
+    role: Role | None = None
 
 
 @dataclass(frozen=True)

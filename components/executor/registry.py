@@ -44,6 +44,7 @@ class _Entry:
     doc: str
     params: Mapping[str, ParamTypes]
     required: tuple[str, ...]
+    inputs: Mapping[str, Any]
 
 
 _INJECTIONS: dict[tuple[str, str], _Entry] = {}
@@ -71,13 +72,14 @@ def _register(
     name: str,
     params: Mapping[str, ParamTypes],
     required: Iterable[str],
+    inputs: Mapping[str, Any] | None = None,
 ) -> Callable:
     def decorate(fn: Applier) -> Applier:
         key = (kind, name)
         if key in table and table[key].apply is not fn:
             raise ValueError(f"{kind}/{name} is registered twice")
         doc = (fn.__doc__ or "").strip().split("\n")[0]
-        table[key] = _Entry(kind, name, fn, doc, dict(params), tuple(required))
+        table[key] = _Entry(kind, name, fn, doc, dict(params), tuple(required), dict(inputs or {}))
         return fn
 
     return decorate
@@ -88,9 +90,15 @@ def injection(
     name: str,
     params: Mapping[str, ParamTypes] | None = None,
     required: Iterable[str] = (),
+    inputs: Mapping[str, Any] | None = None,
 ) -> Callable[[Applier], Applier]:
-    """Register an injection ``name`` for cores of ``kind``, taking ``params``."""
-    return _register(_INJECTIONS, kind, name, params or {}, required)
+    """Register an injection ``name`` for cores of ``kind``, taking ``params``.
+
+    ``inputs`` names each input it may add to the core (a service, by its default name) with
+    its :class:`~components.roles.Role`: the access control guards it on every module whose
+    component may carry it (:func:`components.roles.assembly_inputs`).
+    """
+    return _register(_INJECTIONS, kind, name, params or {}, required, inputs)
 
 
 def override(
@@ -114,6 +122,16 @@ def available(kind: str | None = None) -> dict[str, list[tuple[str, str]]]:
             (k[1], e.doc) for k, e in _OVERRIDES.items() if kind is None or k[0] == kind
         ),
     }
+
+
+def declared_inputs(kind: str) -> dict[str, Any]:
+    """Inputs the injections of ``kind`` may add, by default name, with their roles."""
+    _load_providers()
+    out: dict[str, Any] = {}
+    for (target, _), entry in _INJECTIONS.items():
+        if target == kind:
+            out.update(entry.inputs)
+    return out
 
 
 def _lookup(table: dict[tuple[str, str], _Entry], what: str, kind: str, name: str) -> _Entry:

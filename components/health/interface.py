@@ -12,6 +12,7 @@ from __future__ import annotations
 from components.comm.qos import QoS
 from components.executor.interface import Every, InterfaceSpec, Publish, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE
+from components.roles import Role
 
 #: Seconds between silence checks: a topic going quiet is seen within this of its threshold.
 CHECK_PERIOD = 0.1
@@ -24,11 +25,15 @@ RATE_QOS = QoS(reliability="best_effort", depth=100)
 
 HEALTH_MONITOR = InterfaceSpec(
     subscribe=(
-        Subscribe("joint_states", JOINT_STATE, "on_joint_states", qos=RATE_QOS),
-        Subscribe("joint_read", JOINT_STATE, "on_joint_read"),
-        Subscribe("diagnostics", DIAGNOSTIC_ARRAY, "on_diagnostics"),
+        # It only watches: every input is telemetry to it (whoever may write a topic is the
+        # stricter role another interface gives it, e.g. the joint manager's feedback).
+        Subscribe(
+            "joint_states", JOINT_STATE, "on_joint_states", qos=RATE_QOS, role=Role.TELEMETRY
+        ),
+        Subscribe("joint_read", JOINT_STATE, "on_joint_read", role=Role.TELEMETRY),
+        Subscribe("diagnostics", DIAGNOSTIC_ARRAY, "on_diagnostics", role=Role.TELEMETRY),
         # What the joint manager asks the motors for, to see a joint stalled off target.
-        Subscribe("joint_commands", JOINT_STATE, "on_joint_commands"),
+        Subscribe("joint_commands", JOINT_STATE, "on_joint_commands", role=Role.TELEMETRY),
     ),
     publish=(Publish("health", DIAGNOSTIC_ARRAY),),
     every=(Every(CHECK_PERIOD, "tick"), Every(HOST_PERIOD, "on_host_timer")),

@@ -7,12 +7,11 @@ from collections.abc import Mapping
 from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
-from components.build import BuildError, BuiltComponent, node_name
-from components.claims import command_rule
+from components.build import BuildError, BuiltComponent
 from components.joint_manager.core import JointManagerConfig, JointManagerCore
 from components.joint_manager.interface import JOINT_MANAGER
-from components.joint_manager.kind import KIND
 from components.joint_manager.presence_feed import PresenceFeed, watched
+from components.roles import bind
 
 
 def build(
@@ -48,8 +47,9 @@ def build(
         )
     except ValueError as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
-    # joint_set is a command input: while the module is claimed, only its holder moves it.
-    spec = JOINT_MANAGER.claimed(("joint_set",), command_rule(assembly, module.slot))
+    # Its inputs' rules from their roles: joint_set (a command) only from the module's claim
+    # holder while it is claimed, joint_states (feedback) only from its own motor interface.
+    spec = bind(JOINT_MANAGER, assembly, module.slot)
     built = BuiltComponent(core, spec, module.namespace, "joint_manager")
     if presence is not None:
         built.on_bound = PresenceFeed(built, module.slot, presence[1])
@@ -58,15 +58,3 @@ def build(
         built.extension_defaults = {"rezero": {"calibration_file": module.calibration_file}}
     return built
 
-
-def commanding_node(assembly: ResolvedAssembly, slot: str) -> str:
-    """The one node that may command a module's motors: its joint manager, fully qualified
-    (``/limb1/joint_manager``), from the assembly's plan (the node-naming rule of
-    :func:`components.build.node_name`). The motor interface and the simulator take
-    ``joint_commands`` from this node only.
-    """
-    for plan in assembly.components:
-        if plan.kind == KIND.name and plan.module == slot:
-            return f"{plan.namespace.rstrip('/')}/{node_name(plan.name)}"
-    # No joint manager planned (a bare test assembly): the name it would run under.
-    return f"{assembly.module(slot).namespace.rstrip('/')}/joint_manager"

@@ -33,6 +33,7 @@ from components.executor.registry import injection
 from components.joint_manager.calibration_file import CalibrationFileError, write_zero_offsets
 from components.joint_manager.core import JointManagerCore, Refusal
 from components.messages import JointSample, msg
+from components.roles import Role
 
 log = logging.getLogger("msctl.joint_manager")
 
@@ -89,6 +90,7 @@ def _positive(params: dict[str, Any], key: str, default: float) -> float:
         "max_shift_linear": _NUMBER,
         "still_speed": _NUMBER,
     },
+    inputs={"rezero": Role.RAW},
 )
 def rezero(core: JointManagerCore, params: dict[str, Any]) -> None:
     """Re-zero joints at runtime from a service, bounded, and save the offsets to the unit file.
@@ -226,7 +228,8 @@ def rezero(core: JointManagerCore, params: dict[str, Any]) -> None:
         return _response(True, text, shifts)
 
     setattr(core, handler, on_rezero)
-    core.extra_serve.append(Serve(service, REZERO, handler))
+    # Motor-level calibration: only the module's own computer may ask (components.roles).
+    core.extra_serve.append(Serve(service, REZERO, handler, role=Role.RAW))
 
 
 def _caller() -> str:

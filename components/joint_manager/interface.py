@@ -11,13 +11,16 @@ from __future__ import annotations
 from components.comm.qos import SENSOR
 from components.executor.interface import Every, InterfaceSpec, Publish, Serve, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, TRIGGER
+from components.roles import Role
 
 LIST_JOINTS = "msctl_msgs/srv/ListJoints"
 
 JOINT_MANAGER = InterfaceSpec(
     subscribe=(
-        Subscribe("joint_states", JOINT_STATE, "on_joint_states", qos=SENSOR),
-        Subscribe("joint_set", JOINT_STATE, "on_joint_set"),
+        # The motors' readings: from the module's own motor interface only.
+        Subscribe("joint_states", JOINT_STATE, "on_joint_states", qos=SENSOR, role=Role.FEEDBACK),
+        # What operators ask for: from the module's claim holder only while it is claimed.
+        Subscribe("joint_set", JOINT_STATE, "on_joint_set", role=Role.COMMAND),
     ),
     publish=(
         Publish("joint_read", JOINT_STATE),
@@ -26,9 +29,9 @@ JOINT_MANAGER = InterfaceSpec(
     ),
     serve=(
         # Before anything queued: a halt must not wait behind a backlog of joint_states.
-        Serve("halt", TRIGGER, "on_halt", urgent=True),
-        Serve("recover", TRIGGER, "on_recover"),
-        Serve("joints", LIST_JOINTS, "on_joints"),
+        Serve("halt", TRIGGER, "on_halt", urgent=True, role=Role.HALT),
+        Serve("recover", TRIGGER, "on_recover", role=Role.CONTROL),
+        Serve("joints", LIST_JOINTS, "on_joints", role=Role.QUERY),
     ),
     every=(Every(0.02, "tick"),),
 )

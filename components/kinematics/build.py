@@ -7,10 +7,10 @@ from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
-from components.claims import command_rule
 from components.kinematics.core import KinematicsConfig, KinematicsCore
 from components.kinematics.interface import KINEMATICS_MANAGER
 from components.kinematics.model import ModelError, chain_model
+from components.roles import bind
 
 
 def build(
@@ -51,8 +51,8 @@ def build(
         core = KinematicsCore(plan.name, module.slot, model, config)
     except (ModelError, TypeError, ValueError) as exc:
         raise BuildError(f"{plan.name}: {exc}") from exc
-    # ik_target is a command input: while the limb is claimed, only its holder moves it.
-    spec = KINEMATICS_MANAGER.claimed(("ik_target",), command_rule(assembly, module.slot))
+    # ik_target is a command input (its role): while the limb is claimed, only its holder.
+    spec = bind(KINEMATICS_MANAGER, assembly, module.slot)
     return BuiltComponent(core, spec, module.namespace, "kinematics_manager")
 
 

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from components.executor.interface import Every, InterfaceSpec, Publish, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, POSE_STAMPED
+from components.roles import Role
 
 KINEMATICS_MANAGER = InterfaceSpec(
     subscribe=(
-        Subscribe("joint_read", JOINT_STATE, "on_joint_read"),
-        Subscribe("ik_target", POSE_STAMPED, "on_ik_target"),
+        Subscribe("joint_read", JOINT_STATE, "on_joint_read", role=Role.TELEMETRY),
+        Subscribe("ik_target", POSE_STAMPED, "on_ik_target", role=Role.COMMAND),
     ),
     publish=(
         Publish("tip_pose", POSE_STAMPED),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
@@ -68,13 +67,8 @@ def build(
 
 
 def interface_for(assembly: ResolvedAssembly, slot: str) -> InterfaceSpec:
-    """:data:`MOTOR_INTERFACE` taking ``joint_commands`` from the module's own joint manager
-    only, named from the assembly."""
-    from components.joint_manager.build import commanding_node
+    """:data:`MOTOR_INTERFACE` taking ``joint_commands`` (raw commands, by their role) from
+    the module's own joint manager only, named from the assembly."""
+    from components.roles import bind
 
-    sender = commanding_node(assembly, slot)
-    subscribe = tuple(
-        dataclasses.replace(s, senders=(sender,)) if s.senders is not None else s
-        for s in MOTOR_INTERFACE.subscribe
-    )
-    return dataclasses.replace(MOTOR_INTERFACE, subscribe=subscribe)
+    return bind(MOTOR_INTERFACE, assembly, slot)

@@ -47,7 +47,7 @@ def simulator_interface(
     ``/sim/base_pose`` (and ``/sim/<root link>/pose`` with several robots) and
     ``/sim/diagnostics``, and the simulated time on ``/clock``. One timer drives the physics.
     """
-    from components.joint_manager.build import commanding_node
+    from components.roles import Role, senders
 
     config = config or SimulatorConfig()
     subscribe, publish, serve = [], [], []
@@ -58,13 +58,16 @@ def simulator_interface(
                 commands_topic(slot),
                 JOINT_STATE,
                 commands_handler(slot),
-                senders=(commanding_node(assembly, slot),),
+                senders=senders(Role.RAW, assembly, slot, commands_topic(slot)),
+                role=Role.RAW,
             )
         )
         publish.append(Publish(states_topic(slot), JOINT_STATE, SENSOR))
         publish.append(Publish(module_diagnostics_topic(slot), DIAGNOSTIC_ARRAY))
-        serve.append(Serve(f"/{slot}/motors/halt", TRIGGER, halt_handler(slot)))
-        serve.append(Serve(f"/{slot}/motors/recover", TRIGGER, recover_handler(slot)))
+        serve.append(Serve(f"/{slot}/motors/halt", TRIGGER, halt_handler(slot), role=Role.RAW))
+        serve.append(
+            Serve(f"/{slot}/motors/recover", TRIGGER, recover_handler(slot), role=Role.RAW)
+        )
     for _, topic in pose_topics(tuple(assembly.root_links)):
         publish.append(Publish(topic, POSE_STAMPED, SENSOR))
     publish.append(Publish(CLOCK_TOPIC, CLOCK, SENSOR))

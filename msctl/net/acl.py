@@ -4,17 +4,19 @@ Every router enforces at its edge, on ingress, by the identity of the link a mes
 on: components of its own computer reach it over plain TCP on loopback (subject ``local``),
 other computers and operators over mutual TLS (subject = the certificate's common name).
 
-The guarded inputs are every topic a module-placed kind subscribes to and every service it
-serves, as its :class:`~components.executor.interface.InterfaceSpec` declares them. Who may
-write each one:
+The guarded inputs are every input of every module (its module-placed components' topics
+and services, what stands in for them in simulation, their injections') and every robot's
+own (``cmd_vel``), each with the role its interface declares (:mod:`components.roles`).
+Who may write each one follows from the role alone:
 
-- raw commands (``joint_commands``), motor topics (``motors/...``) and ``rezero``: only the
-  module's own computer;
-- ``halt`` and ``recover``: the module's computer and operators;
-- ``joint_set``, ``ik_target`` and ``cmd_vel``: operators and ground stations, plus whichever
-  computer runs a component whose interface publishes it (the module's own kinematics
-  manager writes ``joint_set``);
-- any other input: the computers whose components publish it, else the module's computer;
+- raw motor commands (``joint_commands``, ``motors/...``, ``rezero``) and feedback
+  (``joint_states``): only the module's own computer;
+- halts and control requests (``halt``, ``recover``): the module's computer and operators;
+- commands (``joint_set``, ``ik_target``, ``cmd_vel``): operators and ground stations, plus
+  whichever computer runs a component whose interface publishes it (the module's own
+  kinematics manager writes ``joint_set``);
+- telemetry: the computers whose components publish it, else the module's computer;
+- questions (``joints``): anyone in the fleet (a read);
 - supervisor and agent requests (``/msctl/...``): only operators.
 
 A ground station's router forwards its operators' commands, so a robot's router also takes
@@ -34,19 +36,6 @@ from typing import Any
 
 from components.assembly import ResolvedAssembly
 
-#: Who may write, by input name (relative to the module namespace).
-RAW = "raw"
-HALT = "halt"
-OPERATOR = "operator"
-_CLASSES: dict[str, str] = {
-    "joint_commands": RAW,
-    "rezero": RAW,
-    "halt": HALT,
-    "recover": HALT,
-    "joint_set": OPERATOR,
-    "ik_target": OPERATOR,
-    "cmd_vel": OPERATOR,
-}
 #: Subject id of this computer's own components (plain TCP on loopback).
 LOCAL = "local"
 #: Subject id of every operator identity.
@@ -127,50 +116,43 @@ def principals(
 
 
 def guarded_inputs(assembly: ResolvedAssembly) -> list[GuardedInput]:
-    """Every input of every module, with who may write it (see the module docstring)."""
+    """Every input of every module, with who may write it, from its declared role (see the
+    module docstring and :data:`components.roles.RULES`)."""
     from components import kinds
     from components.executor.interface import InterfaceSpec
+    from components.roles import RULES, assembly_inputs, qualify
 
     publishers: dict[str, set[str]] = {}
-    inputs: dict[str, tuple[str, str]] = {}  # topic -> (module host, input name)
-    module_host = {m.slot: m.host for m in assembly.modules}
     namespaces = {m.slot: m.namespace.rstrip("/") for m in assembly.modules}
     for component in assembly.components:
         kind = kinds.get(component.kind)
         spec = kinds.resolve(kind.interface) if kind.interface else None
         if not isinstance(spec, InterfaceSpec) or component.module is None:
-            continue  # station kinds read across modules; their inputs are their own
-        base = namespaces[component.module]
+            continue
         for publish in spec.publish:
-            topic = _qualify(publish.topic, base)
+            topic = qualify(publish.topic, namespaces[component.module])
             publishers.setdefault(topic, set()).add(component.host)
-        served = [s.service for s in spec.serve if s.service.split("/")[-1] in _CLASSES]
-        # A service outside the table (``joints``) only answers questions: a read.
-        for name in [s.topic for s in spec.subscribe] + served:
-            if name.startswith("~"):
-                continue
-            inputs[_qualify(name, base)] = (module_host[component.module], name)
-    # The motor interface's inputs exist on every module whether a bus or the simulator
-    # serves them, and rezero is a motor-side service some module types add.
-    for slot, base in namespaces.items():
-        for name in ("joint_commands", "motors/halt", "motors/recover", "rezero"):
-            inputs.setdefault(_qualify(name, base), (module_host[slot], name))
     guarded = []
-    for topic, (host, name) in sorted(inputs.items()):
-        klass = RAW if name.startswith("motors/") else _CLASSES.get(name)
+    for topic, found in sorted(assembly_inputs(assembly).items()):
+        rule = RULES[found.role]
+        if not rule.hosts:
+            continue  # a question: anyone in the fleet may ask
         writers = publishers.get(topic, set())
-        if klass == RAW:
-            guarded.append(GuardedInput(topic, frozenset({host}), why="module's own computer"))
-        elif klass == HALT:
-            guarded.append(GuardedInput(topic, frozenset({host}), operators=True,
-                                        why="module's computer and operators"))  # fmt: skip
-        elif klass == OPERATOR:
-            why = "operators, ground stations, its publishers"
-            guarded.append(
-                GuardedInput(topic, frozenset(writers), operators=True, stations=True, why=why)
-            )
+        if rule.hosts == "module":
+            hosts = {found.host}
+        elif rule.hosts == "publishers":
+            hosts = writers
         else:
-            guarded.append(GuardedInput(topic, frozenset(writers or {host}), why="its publishers"))
+            hosts = writers or {found.host}
+        guarded.append(
+            GuardedInput(
+                topic,
+                frozenset(hosts),
+                operators=rule.operators,
+                stations=rule.stations,
+                why=f"{found.role.value}: {rule.who}",
+            )
+        )
     return guarded
 
 
@@ -201,10 +183,6 @@ def placed_principals(fleet: FleetPrincipals, placement: Mapping[str, str]) -> F
     return FleetPrincipals(
         robots, stations, list(fleet.operators), list(fleet.enclaves), dict(fleet.certificates)
     )
-
-
-def _qualify(name: str, base: str) -> str:
-    return name if name.startswith("/") else f"{base}/{name}"
 
 
 def key_expr(topic: str, domain: int) -> str:

@@ -5,8 +5,13 @@ attachments and liveliness tokens, exactly as a live component's would. Bags mad
 play too: a type msctl does not know is registered from the bag's own ``ros2msg``
 definition first.
 
-Command topics (``joint_set``, ``joint_commands``, ``cmd_vel``, ...) move a robot: onto a
-running assembly (something subscribes to them) they are refused unless asked for.
+What a topic is comes from the roles the component interfaces declare
+(:mod:`components.roles`): commands, halts and control requests (``joint_set``, ``cmd_vel``,
+...) move a robot, so onto a running assembly (something subscribes to them) they are refused
+unless asked for; raw motor commands and motor feedback (``joint_commands``,
+``joint_states``) may come only from the module's own components, so they are refused onto a
+running assembly even then, unless remapped away. A remap must name a topic of the bag: a typo
+would otherwise play the topic under its own, live name.
 """
 
 from __future__ import annotations
@@ -21,16 +26,13 @@ from msctl.recorder.bag import BagInfo, TopicDefinition, read_messages
 from msctl.recorder.definitions import SEPARATOR, profiles_to_qos
 from msctl.recorder.errors import BagError
 
-#: Last name components of topics that command motion: never replayed onto a live robot
-#: without ``--allow-commands``.
-COMMAND_TOPICS = frozenset(
-    {"joint_set", "joint_commands", "cmd_vel", "ik_target", "halt", "estop", "recover", "claim"}
-)
-
 
 def is_command_topic(topic: str) -> bool:
-    """Whether ``topic`` commands motion (its last name component is a command name)."""
-    return topic.rstrip("/").rsplit("/", 1)[-1] in COMMAND_TOPICS
+    """Whether ``topic`` drives, stops or speaks for a robot's motors, by its declared role
+    (:func:`components.roles.role_of`)."""
+    from components.roles import moves, role_of
+
+    return moves(role_of(topic))
 
 
 def parse_remaps(texts: Iterable[str]) -> dict[str, str]:
@@ -126,10 +128,12 @@ class Player:
         start_offset: Seconds into the bag to start at.
         remap: Recorded name -> name to publish on.
         loop: Start over at the end, until stopped.
-        allow_commands: Play command topics even when something subscribes to them.
+        allow_commands: Play commands, halts and control requests even when something
+            subscribes to them (never raw motor commands or feedback: remap those).
 
     Raises:
-        BagError: If an option is out of range or names a topic the bag lacks.
+        BagError: If an option is out of range or names a topic the bag lacks (a remap's
+            source included).
     """
 
     def __init__(
@@ -165,30 +169,51 @@ class Player:
                 f"bag {info.path} has no topic {', '.join(missing)}; "
                 f"it has: {', '.join(sorted(recorded)) or 'none'}"
             )
+        unknown = [f"{old}:={new}" for old, new in self.remap.items() if old not in recorded]
+        if unknown:
+            raise BagError(
+                f"--remap {', '.join(unknown)}: bag {info.path} has no topic "
+                f"{', '.join(old for old in self.remap if old not in recorded)}; "
+                f"it has: {', '.join(sorted(recorded)) or 'none'}",
+                hint="name a recorded topic on the left of :=",
+            )
         self.topics = set(wanted) or recorded
         self.report = PlayReport()
         self._publishers: dict[str, Any] = {}
 
     def check_commands(self, subscribed: Callable[[str], bool]) -> None:
-        """Refuse command topics something listens to (a running assembly).
+        """Refuse, by their declared roles, topics a running assembly listens to that a
+        recording must not speak on: commands, halts and control requests (unless
+        ``allow_commands``), raw motor commands and feedback (always).
 
         Args:
             subscribed: Whether a topic (as it would be published) has subscribers.
 
         Raises:
-            BagError: Naming the command topics and the way to play them anyway.
+            BagError: Naming the topics, their roles, and the way to play them anyway.
         """
-        if self.allow_commands:
-            return
-        live = sorted(
-            self.remap.get(t, t)
-            for t in self.topics
-            if is_command_topic(self.remap.get(t, t)) and subscribed(self.remap.get(t, t))
-        )
-        if live:
+        from components.roles import RULES, declared_names, moves, role_of
+
+        names = declared_names()
+        own_only, commands = [], []
+        for topic in sorted(self.remap.get(t, t) for t in self.topics):
+            role = role_of(topic, names)
+            if not moves(role) or not subscribed(topic):
+                continue
+            assert role is not None
+            if RULES[role].own_senders:
+                own_only.append(f"{topic} ({role.value}: only {RULES[role].who} publishes it)")
+            elif not self.allow_commands:
+                commands.append(f"{topic} ({role.value})")
+        if own_only:
             raise BagError(
-                f"refusing to play command topic(s) {', '.join(live)} onto a running assembly "
-                "(they would move the robot)",
+                f"refusing to play {'; '.join(own_only)} onto a running assembly",
+                hint="leave them out with --topics, or remap them (--remap SRC:=/replay/...)",
+            )
+        if commands:
+            raise BagError(
+                f"refusing to play command topic(s) {', '.join(commands)} onto a running "
+                "assembly (they would move or stop the robot)",
                 hint="leave them out with --topics, remap them, or give --allow-commands",
             )
 
