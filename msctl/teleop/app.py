@@ -7,6 +7,10 @@ joint manager's ``halt`` at once), ``escape``/``ctrl+c`` stop and quit, ``ctrl+r
 after an e-stop. Losing the terminal's focus (textual's ``AppBlur``) stops the motion; so
 does a claim taken over by another operator, for what it moved.
 
+A module that cannot move (halted from another shell, its joint manager gone: see
+:mod:`msctl.teleop.watch`) has its keys refused and the screen says why, never MOVING; so
+does a window too small to show what the keys would move (the target area).
+
 It shows the mode and speed, the commanded modules, the deadman (moving or stopped, and why),
 the selected joint's position as a bar between its limits (the limb's joints in IK mode, the
 twist in drive mode), the health board's latest alarm and the key help. It reads the
@@ -33,7 +37,16 @@ from textual.widgets import Static
 from components.data_monitor.board import level_name
 from components.messages import ERROR, OK, STALE, WARN
 from msctl.teleop.core import TeleopView
-from msctl.teleop.keys import COMMON_HELP, HELP, IK, JOINT
+from msctl.teleop.keys import (
+    COMMON_HELP,
+    DRIVE,
+    DRIVE_MOVES,
+    HELP,
+    IK,
+    IK_MOVES,
+    JOINT,
+    JOINT_MOVES,
+)
 from msctl.teleop.operator import Operator
 
 #: Seconds between two redraws (10 Hz), however fast keys and samples come.
@@ -42,6 +55,13 @@ REFRESH_PERIOD = 0.1
 ALARM_EVERY = 5
 #: Characters of a joint's bar between its limits.
 BAR_WIDTH = 32
+#: Lines the target area needs to show what the keys move (the module line and the selected
+#: joint's row): below this, motion keys are refused.
+TARGET_LINES = 2
+#: Terminal rows below which the key help and spacing give way to the target area.
+CRAMPED_ROWS = 20
+#: Each mode's motion keys.
+_MOVES = {JOINT: JOINT_MOVES, IK: IK_MOVES, DRIVE: DRIVE_MOVES}
 
 _LEVEL_STYLES = {OK: "green", WARN: "bold yellow", ERROR: "bold white on red", STALE: "magenta"}
 
@@ -141,6 +161,10 @@ class TeleopApp(App[None]):
         #: Every halt or recover answer received, oldest first.
         self.answers: list[tuple[str, Any]] = []
         self._failures_seen = 0
+        #: Modules that cannot move (halted, gone), and why, as last told to the operator.
+        self.unable: dict[str, str] = {}
+        #: Modules whose claim another operator took over.
+        self._taken: set[str] = set()
 
     # ------------------------------------------------------------------ layout
     def compose(self) -> ComposeResult:
@@ -166,15 +190,61 @@ class TeleopApp(App[None]):
 
     # ------------------------------------------------------------------ keys
     def on_key(self, event: events.Key) -> None:
-        """Every key not bound by the app goes to the operator."""
+        """Every key not bound by the app goes to the operator, but a motion key while the
+        window cannot show what it would move."""
         event.stop()
         event.prevent_default()
-        result = self.operator.press(key_name(event))
+        key = key_name(event)
+        if key in _MOVES.get(self.operator.view().mode, {}) and not self.target_shown():
+            self.operator.stop("window too small")
+            self.status = (
+                f"the window is too small to show what {key!r} would move "
+                f"({self.size.width}x{self.size.height}): enlarge it; motion keys are refused"
+            )
+            self.redraw()
+            return
+        result = self.operator.press(key)
         if result in ("mode", "select", "refused", "speed"):
             self.redraw()
 
+    def target_shown(self) -> bool:
+        """Whether the target area shows what the keys move (at least :data:`TARGET_LINES`)."""
+        try:
+            return self.query_one("#target", Static).content_region.height >= TARGET_LINES
+        except NoMatches:
+            return False
+
+    def on_resize(self, event: events.Resize) -> None:
+        """A short window gives the key help's room to the target area; one too small to
+        show the target while moving stops the motion (checked once laid out)."""
+        self.screen.set_class(event.size.height < CRAMPED_ROWS, "cramped")
+        self.call_after_refresh(self._check_room)
+
+    def _check_room(self) -> None:
+        if not self.target_shown() and self.operator.view().moving:
+            self.operator.stop("window too small")
+
+    def follow_modules(self) -> None:
+        """Refuse the keys of the modules that cannot move now, and say why; take them
+        back when they can (a claim taken over stays refused)."""
+        why_not = getattr(self.link, "why_not", None)
+        if why_not is None:
+            return
+        for slot in self.link.modules:
+            if slot in self._taken:
+                continue
+            why = why_not(slot)
+            if why and self.unable.get(slot) != why:
+                self.unable[slot] = why
+                self.operator.block(slot, why, why.split(":", 1)[0])
+            elif not why and slot in self.unable:
+                del self.unable[slot]
+                self.operator.unblock(slot)
+
     def on_teleop_app_claim_lost(self, message: ClaimLost) -> None:
         """Say it at once, stop what moves that module, refuse its keys from now on."""
+        self._taken.add(message.module)
+        self.unable.pop(message.module, None)
         holder = message.holder
         reason = (
             f"{message.module} was TAKEN OVER by {holder.holder} (node {holder.node}) at "
@@ -243,6 +313,7 @@ class TeleopApp(App[None]):
 
     def _draw(self) -> None:
         self.refreshes += 1
+        self.follow_modules()
         view = self.operator.view()
         self.query_one("#header", Static).update(self._header(view))
         banner = self.query_one("#estop", Static)
@@ -273,12 +344,19 @@ class TeleopApp(App[None]):
         return text
 
     def _claims(self, view: TeleopView) -> Text:
-        text = Text(f"modules: {', '.join(self.link.modules)}    claims: ")
+        text = Text("modules: ")
+        for index, module in enumerate(self.link.modules):
+            text.append(", " if index else "")
+            text.append(module)
+            if module in self.unable:
+                state = "GONE" if " GONE" in self.unable[module] else "HALTED"
+                text.append(f" {state}", style="bold white on red")
+        text.append("    claims: ")
         held = getattr(self.link, "held", {})
         if not held:
             return text.append("none (not claiming)", style="dim")
         for module, claim in held.items():
-            if module in view.blocked or claim.lost.is_set():
+            if module in self._taken or claim.lost.is_set():
                 taker = claim.lost_to.holder if claim.lost_to is not None else "another operator"
                 text.append(f"{module} TAKEN by {taker}", style="bold white on red")
             else:
@@ -290,6 +368,8 @@ class TeleopApp(App[None]):
         return text
 
     def _deadman(self, view: TeleopView) -> Text:
+        if view.held_back and not view.moving:
+            return Text(f"NOT MOVING: {view.held_back}", style="bold white on red")
         if view.moving:
             timeout = "repeating" if view.repeating else "first press"
             return Text(f"MOVING  key {view.key!r} ({timeout})", style="bold green")
@@ -312,10 +392,18 @@ class TeleopApp(App[None]):
             text.append_text(self._joint_rows(module, selected))
         return text
 
-    def _joint_rows(self, module: str, selected: str | None) -> Text:
-        """One row per joint: its position as a bar between its limits."""
+    def _joint_rows(self, module: str, selected: str | None, above: int = 1) -> Text:
+        """One row per joint: its position as a bar between its limits; as many as the
+        target area holds below its first ``above`` lines, the selected one always among
+        them."""
         text = Text()
-        for joint in self.link.joints().get(module, ()):
+        joints = list(self.link.joints().get(module, ()))
+        room = self._target_lines() - above
+        if 0 < room < len(joints):
+            at = joints.index(selected) if selected in joints else 0
+            first = min(max(at - room // 2, 0), len(joints) - room)
+            joints = joints[first : first + room]
+        for joint in joints:
             position, lower, upper = self.link.joint_state(module, joint)
             mark = ">" if joint == selected else " "
             style = "bold" if joint == selected else "dim"
@@ -327,6 +415,12 @@ class TeleopApp(App[None]):
             )
         return text
 
+    def _target_lines(self) -> int:
+        try:
+            return self.query_one("#target", Static).content_region.height
+        except NoMatches:
+            return 0
+
     def _limb(self, limb: str | None) -> Text:
         text = Text()
         for slot in self.link.limbs:
@@ -335,7 +429,7 @@ class TeleopApp(App[None]):
         if limb is None:
             return text
         text.append(f"tip of {limb} in its base frame: {self._tip(limb)}\n")
-        text.append_text(self._joint_rows(limb, None))
+        text.append_text(self._joint_rows(limb, None, above=2))
         return text
 
     def _tip(self, limb: str) -> str:

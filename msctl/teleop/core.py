@@ -210,6 +210,7 @@ class TeleopView:
         blocked: Modules no longer commanded, and why.
         moves: Motion commands given so far.
         stops: Stop commands given so far.
+        held_back: Why the selected target cannot be commanded ("" when it can).
     """
 
     mode: str
@@ -226,6 +227,7 @@ class TeleopView:
     blocked: dict[str, str]
     moves: int
     stops: int
+    held_back: str = ""
 
 
 @dataclass
@@ -342,6 +344,7 @@ class TeleopCore:
             blocked=dict(self.blocked),
             moves=self.moves,
             stops=self.stops,
+            held_back=self.blocked_target(),
         )
 
     # ------------------------------------------------------------------ inputs
@@ -399,18 +402,29 @@ class TeleopCore:
         if self._moving is not None:
             self._owe_stop(reason)
 
-    def block(self, module: str, reason: str, now: float) -> None:
-        """Command ``module`` no more (its claim was taken over): a motion that moves it
-        stops (one stop), and its keys are refused with ``reason`` until :meth:`unblock`."""
+    def block(self, module: str, reason: str, now: float, why: str = "claim lost") -> None:
+        """Command ``module`` no more (its claim was taken over, it was halted, its joint
+        manager is gone): a motion that moves it stops (one stop, for ``why``), and its keys
+        are refused with ``reason`` until :meth:`unblock`."""
         self.blocked[module] = reason
         moving = self._moving or self._intent
         if moving is not None and self._blocked(moving):
-            self.stop("claim lost", now)
+            self.stop(why, now)
         self.note = reason
 
     def unblock(self, module: str) -> None:
-        """Command ``module`` again (its claim is back)."""
+        """Command ``module`` again (its claim is back, it was recovered)."""
         self.blocked.pop(module, None)
+
+    def blocked_target(self) -> str:
+        """Why the selected target of the mode cannot be commanded ("" when it can)."""
+        if self.mode == JOINT:
+            target = self.module
+        elif self.mode == IK:
+            target = self.limb
+        else:
+            return next(iter(self.blocked.values()), "")
+        return self.blocked.get(target, "") if target is not None else ""
 
     def _blocked(self, motion: _Motion | None) -> str:
         """Why ``motion`` may not go out ("" when it may): a module it moves is blocked; a

@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 
 #: Seconds to wait for a module's joint manager to list its joints.
 ANSWER_TIMEOUT = 5.0
+#: Seconds after which a module whose joint manager is not on the graph, while another
+#: module's is, is taken as stopped (a graph just joined may lag a moment).
+STOPPED_AFTER = 1.0
 
 
 def check_modules(assembly: ResolvedAssembly, modules: Sequence[str]) -> list[str]:
@@ -90,6 +93,8 @@ class Link:
         estop: Halt and recover of the commanded modules (:class:`components.estop.Estop`).
         through: The station's human operator relaying this screen (its node), or None when
             the screen runs on its own (see :mod:`msctl.teleop.station`).
+        watch: Whether each module can move now (halted, gone), as another shell left it
+            (:class:`~msctl.teleop.watch.ModuleWatch`; None: not watched).
     """
 
     node: Any
@@ -103,6 +108,7 @@ class Link:
     held: dict[str, Any] = field(default_factory=dict)
     estop: Any = None
     through: str | None = None
+    watch: Any = None
     _joints: JointJog | None = None
 
     # ------------------------------------------------------------------ opening
@@ -119,6 +125,7 @@ class Link:
         claim: bool = True,
         take: bool = False,
         station: str | None = None,
+        watch: bool = True,
     ) -> Link:
         """Connect to the commanded modules (default: every module), and claim them.
 
@@ -135,10 +142,12 @@ class Link:
             station: This computer, as the assembly names it: when it plans a human
                 operator here and it answers, the screen attaches to it (its claims and
                 relays, its second deadman); None: the screen runs on its own.
+            watch: Follow whether each module can move (halted, gone) for the screen.
 
         Raises:
             NotFoundError: For a module the assembly does not have.
-            NetworkError: If a module's joint manager does not answer, naming it.
+            NetworkError: If a module's joint manager does not answer, naming it: at once
+                when the rest of the assembly answers and it is not on the graph (stopped).
             MsctlError: If another operator holds a module's claim (and not ``take``),
                 naming them and since when.
         """
@@ -146,17 +155,25 @@ class Link:
         from components.api.joints import JointHandler, list_joints
 
         slots = check_modules(assembly, modules)
-        deadline = time.monotonic() + timeout
+        started = time.monotonic()
+        deadline = started + timeout
+        stopped: list[str] = []
 
         def listing(slot: str) -> list[Any]:
             # A fresh session learns the routes to the services in its first moments: a
-            # query that ends at once found no server yet, so ask again until the deadline.
+            # query that ends at once found no server yet, so ask again until the deadline,
+            # unless the graph shows the rest of the assembly and not this module.
             while True:
                 remaining = deadline - time.monotonic()
                 try:
-                    return list_joints(node, slot, max(remaining, 0.1))
+                    return list_joints(node, slot, max(min(remaining, STOPPED_AFTER), 0.1))
                 except ApiError:
                     if deadline - time.monotonic() < 0.2:
+                        raise
+                    if time.monotonic() - started >= STOPPED_AFTER and _stopped(
+                        node, assembly, slot
+                    ):
+                        stopped.append(slot)
                         raise
                 time.sleep(0.1)
 
@@ -170,6 +187,13 @@ class Link:
                 except ApiError as exc:
                     log.debug("%s: %s", slot, exc)
                     silent.append(slot)
+        if stopped:
+            raise NetworkError(
+                f"{', '.join(sorted(stopped))} not running: nothing serves "
+                f"/{sorted(stopped)[0]}/joints (its joint manager is stopped or gone) while "
+                "the rest of the assembly answers",
+                hint="see `msctl ps`; `msctl restart COMPONENT` (or `msctl up`) brings it back",
+            )
         if silent:
             raise NetworkError(
                 f"no answer from the joint manager of {', '.join(silent)} "
@@ -208,6 +232,10 @@ class Link:
                 link.drive.topic = topic  # what the screen shows: where the Twists end up
             if claim and link.through is None:
                 link._claim(take)
+            if watch:
+                from msctl.teleop.watch import ModuleWatch
+
+                link.watch = ModuleWatch(node, {s: assembly.module(s).namespace for s in slots})
             if health:
                 from msctl.health.live import LiveHealth
 
@@ -296,6 +324,11 @@ class Link:
         """Drive mode's ``cmd_vel`` topic (None: no drive mode)."""
         return None if self.drive is None else self.drive.topic
 
+    def why_not(self, slot: str) -> str:
+        """Why ``slot`` cannot move now (halted, its joint manager gone; "" when it can, or
+        when nothing is watched)."""
+        return "" if self.watch is None else self.watch.why_not(slot)
+
     def claimed(self) -> list[str]:
         """The modules this link holds the claims of (every commanded module when it
         claims nothing)."""
@@ -332,11 +365,17 @@ class Link:
     def halt(self, modules: Sequence[str] | None = None) -> list[Any]:
         """Halt the modules (default: every commanded one) at once, through the e-stop's
         clients; each module's :class:`~components.estop.Acknowledgement` and its time."""
-        return self.estop.halt(modules)
+        answers = self.estop.halt(modules)
+        if self.watch is not None:
+            self.watch.acknowledged("halt", answers)
+        return answers
 
     def recover(self, modules: Sequence[str] | None = None) -> list[Any]:
         """Recover the modules (default: every commanded one) at once."""
-        return self.estop.recover(modules)
+        answers = self.estop.recover(modules)
+        if self.watch is not None:
+            self.watch.acknowledged("recover", answers)
+        return answers
 
     # ------------------------------------------------------------------ closing
     def close(self) -> None:
@@ -344,6 +383,9 @@ class Link:
         if self.health is not None:
             self.health.close()
             self.health = None
+        if self.watch is not None:
+            self.watch.close()
+            self.watch = None
         if self.through is not None:
             # After the last stop went out (the caller closed its operator first).
             from components.comm.services import ServiceError
@@ -365,3 +407,16 @@ class Link:
             self.estop.close()
         for handler in self.handlers.values():
             handler.close()
+
+
+def _stopped(node: Any, assembly: ResolvedAssembly, slot: str) -> bool:
+    """Whether the graph shows another module's joints listing but not ``slot``'s: the
+    assembly is up and this module's joint manager is not."""
+    from components.comm.graph import snapshot
+    from components.comm.liveliness import EntityKind
+
+    servers = snapshot(node.session, node.domain, 1.0, f"*/*/*/{EntityKind.SERVICE.value}/**")
+    served = set(servers.services())
+    listings = {m.slot: f"{m.namespace.rstrip('/')}/joints" for m in assembly.modules}
+    others = any(topic in served for other, topic in listings.items() if other != slot)
+    return others and listings[slot] not in served

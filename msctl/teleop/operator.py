@@ -130,12 +130,17 @@ class Operator:
             self.core.select(module, joint, self.clock())
         self._wake.set()
 
-    def block(self, module: str, reason: str) -> None:
-        """Command ``module`` no more (its claim was taken over); see
-        :meth:`TeleopCore.block`."""
+    def block(self, module: str, reason: str, why: str = "claim lost") -> None:
+        """Command ``module`` no more (its claim was taken over, it was halted or is
+        gone); see :meth:`TeleopCore.block`."""
         with self._lock:
-            self.core.block(module, reason, self.clock())
+            self.core.block(module, reason, self.clock(), why)
         self._wake.set()
+
+    def unblock(self, module: str) -> None:
+        """Command ``module`` again; see :meth:`TeleopCore.unblock`."""
+        with self._lock:
+            self.core.unblock(module)
 
     def stop(self, reason: str) -> None:
         """End the motion now (focus lost, e-stop...): one stop if anything moved."""
