@@ -187,12 +187,16 @@ def play(
         0.0, "--start-offset", help="Seconds into the bag to start at."
     ),
     remap: list[str] = typer.Option(
-        None, "--remap", "-m", help="Publish OLD on NEW: OLD:=NEW (repeatable)."
+        None,
+        "--remap",
+        "-m",
+        help="Publish OLD on NEW: OLD:=NEW (repeatable; OLD must be a topic of the bag).",
     ),
     allow_commands: bool = typer.Option(
         False,
         "--allow-commands",
-        help="Play command topics (joint_set, cmd_vel...) onto a running assembly too.",
+        help="Play commands, halts and control requests (joint_set, cmd_vel...) onto a "
+        "running assembly too; never a module's feedback or raw motor commands (remap those).",
     ),
     json_output: bool = JSON_OPT,
 ) -> None:
