@@ -25,8 +25,9 @@ API summary::
     claim.release()             # idempotent; also done by claims.close()
     claims.close()              # releases this object's claims, stops watching
 
-Enforcement (robot side): an interface's ``Subscribe`` carrying a :class:`ClaimRule` (set by
-the builder: ``spec.claimed(("joint_set",), command_rule(assembly, slot))``) is kept by the
+Enforcement (robot side): an interface's ``Subscribe`` carrying a :class:`ClaimRule` (set on
+every input whose declared role is a command by the builder's
+:func:`components.roles.bind`, with ``command_rule(assembly, slot)``) is kept by the
 executor's :class:`ClaimGuard` on the module's holder; other senders are refused, counted
 under ``not_holder`` (or ``unclaimed`` when the template says ``claims = "required"``), and
 warned about once naming the holder.
