@@ -12,7 +12,12 @@ that kinematics and the simulator can find by their URDF link names), then edite
   their primitive shapes touch at every connector).
 
 Gains are chosen so a joint saturates at max effort ``SATURATION`` away from its target, with a
-0.1 s damping time constant; the implicit-fast integrator keeps that stable at 2 ms steps.
+0.1 s damping time constant, capped by what a 2 ms step can hold for the joint's own inertia
+(``STABLE_DAMPING``): the implicit-fast integrator treats a servo's damping implicitly only
+while its force is inside the force range. At the range's end (a move at max effort) the
+damping is explicit, and a light joint's (a 0.11 kg finger with kv = 400 N s/m: kv dt / m =
+7.3, stable only below 2) flips its velocity every step, the force banging between its two
+limits: the finger then held wherever it was, 4-9 mm short of its target.
 """
 
 from __future__ import annotations
@@ -27,6 +32,9 @@ from msctl.errors import InputError
 SATURATION = {"revolute": 0.05, "continuous": 0.05, "prismatic": 0.01}
 #: Damping time constant of position servos (kv = TIME_CONSTANT * kp), seconds.
 TIME_CONSTANT = 0.1
+#: Largest kv * timestep / inertia of a position servo: explicit damping is stable below 2, and
+#: at its force limit a servo's damping is explicit (see the module's description).
+STABLE_DAMPING = 1.5
 #: Velocity servos reach max effort at this fraction of max velocity off target.
 VELOCITY_SATURATION = 0.2
 #: Height of a mobile robot's lowest geom above the ground at the start (m).
@@ -119,6 +127,8 @@ def build_mjcf(document: Mapping[str, Any], urdf: str) -> str:
         act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
 
     model = _compile(spec, document)
+    _cap_damping(spec, model)
+    model = _compile(spec, document)
     if document["mobile"]:
         lows = _lowest_points(model)
         for index, body in enumerate(tops, start=1):  # body ids: world is 0, tops follow
@@ -127,6 +137,22 @@ def build_mjcf(document: Mapping[str, Any], urdf: str) -> str:
                 body.pos = [body.pos[0], body.pos[1], body.pos[2] - low + CLEARANCE]
         _compile(spec, document)
     return spec.to_xml()
+
+
+def _cap_damping(spec: Any, model: Any) -> None:
+    """Lower each position servo's kv to what a time step holds for its joint's inertia
+    (:data:`STABLE_DAMPING`); kp stays, so the joint still saturates where it did."""
+    for act in spec.actuators:
+        kv = -act.biasprm[2]
+        if act.biasprm[1] == 0.0 or kv <= 0.0:
+            continue  # a velocity servo: no position gain to keep a damping ratio for
+        joint = model.actuator(act.name).trnid[0]
+        inertia = float(model.dof_M0[model.jnt_dofadr[joint]])
+        stable = STABLE_DAMPING * inertia / model.opt.timestep
+        if kv > stable:
+            bias = list(act.biasprm)
+            bias[2] = -stable
+            act.biasprm = bias
 
 
 def _compile(spec: Any, document: Mapping[str, Any]) -> Any:
