@@ -578,11 +578,18 @@ def _check_cn_length(common_name: str) -> None:
 
 
 def _cn_file(folder: Path) -> str:
-    """The certificate CN written beside it (``""``: none, an identity from elsewhere)."""
+    """The certificate CN written beside it (``""``: none, an identity from elsewhere, or
+    one that does not name this folder's identity, which the certificate then tells)."""
     try:
-        return (folder / "cn").read_text().strip()
+        text = (folder / "cn").read_text().strip()
     except (OSError, UnicodeDecodeError):
         return ""
+    name = name_of(text)
+    try:
+        ours = bool(name) and identity_dir(name, folder.parent.parent.parent).name == folder.name
+    except ValueError:
+        ours = False
+    return text if ours else ""
 
 
 def refuse_revoked(common_name: str, home: Path | None = None) -> None:
