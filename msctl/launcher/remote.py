@@ -132,6 +132,9 @@ UP_GRACE = 3.0
 #: profile: parts started, and ``up --all`` named their hosts unreachable). The agent takes
 #: the same ``up`` again as one, answered as soon as the first is done.
 UP_ATTEMPT = 10.0
+#: Seconds ``up --all`` gives each host's ``ps`` while it waits for healthy: more than a round
+#: trip over the slowest link rehearsed (Earth to the Moon: 2.56 s), where 2 s never came.
+PS_BOUND = 8.0
 
 
 def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> None:
@@ -192,6 +195,9 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         # named unreachable). The `up` itself gets longer still: an agent starts its
         # processes before it answers, and one told "unreachable" must not be starting.
         # Every host is asked at once (fleet.at_once).
+        # One budget for the whole start: the answers, then the wait for healthy (it was
+        # two: a slow link took twice the --timeout the user gave).
+        deadline = time.monotonic() + timeout
         present = set(supervisors(node))
         # An agent answers `up` once its processes are started: on a loaded computer that took
         # over 30 s (seen with four agents starting on one 2-core machine), so it gets as long
@@ -228,7 +234,6 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
             else:
                 (unreachable if outcome == "unreachable" else refused).append((host, answer))
         total = sum(len(answer.get("components", [])) for answer in started.values())
-        deadline = time.monotonic() + timeout
         with Progress(
             TextColumn("{task.description}"),
             BarColumn(),
@@ -238,13 +243,16 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
             transient=True,
         ) as progress:
             task = progress.add_task("starting", total=total)
+
+            def look(host: str) -> dict[str, Any]:
+                try:
+                    return call_supervisor(node, host, "ps", timeout=PS_BOUND, attempt=2.0)
+                except (ServiceError, RequestError) as exc:
+                    return {"error": str(exc)}
+
             while started:
-                status = {}
-                for host in started:
-                    try:
-                        status[host] = call_supervisor(node, host, "ps", timeout=2.0)
-                    except (ServiceError, RequestError) as exc:
-                        status[host] = {"error": str(exc)}
+                # Every host at once, each given a round trip to the Moon and back.
+                status = dict(zip(started, at_once(look, list(started)), strict=True))
                 waiting = [
                     f"{host}: {c['name']}"
                     for host, d in status.items()

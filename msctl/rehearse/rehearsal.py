@@ -237,18 +237,35 @@ class Rehearsal:
     def run(
         self, computer: Computer, argv: Sequence[str], timeout: float = 120.0
     ) -> subprocess.CompletedProcess[str]:
-        """Run ``argv`` as ``computer`` to its end; its output captured."""
+        """Run ``argv`` as ``computer`` to its end; its output captured.
+
+        Raises:
+            OperationTimeout: If it ran longer than ``timeout`` seconds (it is killed; the
+                message names the computer, the command and the last line it wrote).
+        """
+        from msctl.errors import OperationTimeout
         from msctl.rehearse.computers import exec_argv
 
-        return subprocess.run(
-            exec_argv(computer, argv),
-            env=self.env(computer),
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-            stdin=subprocess.DEVNULL,
-            check=False,
-        )
+        try:
+            return subprocess.run(
+                exec_argv(computer, argv),
+                env=self.env(computer),
+                capture_output=True,
+                text=True,
+                timeout=timeout,
+                stdin=subprocess.DEVNULL,
+                check=False,
+            )
+        except subprocess.TimeoutExpired as exc:
+            said = exc.stderr or exc.output or ""
+            said = said.decode(errors="replace") if isinstance(said, bytes) else said
+            last = next((line for line in reversed(said.splitlines()) if line.strip()), "")
+            raise OperationTimeout(
+                f"{computer.name}: `{' '.join(argv)}` did not finish within {timeout:g} s"
+                + (f"; its last line: {last.strip()}" if last else ""),
+                hint="its links may be too slow for the bound (`msctl rehearse status`); "
+                "give `msctl rehearse up` a longer --timeout",
+            ) from None
 
     def start_agent(self, computer: Computer) -> int:
         """Start ``msctl agent`` on ``computer``, as systemd does at boot; its pid."""
