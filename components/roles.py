@@ -12,10 +12,12 @@ this module instead:
   :class:`~components.comm.topics.Subscription`'s ``senders``): raw motor commands only from
   the module's own joint manager, feedback only from its own motor interface (or what stands
   in for it in simulation), commands only from the module's claim holder
-  (:func:`bind`, which every module builder calls);
-- ``msctl bag play``'s refusals (:func:`refused_live`) and the bridge's exclusions
-  (:func:`moves`): a recording or a ROS graph never drives, stops or impersonates a robot's
-  motors unless named on purpose;
+  (:func:`bind`, which the builders of the components with such inputs call: joint manager,
+  motor interface, kinematics manager; the simulator asks :func:`senders` per module);
+- ``msctl bag play``'s refusals (:func:`role_of`, :func:`moves`): a recording never drives,
+  stops or speaks for a running robot's motors unless asked (commands) or remapped away
+  (feedback, raw commands); the bridge's exclusion
+  (:func:`components.bridge.core.refused_into_msctl`): a ROS node never speaks for them;
 - ``msctl doctor``'s check that nothing but the declared senders publishes a module's raw
   commands and feedback (:func:`intruders`).
 
