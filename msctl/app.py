@@ -48,6 +48,7 @@ _COMMANDS: dict[str, str] = {
     "record": "msctl.commands.record",
     "bridge": "msctl.commands.bridge",
     "health": "msctl.commands.health",
+    "view": "msctl.commands.view",
     "teleop": "msctl.commands.teleop",
     "claims": "msctl.commands.claims",
     "estop": "msctl.commands.estop",

@@ -1,0 +1,227 @@
+"""``msctl view``: the live robot in 3D, on any computer that reaches the assembly.
+
+The picture is composed here, from the lock's URDF and each module's own topics (forward
+kinematics at the viewer): nothing new is put on the radio. ``--rerun`` (the default) serves
+rerun's web viewer from the installed wheel on 127.0.0.1 (no internet, no account) and prints
+its address; ``--save FILE.rrd`` also writes everything to a file rerun opens later.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from msctl.errors import InputError, MsctlError, NotFoundError
+
+COMMAND_SETTINGS = {"help": "The live robot in 3D (rerun's web viewer, offline); --save FILE.rrd."}
+
+#: What to install for the view.
+VIEW_EXTRA = "pip install 'msctl[view]'"
+
+
+class ViewUnavailable(MsctlError):
+    """The view's optional packages are missing. Exit code 2."""
+
+    exit_code = 2
+
+
+def require_rerun() -> None:
+    """Fail with the exact ``pip install`` when rerun-sdk is missing.
+
+    Raises:
+        ViewUnavailable: If ``rerun`` cannot be imported.
+    """
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        raise ViewUnavailable(
+            "msctl view --rerun needs rerun-sdk, which is not installed",
+            hint=f"install the view extra: {VIEW_EXTRA}",
+        ) from None
+
+
+def check_options(rerun: bool, foxglove: bool, save: Path | None) -> None:
+    """The options shared by ``msctl view`` and ``msctl bag view``.
+
+    Raises:
+        InputError: If they contradict each other or ``--save`` cannot be written.
+    """
+    if rerun and foxglove:
+        raise InputError("--rerun and --foxglove cannot be combined: pick one")
+    if foxglove:
+        raise InputError(
+            "--foxglove is not available yet in this msctl",
+            hint="use --rerun (the default); a bag msctl records opens in Foxglove directly",
+        )
+    if save is not None:
+        if save.suffix != ".rrd":
+            raise InputError(f"--save {save}: the file must end in .rrd (rerun's format)")
+        if not save.parent.is_dir():
+            raise InputError(f"--save {save}: no directory {save.parent}")
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def command(
+    rerun: bool = typer.Option(False, "--rerun", help="rerun's web viewer (the default)."),
+    foxglove: bool = typer.Option(False, "--foxglove", help="A Foxglove server (not yet)."),
+    port: int = typer.Option(
+        9090,
+        "--port",
+        help="Port of the web viewer (0: any free one). rerun serves it on every interface; "
+        "its data port stays on 127.0.0.1.",
+    ),
+    grpc_port: int = typer.Option(
+        9876, "--grpc-port", help="Port the viewer reads the data from (0: any free one)."
+    ),
+    save: Path | None = typer.Option(
+        None, "--save", help="Also write everything to this .rrd file (rerun opens it later)."
+    ),
+    serve: bool = typer.Option(
+        True, "--serve/--no-serve", help="--no-serve: only write --save's file, no viewer."
+    ),
+    duration: float = typer.Option(0.0, "--for", help="Stop after this many seconds (0: Ctrl-C)."),
+) -> None:
+    """Show the running assembly in 3D: its composed URDF, every joint from its module's
+    joint_states, limb tips and IK targets, health as colour, alarms, claims and halts. The
+    address to open is printed on stdout."""
+    check_options(rerun, foxglove, save)
+    if duration < 0:
+        raise InputError(f"--for must be 0 or more seconds, not {duration}")
+    if not serve and save is None:
+        raise InputError("--no-serve shows nothing: give --save FILE.rrd too")
+    for name, value in (("--port", port), ("--grpc-port", grpc_port)):
+        if not 0 <= value <= 65535:
+            raise InputError(f"{name} must be a TCP port (0-65535), not {value}")
+    require_rerun()
+
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.console import err, out
+    from msctl.plane import connected
+    from msctl.view.live import LiveView
+    from msctl.view.rerun_sink import RerunSink
+    from msctl.view.scene import SceneError, scene_of
+
+    try:
+        assembly = load_assembly()
+        scene = scene_of(assembly)
+    except (AssemblyError, SceneError) as exc:
+        raise NotFoundError(str(exc)) from exc
+    scene.changes()  # poses at zero: the camera's first framing
+    grpc = (grpc_port or free_port()) if serve else None
+    stop = _stop_on_signals()
+    with connected("view") as node:
+        sink = RerunSink(save=save, serve=grpc, recording_name=assembly.template, eye=scene.eye())
+        try:
+            if serve:
+                url = sink.serve_web_viewer(port or free_port())
+                out.print(url, highlight=False, soft_wrap=True)
+                err.print(f"viewing {assembly.template}: open {url} (Ctrl-C to stop)")
+            with LiveView(node, assembly, scene, sink) as live:
+                err.print(f"following {len(live.topics)} topics, health and claims", style="dim")
+                live.run(_until(stop, duration))
+        finally:
+            sink.close()
+    if save is not None:
+        err.print(f"saved {save}", highlight=False)
+
+
+def _stop_on_signals():
+    import signal
+    import threading
+
+    stop = threading.Event()
+
+    def handler(_signum, _frame) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def _until(stop, duration: float):
+    import time
+
+    deadline = time.monotonic() + duration if duration else None
+    return lambda: stop.is_set() or (deadline is not None and time.monotonic() >= deadline)
+
+
+def view_bag(
+    bag: Path, save: Path | None, port: int, grpc_port: int, serve: bool, duration: float
+) -> None:
+    """``msctl bag view``: a bag's picture on rerun's timeline (:mod:`msctl.view.bag`).
+
+    The bag is read whole into the recording, then the viewer serves it until Ctrl-C (or
+    ``duration`` seconds); with ``--no-serve`` it only writes ``save``.
+    """
+    if duration < 0:
+        raise InputError(f"--for must be 0 or more seconds, not {duration}")
+    if not serve and save is None:
+        raise InputError("--no-serve shows nothing: give --save FILE.rrd too")
+    require_rerun()
+
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.console import err, out
+    from msctl.view.bag import draw_bag
+    from msctl.view.rerun_sink import RerunSink
+    from msctl.view.scene import SceneError, scene_of
+
+    try:
+        assembly = load_assembly()
+        scene = scene_of(assembly)
+    except (AssemblyError, SceneError) as exc:
+        raise NotFoundError(
+            f"{exc}", hint="a bag is drawn with this computer's resolved assembly"
+        ) from exc
+    scene.changes()
+    grpc = (grpc_port or free_port()) if serve else None
+    sink = RerunSink(save=save, serve=grpc, recording_name=bag.name, eye=scene.eye())
+    try:
+        with Progress(
+            TextColumn("reading {task.description}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>3.0f}%"),
+            console=err,
+            transient=True,
+            disable=not err.is_terminal,
+        ) as progress:
+            task = progress.add_task(bag.name, total=1.0)
+            report = draw_bag(
+                bag, assembly, scene, sink, lambda done: progress.update(task, completed=done)
+            )
+        for module in report.unknown_modules:
+            err.print(
+                f"[yellow]{bag}: /{module} was recorded but {assembly.template} has no such "
+                "module: not drawn[/]"
+            )
+        if not report.messages:
+            err.print(f"[yellow]{bag}: none of {assembly.template}'s modules' topics in it[/]")
+        err.print(
+            f"{bag}: {report.messages:,} messages drawn over {report.end - report.start:.1f} s",
+            highlight=False,
+        )
+        if serve:
+            url = sink.serve_web_viewer(port or free_port())
+            out.print(url, highlight=False, soft_wrap=True)
+            err.print(f"viewing {bag.name}: open {url} (Ctrl-C to stop)")
+            stop = _stop_on_signals()
+            import time
+
+            until = _until(stop, duration)
+            while not until():
+                time.sleep(0.2)
+    finally:
+        sink.close()
+    if save is not None:
+        err.print(f"saved {save}", highlight=False)

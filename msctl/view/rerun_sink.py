@@ -1,0 +1,212 @@
+"""Draws a :class:`~msctl.view.scene.Scene` with rerun: its web viewer served from the wheel
+(no internet, no account), and/or an ``.rrd`` file.
+
+Entities:
+
+* ``robot/<slot>/<link>``: the link's pose in the world (``Transform3D``), its shapes below it
+  (``.../visual_<i>``: boxes, cylinders, spheres, meshes), tinted by the module's health level;
+* ``targets/<slot>/tip`` and ``targets/<slot>/ik_target``: a limb's tip and IK target;
+* ``cmd_vel``: the commanded twist of a mobile assembly, as an arrow at its root;
+* ``status``: one line per module (level, on the graph, halted, who holds its claim);
+* ``alarms``: every level change, claim and module arriving or leaving, as a text log.
+
+Time is the ``time`` timeline (the sample's wall clock, live or recorded), so a bag's picture
+scrubs on rerun's timeline.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from msctl.view.scene import LEVEL_COLOURS, Changes, Pose, Scene, Shape
+
+Vec = tuple[float, float, float]
+
+#: The timeline every sample is put on.
+TIMELINE = "time"
+#: The application id rerun shows.
+APPLICATION = "msctl_view"
+
+_TEXT_LEVELS = {"OK": "INFO", "WARN": "WARN", "ERROR": "ERROR", "STALE": "WARN"}
+
+
+def blueprint(eye: tuple[Vec, Vec] | None = None) -> Any:
+    """The layout: the 3D robot large, the module status and the alarm log beside it.
+
+    Args:
+        eye: Where the camera starts and what it looks at (the whole assembly in sight).
+    """
+    import rerun.blueprint as rrb
+
+    controls = None
+    if eye is not None:
+        controls = rrb.EyeControls3D(position=eye[0], look_target=eye[1], eye_up=(0, 0, 1))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(
+                name="robot",
+                origin="/",
+                contents=["+ /robot/**", "+ /targets/**", "+ /cmd_vel"],
+                eye_controls=controls,
+            ),
+            rrb.Vertical(
+                rrb.TextDocumentView(name="modules", origin="/status"),
+                rrb.TextLogView(name="alarms", origin="/alarms"),
+            ),
+            column_shares=[3, 1],
+        ),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=True,
+    )
+
+
+class RerunSink:
+    """One rerun recording fed from a scene.
+
+    Args:
+        save: Also write everything to this ``.rrd`` file.
+        serve: Serve the recording over gRPC on this port (the web viewer connects to it).
+        recording_name: What rerun names the recording (the assembly).
+        eye: Where the camera starts and what it looks at.
+    """
+
+    def __init__(
+        self,
+        save: Path | None = None,
+        serve: int | None = None,
+        recording_name: str = "",
+        eye: tuple[Vec, Vec] | None = None,
+    ) -> None:
+        import rerun as rr
+
+        self.rr = rr
+        self.recording = rr.RecordingStream(APPLICATION, make_default=False)
+        if recording_name:
+            self.recording.send_recording_name(recording_name)
+        sinks: list[Any] = []
+        if serve is not None:
+            sinks.append(rr.GrpcServerSink(bind_ip="127.0.0.1", port=serve))
+        if save is not None:
+            sinks.append(rr.FileSink(str(save)))
+        self.grpc_port = serve
+        if sinks:
+            self.recording.set_sinks(*sinks, default_blueprint=blueprint(eye))
+        self._shapes: dict[str, list[tuple[str, Shape]]] = {}
+        self._status: dict[str, str] = {}
+
+    @property
+    def grpc_url(self) -> str:
+        """Where a viewer reads the recording (``rerun+http://127.0.0.1:PORT/proxy``)."""
+        return f"rerun+http://127.0.0.1:{self.grpc_port}/proxy"
+
+    def serve_web_viewer(self, port: int) -> str:
+        """Serve rerun's web viewer (from the wheel) on 127.0.0.1; return its address."""
+        self.rr.serve_web_viewer(web_port=port, open_browser=False, connect_to=self.grpc_url)
+        return f"http://127.0.0.1:{port}/?url={quote(self.grpc_url, safe='')}"
+
+    def _log(self, path: str, *archetypes: Any, static: bool = False) -> None:
+        self.recording.log(path, *archetypes, static=static)
+
+    def at(self, seconds: float) -> None:
+        """Put what follows at ``seconds`` (Unix time) on the timeline."""
+        self.recording.set_time(TIMELINE, timestamp=seconds)
+
+    def at_ns(self, nanoseconds: int) -> None:
+        """Put what follows at a recorded time (ns since the epoch), to the nanosecond."""
+        import numpy as np
+
+        self.recording.set_time(TIMELINE, timestamp=np.datetime64(nanoseconds, "ns"))
+
+    def draw_shapes(self, scene: Scene) -> None:
+        """Every link's shapes, once, in its module's present colour."""
+        self._log("/", self.rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        for look in scene.links:
+            entity = f"robot/{look.module or 'assembly'}/{look.link}"
+            paths = self._shapes.setdefault(look.module, [])
+            for i, shape in enumerate(look.shapes):
+                paths.append((f"{entity}/visual_{i}", shape))
+        for module, state in scene.modules.items():
+            self.tint(module, state.look)
+        self.tint("", "OK")
+
+    def tint(self, module: str, look: str) -> None:
+        """Draw a module's shapes in the colour of ``look`` (a key of :data:`LEVEL_COLOURS`)."""
+        colour = LEVEL_COLOURS.get(look, LEVEL_COLOURS["OK"])
+        for path, shape in self._shapes.get(module, ()):
+            self._log(path, self._archetype(shape, colour))
+
+    def _archetype(self, shape: Shape, colour: tuple[int, int, int, int]) -> Any:
+        rr = self.rr
+        (x, y, z), quaternion = shape.origin
+        if shape.kind == "box":
+            return rr.Boxes3D(
+                sizes=[shape.size],
+                centers=[(x, y, z)],
+                quaternions=[quaternion],
+                colors=[colour],
+                fill_mode="solid",
+            )
+        if shape.kind == "cylinder":
+            radius, length = shape.size
+            return rr.Cylinders3D(
+                lengths=[length],
+                radii=[radius],
+                centers=[(x, y, z)],
+                quaternions=[quaternion],
+                colors=[colour],
+                fill_mode="solid",
+            )
+        if shape.kind == "sphere":
+            return rr.Ellipsoids3D(
+                half_sizes=[(shape.size[0],) * 3],
+                centers=[(x, y, z)],
+                colors=[colour],
+                fill_mode="solid",
+            )
+        return rr.Asset3D(path=shape.mesh, albedo_factor=colour)
+
+    def draw(self, scene: Scene, changes: Changes) -> None:
+        """What :meth:`Scene.changes` said: link poses, module colours, status, markers."""
+        rr = self.rr
+        modules = {look.link: look.module or "assembly" for look in scene.links}
+        for link, pose in changes.poses.items():
+            self._log(f"robot/{modules.get(link, 'assembly')}/{link}", _transform(rr, pose))
+        for module, look in changes.looks.items():
+            self.tint(module, look)
+        if changes.status:
+            # One document: a text view shows one, and a glance should take in every module.
+            self._status.update(changes.status)
+            text = "\n".join(f"- {line}" for _, line in sorted(self._status.items()))
+            self._log("status", rr.TextDocument(text, media_type="text/markdown"))
+        for name, pose in changes.markers.items():
+            kind = name.rsplit("/", 1)[-1]
+            colour = (60, 200, 90, 255) if kind == "tip" else (230, 120, 230, 255)
+            self._log(
+                f"targets/{name}",
+                rr.Points3D([pose[0]], radii=[0.02], colors=[colour], labels=[name]),
+            )
+
+    def arrow(self, origin: tuple[float, float, float], vector: tuple[float, float, float]) -> None:
+        """The commanded twist of the assembly (m/s) as an arrow at its root."""
+        self._log(
+            "cmd_vel",
+            self.rr.Arrows3D(origins=[origin], vectors=[vector], colors=[(40, 140, 250, 255)]),
+        )
+
+    def say(self, text: str, level: str = "INFO") -> None:
+        """One line in the alarm log (``level``: a health level or a rerun text level)."""
+        self._log("alarms", self.rr.TextLog(text, level=_TEXT_LEVELS.get(level, level)))
+
+    def close(self) -> None:
+        """Flush and detach every sink (the ``.rrd`` file is complete afterwards)."""
+        try:
+            self.recording.flush()
+        finally:
+            self.recording.disconnect()
+
+
+def _transform(rr: Any, pose: Pose) -> Any:
+    translation, quaternion = pose
+    return rr.Transform3D(translation=translation, quaternion=quaternion)
