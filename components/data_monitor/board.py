@@ -903,8 +903,10 @@ class HealthBoard:
             worst_item=worst_item.name if worst_item is not None else "",
             components_ok=ok,
             components_expected=total,
-            joint_states_hz=state.joint_states_hz,
-            joint_read_hz=state.joint_read_hz,
+            # A stale module's last measured rates are no rates at all: its topics may have
+            # stopped with it (shown as 93-99 Hz 11 s after everything stopped).
+            joint_states_hz=None if stale else state.joint_states_hz,
+            joint_read_hz=None if stale else state.joint_read_hz,
             temperature=state.temperature,
             voltage=state.voltage,
             uptime=self._uptime(spec, now),

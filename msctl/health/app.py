@@ -456,7 +456,7 @@ class ModuleScreen(Screen[None], BoardView):
                     topic,
                     (
                         topic,
-                        number(item.values.get("rate_hz")) if item else "-",
+                        _reported_rate(item),
                         number(stats.rate) if stats else "-",
                         number(stats.min_interval * 1e3, ms)
                         if stats and stats.min_interval is not None
@@ -916,3 +916,13 @@ def run_app(assembly: Any, duration: float | None = None) -> None:
     log = AlarmLog(assembly.template, "msctl health")
     with connected("health") as node, LiveHealth(node, assembly) as live:
         HealthApp(live, alarm_log=log, duration=duration).run()
+
+
+def _reported_rate(item: Any) -> str:
+    """A topic's rate as its module's monitor reported it; ``stale`` once that report is
+    old news (the module's health stopped: its last rate says nothing about now)."""
+    if item is None:
+        return "-"
+    if item.level is STALE:
+        return "stale"
+    return number(item.values.get("rate_hz"))
