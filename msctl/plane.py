@@ -13,12 +13,17 @@ from msctl.errors import InputError, NetworkError, NotFoundError
 
 
 @contextmanager
-def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
+def connected(
+    role: str = "cli", require_router: bool = True, open_timeout: float | None = None
+) -> Iterator[Any]:
     """Open a session and a node for a CLI command; close both on exit.
 
     Args:
         role: Part of the node name (``msctl_<role>_<pid>``), so the graph shows who pokes it.
         require_router: Fail with a clear message when no router or peer is reachable.
+        open_timeout: Seconds the router may take to answer the session's handshake (a
+            command with a deadline of its own passes it; Zenoh's default is 10 s, which
+            a frozen router, accepting TCP but answering nothing, takes in full).
 
     Raises:
         InputError: If the session settings (environment) are unusable.
@@ -36,9 +41,21 @@ def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
         # A short-lived command is a client of the router: its queries (graph, services)
         # are answered by the router at once and whole (see SessionSettings.joining).
         settings = SessionSettings.joining()
+        if open_timeout is not None:
+            bound = {"transport/unicast/open_timeout": max(100, round(open_timeout * 1000))}
+            settings = settings._replace(extra={**settings.extra, **bound})
         session = open_session(settings)
     except SessionOpenError as exc:
         # The settings were fine; nothing answered at the endpoints (a client needs a router).
+        silent = [e for e in settings.connect if _accepts_tcp(e)]
+        if silent:
+            raise NetworkError(
+                f"the Zenoh router at {', '.join(silent)} accepts connections but did not "
+                "answer the session's handshake"
+                + (f" within {open_timeout:g} s" if open_timeout is not None else ""),
+                hint="it is frozen or overloaded (a stopped process, a full machine): "
+                "check it with `msctl ps` or `top` where it runs, or restart it",
+            ) from exc
         raise NetworkError(
             f"no Zenoh router reachable at {', '.join(settings.connect)}",
             hint="start one with `msctl router` (or `msctl up`), or point MSCTL_ZENOH_CONNECT "
@@ -49,13 +66,29 @@ def connected(role: str = "cli", require_router: bool = True) -> Iterator[Any]:
     node = None
     try:
         if require_router:
-            _wait_for_network(session, settings)
+            wait = 1.5 if open_timeout is None else min(1.5, open_timeout)
+            _wait_for_network(session, settings, wait)
         node = Node(session, f"msctl_{role}_{os.getpid()}", "/", domain=settings.domain)
         yield node
     finally:
         if node is not None:
             node.close()
         session.close()
+
+
+def _accepts_tcp(endpoint: str, timeout: float = 0.3) -> bool:
+    """Whether a ``tcp/HOST:PORT`` endpoint accepts a TCP connection (a process listens,
+    whether or not it answers): tells a frozen router from no router."""
+    import socket
+
+    if not endpoint.startswith("tcp/"):
+        return False
+    host, _, port = endpoint[4:].split("#", 1)[0].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            return True
+    except (OSError, ValueError):
+        return False
 
 
 def _wait_for_network(session: Any, settings: Any, timeout: float = 1.5) -> None:

@@ -7,6 +7,8 @@ level changes as lines; ``--alarms`` prints the last session's alarms from the a
 
 from __future__ import annotations
 
+import time
+
 import typer
 
 from msctl.errors import InputError, NotFoundError
@@ -71,8 +73,13 @@ def _once(assembly, json_output: bool, timeout: float) -> None:
     from msctl.health.live import LiveHealth
     from msctl.plane import connected
 
-    with connected("health") as node, LiveHealth(node, assembly, grace=timeout) as live:
-        live.wait_first_news(timeout)
+    started = time.monotonic()
+    # The whole snapshot within about --timeout: the router's handshake included.
+    with (
+        connected("health", open_timeout=timeout) as node,
+        LiveHealth(node, assembly, grace=timeout) as live,
+    ):
+        live.wait_first_news(max(0.1, timeout - (time.monotonic() - started)))
         snapshot = live.evaluate()
     if json_output:
         print_json(snapshot.to_json())
