@@ -75,6 +75,37 @@ def test_a_template_sets_each_class_and_each_computers_link() -> None:
     assert network.links == {"hl-wheel-01": "wired"}
 
 
+def test_the_topics_a_computer_gets_sampled_are_the_other_computers_thinned_ones() -> None:
+    network = radio.parse(
+        {
+            "radio": {"downsample_hz": {"joint_states": 10, "/limb1/tip_pose": 5}},
+            "links": {"hl-wheel-01": "wired"},
+        },
+        Path("t.toml"),
+    )
+    hosts = {"limb1": "hl-limb-01", "wheel1": "hl-wheel-01", "limb2": "hl-limb-02"}
+    assert radio.thinned_topics(network, hosts, "ground1") == {
+        "/limb1/joint_states": 10.0,
+        "/limb1/tip_pose": 5.0,
+        "/limb2/joint_states": 10.0,  # wheel1's link is a cable: nothing thinned
+    }
+    # A module's own computer gets its topics whole.
+    assert "/limb1/joint_states" not in radio.thinned_topics(network, hosts, "hl-limb-01")
+
+
+def test_a_link_as_slow_as_the_moons_gets_a_lease_that_outlasts_tcps_retransmissions() -> None:
+    network = radio.parse({"links": {"ground1": "deep-space"}}, Path("t.toml"))
+    moon = network.link_class("ground1")
+    assert moon.name == "deep-space" and moon.lease_s == 30.0
+    settings = radio.router_settings(moon, ["limb1"])
+    tx = settings["transport"]["link"]["tx"]
+    assert tx["lease"] == 30_000 and tx["keep_alive"] == radio.KEEP_ALIVES_PER_LEASE
+    # The handshake and a blocked sample get a few leases, not Zenoh's 5-10 s.
+    assert settings["transport"]["unicast"]["open_timeout"] == 120_000
+    # The rest of the radio's budget is kept.
+    assert moon.downsample_hz == radio.DEFAULTS["radio"].downsample_hz
+
+
 @pytest.mark.parametrize(
     ("table", "field", "said"),
     [
@@ -89,7 +120,11 @@ def test_a_template_sets_each_class_and_each_computers_link() -> None:
         ({"radio": {"downsample_hz": {"/*/joint_states": 5}}}, "/*/joint_states", "wildcards"),
         ({"radio": {"downsample_hz": 10}}, "network.radio.downsample_hz", "a table"),
         ({"radio": 5}, "network.radio", "must be a table"),
-        ({"links": {"hl-limb-01": "satellite"}}, "network.links.hl-limb-01", "'radio', 'wired'"),
+        (
+            {"links": {"hl-limb-01": "satellite"}},
+            "network.links.hl-limb-01",
+            "'radio', 'wired', 'deep-space'",
+        ),
         ({"links": ["hl-limb-01"]}, "network.links", "computer = class"),
     ],
 )

@@ -15,6 +15,7 @@ each computer's link is (every link between computers is ``radio`` unless it say
 
     [network.links]
     hl-wheel-01 = "wired"        # this computer's link is a cable: no budget
+    ground1 = "deep-space"       # Earth to the Moon: a 30 s lease (name both ends' computers)
 
 Only the links that leave a computer get these settings (its router's TLS or QUIC links); its
 own components, on loopback TCP, still see every sample at its full rate. Services, halts,
@@ -37,7 +38,7 @@ from typing import Any
 from msctl.errors import InputError
 
 #: Link classes a template may name.
-CLASSES = ("radio", "wired")
+CLASSES = ("radio", "wired", "deep-space")
 #: Link protocols a class may use between computers (both mutual TLS with the fleet CA).
 PROTOCOLS = ("tls", "quic")
 #: The link protocols between computers, on which a class's filters act (never on the
@@ -104,11 +105,15 @@ class LinkClass:
 
 #: Each class when the template says nothing of it.
 DEFAULTS: dict[str, LinkClass] = {
-    # Field Wi-Fi: a dead link noticed in 5 s, yet Earth-Moon's 2.56 s round trip with TCP's
-    # retransmissions (a lost packet holds the stream back about one round trip more) keeps
-    # its link (see README, "A budget per radio link").
+    # Field Wi-Fi: a dead link noticed in 5 s.
     "radio": LinkClass("radio", 5.0, "tls", 65536, dict(RADIO_DOWNSAMPLE_HZ)),
     "wired": LinkClass("wired", 2.0, "tls", 0, {}),
+    # A link as slow as Earth to the Moon (2.56 s round trip): TCP's retransmission of one
+    # lost packet holds the stream back a timeout (over a round trip) plus a round trip, and
+    # another loss in it doubles the timeout; with radio's 5 s lease such a link was closed
+    # and opened again every 20-60 s (measured, 0.5 % loss). Both ends of such a link name it:
+    # a lease is what a router tells the other end to wait for it.
+    "deep-space": LinkClass("deep-space", 30.0, "tls", 65536, dict(RADIO_DOWNSAMPLE_HZ)),
 }
 
 
@@ -349,6 +354,33 @@ def router_settings(link: LinkClass, modules: Iterable[str], domain: int = 0) ->
             }
         )
     return settings
+
+
+def thinned_topics(
+    network: Network, module_hosts: Mapping[str, str], here: str
+) -> dict[str, float]:
+    """Topic -> rate of each topic that reaches ``here`` downsampled on its way: published by
+    a module on another computer, whose link class thins it on its radio links.
+
+    A recorder on ``here`` sees such a topic's sequence numbers jump by design: those jumps
+    are no losses. Only a fleet whose links are encrypted (the generated router configs)
+    filters anything; the caller says whether it is one.
+
+    Args:
+        network: The assembly's link classes.
+        module_hosts: Module slot -> its computer.
+        here: This computer.
+    """
+    thinned: dict[str, float] = {}
+    for module, host in module_hosts.items():
+        if host == here:
+            continue
+        for topic, rate in network.link_class(host).downsample_hz.items():
+            if not topic.startswith("/"):
+                thinned[f"/{module}/{topic}"] = rate
+            elif topic.split("/")[1] == module:
+                thinned[topic] = rate
+    return thinned
 
 
 def downsample_keys(
