@@ -89,6 +89,12 @@ def test_sequence_tracker_counts_gaps_per_publisher_and_forgives_restarts() -> N
     assert tracker.observe(0, b"a", 1) == 0  # a restart
     assert tracker.observe(1, b"a", 7) == 0
     assert tracker.lost == {0: 2} and tracker.total == 2
+    # A topic sampled on its way (a radio link's downsampling) jumps by design: not counted.
+    tracker.thinned.add(2)
+    assert tracker.count(2, b"a", 1) is None
+    assert tracker.count(2, b"a", 11) is None
+    assert tracker.count(2, b"a", 12) == 0
+    assert tracker.lost == {0: 2}
 
 
 def test_status_levels_and_rates() -> None:
@@ -240,3 +246,23 @@ def test_the_archiver_records_and_reports_on_diagnostics(
         assert reader.message_count >= 100
     described = inspect(bag)
     assert len(described.files) >= 2 and not described.needs_recovery
+
+
+def test_a_recorder_on_the_ground_knows_which_topics_the_radio_samples(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from msctl.assembler import resolve
+    from msctl.assembler.store import write_resolution
+    from msctl.recorder.recorder import radio_thinned
+
+    monkeypatch.setenv("MSCTL_HOME", str(tmp_path))
+    monkeypatch.delenv("MSCTL_SECURE", raising=False)
+    assert radio_thinned("ground1") == {}  # nothing resolved here
+    write_resolution(tmp_path / "assembly", resolve("dragon", {}), mjcf=False)
+    assert radio_thinned("ground1") == {}  # plain links filter nothing
+    monkeypatch.setenv("MSCTL_SECURE", "1")  # as a secure fleet's agents run
+    thinned = radio_thinned("ground1")
+    assert thinned["/limb1/joint_states"] == 10.0 and thinned["/wheel2/joint_read"] == 10.0
+    assert "/limb1/health" not in thinned  # never sampled
+    assert "/limb1/joint_states" not in radio_thinned("hl-limb-01")  # its own, whole
+    assert radio_thinned("laptop") == {}  # not one of the assembly's computers

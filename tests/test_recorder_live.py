@@ -3,6 +3,7 @@ latched topics, pause, unknown types, drops and upstream losses."""
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import struct
@@ -130,6 +131,7 @@ def test_records_everything_from_the_first_message_and_latched_samples(
         # An uninterrupted recording says so: no gap, nothing lost upstream.
         "msctl.gaps": "[]",
         "msctl.lost": "{}",
+        "msctl.thinned": "{}",
     }
 
 
@@ -279,6 +281,35 @@ def test_gaps_in_sequence_numbers_are_counted_as_lost_upstream(
         mine = wait_until(recorders, 30.0, "the recorder's subscription on the graph")
         assert [e.topic for e in mine] == ["/robot/chatter"]
         assert mine[0].qos.split(":")[0] == "2"  # best effort, as the publisher offers
+
+
+def test_a_topic_sampled_on_the_radio_counts_no_loss_and_says_so(
+    tmp_path: Path, open_sessions: Callable[[], Any], talker: Node
+) -> None:
+    # A robot's router sends its joint_states at 10 Hz on the radio: the ground's recorder
+    # sees the sequence numbers jump by ten, by design. No loss is counted for it; a topic
+    # that is not sampled still counts its own.
+    thinned = talker.publisher("joint_states", STRING, SENSOR)
+    whole = talker.publisher("chatter", STRING, SENSOR)
+    with Recorder(
+        open_sessions(),
+        tmp_path / "bag",
+        TopicSelection(topics=("/robot/joint_states", "/robot/chatter")),
+        thinned={"/robot/joint_states": 10.0},
+    ) as recorder:
+        warm_up(recorder, lambda: thinned.publish(msg(STRING, data="warm-up")))
+        warm_up(recorder, lambda: whole.publish(msg(STRING, data="warm-up")))
+        for _ in range(3):
+            for _ in range(9):
+                next(thinned._seq)  # nine samples the router did not send on
+            thinned.publish(msg(STRING, data="1 in 10"))
+        next(whole._seq)  # one sample lost on the way
+        whole.publish(msg(STRING, data="after the loss"))
+        wait_until(lambda: recorder.status().lost == 1, what="the loss of the other topic")
+        assert recorder.thinned() == {"/robot/joint_states": 10.0}
+    custom = read_metadata(tmp_path / "bag").custom_data
+    assert json.loads(custom["msctl.lost"]) == {"/robot/chatter": 1}
+    assert json.loads(custom["msctl.thinned"]) == {"/robot/joint_states": 10.0}
 
 
 def test_an_existing_bag_directory_is_refused_before_subscribing(

@@ -296,13 +296,17 @@ def test_outages_of_the_ground_link_heal_by_themselves(stage: Stage) -> None:
         "each outage's end (commands of the test included)"
     )
     assert recorder.returncode == 0, err  # receiving again at the end
-    gaps = json.loads(out)["gaps"]
+    summary = json.loads(out)
+    gaps, thinned = summary["gaps"], summary["thinned"]
     for topic in ("/limb1/joint_states", "/wheel2/joint_states"):
         mine = [g for g in gaps if g["topic"] == topic]
         # One gap per outage at least (a flapping return may split one), each accounted for.
         assert len(mine) >= GROUND_OUTAGES, gaps
         assert all(g["end_ns"] and g["seconds"] >= 1.0 for g in mine), mine
-        assert sum(g["lost"] or 0 for g in mine) > 0, mine
+        # Sampled at 10 Hz on the (secure) radio: its sequence numbers jump by design, so
+        # what an outage swallowed cannot be told, and is not made up.
+        assert thinned[topic] == 10.0, thinned
+        assert all(g["lost"] is None for g in mine), mine
     assert "back: /limb1/joint_states" in err
     after = _processes(stage)
     # Nothing was restarted, by hand or otherwise (the last error says why, if it was).

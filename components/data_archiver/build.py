@@ -50,7 +50,7 @@ class Recording:
     def __call__(self, executor: Executor, component: Component) -> None:
         """Start recording as ``component``'s node (called once, before it runs)."""
         from msctl.recorder.errors import BagError
-        from msctl.recorder.recorder import Recorder
+        from msctl.recorder.recorder import Recorder, radio_thinned
 
         if executor.transport != "zenoh":
             # The recorder reads Zenoh keys and tokens; on rclpy the data is on DDS.
@@ -68,6 +68,7 @@ class Recording:
                 self.config.selection(),
                 domain=component.node.domain,
                 node=component.node,
+                thinned=radio_thinned(),
                 **params_of(self.config),
             )
             recorder.start()

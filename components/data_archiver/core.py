@@ -113,9 +113,12 @@ class SequenceTracker:
 
     Attributes:
         lost: Samples missing, per topic id.
+        thinned: Topic ids thinned on their way on purpose (a router downsampling a radio
+            link): their jumps are no losses, and are not counted.
     """
 
     lost: dict[int, int] = field(default_factory=dict)
+    thinned: set[int] = field(default_factory=set)
     _last: dict[tuple[int, bytes], int] = field(default_factory=dict)
 
     def observe(self, topic_id: int, gid: bytes, sequence: int) -> int:
@@ -132,6 +135,8 @@ class SequenceTracker:
             return None
         gap = sequence - last - 1
         if gap:
+            if topic_id in self.thinned:
+                return None  # sampled on the way: what was lost cannot be told
             self.lost[topic_id] = self.lost.get(topic_id, 0) + gap
         return gap
 

@@ -78,7 +78,7 @@ def command(
     from msctl.console import err
     from msctl.plane import connected
     from msctl.recorder.metadata import default_bag_name
-    from msctl.recorder.recorder import Recorder
+    from msctl.recorder.recorder import Recorder, radio_thinned
 
     size = parse_size(max_bag_size)
     if max_bag_duration < 0:
@@ -110,6 +110,7 @@ def command(
             max_duration=max_bag_duration,
             start_paused=start_paused,
             on_stop=lambda _: stop.set(),
+            thinned=radio_thinned(),
         )
         signals.on_toggle = lambda: recorder.resume() if recorder.paused else recorder.pause()
         recorder.start()
@@ -292,6 +293,7 @@ def _summary(recorder: Any, status: Any, json_output: bool) -> None:
         "lost_upstream": status.lost,
         "unknown_types": list(status.unknown_types),
         "gaps": [g.as_dict() for g in recorder.gaps()],
+        "thinned": recorder.thinned(),
     }
     if json_output:
         print_json(document)
@@ -309,6 +311,15 @@ def _summary(recorder: Any, status: Any, json_output: bool) -> None:
         )
     if status.lost:
         err.print(f"[yellow]{status.lost:,} message(s) lost before reaching the recorder[/]")
+    thinned = recorder.thinned()
+    if thinned:
+        # Their sequence numbers jump by design: no loss is counted for them.
+        rates = sorted({f"{rate:g} Hz" for rate in thinned.values()})
+        err.print(
+            f"sampled on the radio to {', '.join(rates)} (the template's [network]): "
+            f"{', '.join(thinned)}; their losses are not counted",
+            highlight=False,
+        )
     gaps = recorder.gaps()
     if gaps:
         err.print(f"[yellow]{len(gaps)} interruption(s)[/] (in metadata.yaml, msctl.gaps):")

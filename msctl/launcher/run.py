@@ -823,6 +823,9 @@ class Launch:
             "template": self.assembly.template,
             "simulated": self.plan.simulated,
             "off_robot": self.plan.off_robot,
+            # Whether its router runs the generated config (what crosses the radio is then
+            # filtered: a recorder here reads it, msctl.recorder.recorder.radio_thinned).
+            "secure": os.environ.get("MSCTL_SECURE") == "1",
             "supervisor_pid": os.getpid(),
             # An agent's run is stopped by asking the agent, never by signalling it.
             "agent": not self.serve_control,

@@ -30,7 +30,7 @@ import struct
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -130,6 +130,7 @@ class Recorder:
         fsync: bool = True,
         node: Any = None,
         on_stop: Callable[[str], None] | None = None,
+        thinned: Mapping[str, float] | None = None,
     ) -> None:
         self.session = session
         self.directory = Path(directory)
@@ -160,6 +161,9 @@ class Recorder:
         self._dropped = 0
         self._received = 0
         self._sequences = SequenceTracker()
+        # Topics a router samples on their way here (radio_thinned): their sequence numbers
+        # jump by design, and those jumps are no losses.
+        self._thinned = dict(thinned or {})
         # Written by the writer thread only; the others read the snapshots below.
         self._gaps = GapWatch()
         self._silent: list[Gap] = []
@@ -487,12 +491,24 @@ class Recorder:
             {
                 "msctl.gaps": json.dumps([g.as_dict() for g in gaps], separators=(",", ":")),
                 "msctl.lost": json.dumps(lost, separators=(",", ":")),
+                "msctl.thinned": json.dumps(self.thinned(), separators=(",", ":")),
             }
         )
+
+    def thinned(self) -> dict[str, float]:
+        """Topic -> rate of the recorded topics a router sampled on their way here (their
+        losses are not counted: their sequence numbers jump by design)."""
+        return {
+            self._topic_keys[topic_id].topic: self._thinned[self._topic_keys[topic_id].topic]
+            for topic_id in sorted(self._sequences.thinned)
+            if topic_id < len(self._topic_keys)
+        }
 
     def _add_topic(self, topic_id: int, parsed: TopicKey) -> None:
         offered = self._offered(parsed)
         self._gaps.add_topic(topic_id, parsed.topic)
+        if parsed.topic in self._thinned:
+            self._sequences.thinned.add(topic_id)
         definition = message_definition(parsed.type)
         if definition is None:
             self._unknown.append(parsed.type)
@@ -609,3 +625,33 @@ def _keyed(
         return 0, 0, None
     missing = tracker.count(topic_id, parsed.gid, parsed.sequence_number)
     return parsed.sequence_number, parsed.source_timestamp, missing
+
+
+def radio_thinned(here: str | None = None) -> dict[str, float]:
+    """Topic -> rate of each topic of this computer's assembly that reaches it sampled on a
+    radio link (:func:`msctl.net.radio.thinned_topics`); none when nothing is resolved here,
+    the fleet is not secure (only the generated TLS/QUIC links filter: the template says so,
+    or this computer's run, started with ``MSCTL_SECURE=1``), this computer is not one of the
+    assembly's, or it runs the whole assembly itself (off-robot: no radio)."""
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.launcher.plan import this_host
+    from msctl.launcher.state import read_state
+    from msctl.net import radio
+
+    here = here or this_host()
+    try:
+        assembly = load_assembly()
+    except (AssemblyError, OSError, ValueError):
+        return {}
+    try:
+        run = read_state() or {}
+    except (OSError, ValueError):
+        run = {}
+    # The template's [network] secure, or this computer's run (its agent's MSCTL_SECURE=1).
+    secure = assembly.secure or bool(run.get("secure")) or os.environ.get("MSCTL_SECURE") == "1"
+    if not secure or here not in assembly.hosts:
+        return {}
+    if run.get("off_robot") and run.get("state") == "running" and not run.get("agent"):
+        return {}
+    network = radio.Network.from_dict(assembly.lock.network)
+    return radio.thinned_topics(network, {m.slot: m.host for m in assembly.modules}, here)
