@@ -63,8 +63,8 @@ class Chromium:
         self._ids = itertools.count(1)
         self._stack = contextlib.ExitStack()
         try:
-            port = self._port(timeout=60)
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
+            port = self._port(timeout=120)
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=120) as r:
                 pages = [t for t in json.load(r) if t.get("type") == "page"]
             self.socket = self._stack.enter_context(
                 connect(pages[0]["webSocketDebuggerUrl"], max_size=64 << 20)

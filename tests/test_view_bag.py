@@ -147,5 +147,9 @@ def test_bag_view_refuses_what_it_cannot_do(home: Path, tmp_path: Path) -> None:
     assert "no such bag directory" in str(missing.exception)
     both = runner.invoke(app, ["bag", "view", str(tmp_path), "--rerun", "--foxglove"])
     assert isinstance(both.exception, MsctlError) and "cannot be combined" in str(both.exception)
+    foxglove = runner.invoke(app, ["bag", "view", str(tmp_path), "--foxglove"])
+    assert isinstance(foxglove.exception, MsctlError) and "not available yet" in str(
+        foxglove.exception
+    )
     nothing = runner.invoke(app, ["bag", "view", str(tmp_path), "--no-serve"])
     assert isinstance(nothing.exception, MsctlError) and "give --save" in str(nothing.exception)

@@ -223,6 +223,7 @@ def test_the_robot_shows_and_moves_with_a_jog(view: View, dragon: Up, tmp_path: 
 
 
 def test_the_saved_rrd_reads_back_with_rerun(view: View) -> None:
+    """After the jog above (the tests of this module run in order, on one view)."""
     from rerun.chunk import RrdReader
 
     view.url()

@@ -130,6 +130,7 @@ def test_view_without_rerun_names_the_pip_install(monkeypatch: pytest.MonkeyPatc
     ("args", "says"),
     [
         (["--rerun", "--foxglove"], "cannot be combined"),
+        (["--foxglove", "--save", "x.rrd"], "not with --foxglove"),
         (["--save", "out.mcap"], "must end in .rrd"),
         (["--save", "/nowhere/at/all/x.rrd"], "no directory"),
         (["--no-serve"], "give --save"),

@@ -182,7 +182,7 @@ def view(
     bag: Path = BAG_ARG,
     rerun: bool = typer.Option(False, "--rerun", help="rerun's web viewer (the default)."),
     foxglove: bool = typer.Option(False, "--foxglove", help="A Foxglove server (not yet)."),
-    port: int = typer.Option(9090, "--port", help="Web viewer port on 127.0.0.1 (0: any)."),
+    port: int = typer.Option(9090, "--port", help="Web viewer port (0: any free one)."),
     grpc_port: int = typer.Option(9876, "--grpc-port", help="Data port (0: any free one)."),
     save: Path | None = typer.Option(None, "--save", help="Also write an .rrd file."),
     serve: bool = typer.Option(True, "--serve/--no-serve", help="--no-serve: only --save."),
@@ -191,7 +191,7 @@ def view(
     """The robot of a bag in 3D, on rerun's timeline (scrub it): joints, health, tips."""
     from msctl.commands.view import check_options, view_bag
 
-    check_options(rerun, foxglove, save)
+    check_options(rerun, foxglove, save, bag=True)
     view_bag(bag, save, port, grpc_port, serve, duration)
 
 

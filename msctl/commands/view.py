@@ -41,7 +41,22 @@ def require_rerun() -> None:
         ) from None
 
 
-def check_options(rerun: bool, foxglove: bool, save: Path | None) -> None:
+def require_foxglove() -> None:
+    """Fail with the exact ``pip install`` when foxglove-sdk is missing.
+
+    Raises:
+        ViewUnavailable: If ``foxglove`` cannot be imported.
+    """
+    try:
+        import foxglove  # noqa: F401
+    except ImportError:
+        raise ViewUnavailable(
+            "msctl view --foxglove needs foxglove-sdk, which is not installed",
+            hint=f"install the view extra: {VIEW_EXTRA}",
+        ) from None
+
+
+def check_options(rerun: bool, foxglove: bool, save: Path | None, bag: bool = False) -> None:
     """The options shared by ``msctl view`` and ``msctl bag view``.
 
     Raises:
@@ -49,10 +64,15 @@ def check_options(rerun: bool, foxglove: bool, save: Path | None) -> None:
     """
     if rerun and foxglove:
         raise InputError("--rerun and --foxglove cannot be combined: pick one")
-    if foxglove:
+    if foxglove and bag:
         raise InputError(
-            "--foxglove is not available yet in this msctl",
-            hint="use --rerun (the default); a bag msctl records opens in Foxglove directly",
+            "msctl bag view --foxglove is not available yet",
+            hint="open the bag itself in Foxglove (its schemas are rosbag2's), or use --rerun",
+        )
+    if foxglove and save is not None:
+        raise InputError(
+            "--save writes rerun's .rrd, not with --foxglove",
+            hint="`msctl record` writes a bag Foxglove opens",
         )
     if save is not None:
         if save.suffix != ".rrd":
@@ -72,12 +92,14 @@ def free_port() -> int:
 
 def command(
     rerun: bool = typer.Option(False, "--rerun", help="rerun's web viewer (the default)."),
-    foxglove: bool = typer.Option(False, "--foxglove", help="A Foxglove server (not yet)."),
-    port: int = typer.Option(
-        9090,
+    foxglove: bool = typer.Option(
+        False, "--foxglove", help="A Foxglove WebSocket server on 127.0.0.1 instead."
+    ),
+    port: int | None = typer.Option(
+        None,
         "--port",
-        help="Port of the web viewer (0: any free one). rerun serves it on every interface; "
-        "its data port stays on 127.0.0.1.",
+        help="rerun's web viewer (default 9090; rerun serves it on every interface, its data "
+        "port on 127.0.0.1) or the Foxglove server (default 8765). 0: any free one.",
     ),
     grpc_port: int = typer.Option(
         9876, "--grpc-port", help="Port the viewer reads the data from (0: any free one)."
@@ -98,9 +120,14 @@ def command(
         raise InputError(f"--for must be 0 or more seconds, not {duration}")
     if not serve and save is None:
         raise InputError("--no-serve shows nothing: give --save FILE.rrd too")
+    port = (8765 if foxglove else 9090) if port is None else port
     for name, value in (("--port", port), ("--grpc-port", grpc_port)):
         if not 0 <= value <= 65535:
             raise InputError(f"{name} must be a TCP port (0-65535), not {value}")
+    if foxglove:
+        require_foxglove()
+        _serve_foxglove(port, duration)
+        return
     require_rerun()
 
     from components.assembly import AssemblyError, load_assembly
@@ -132,6 +159,29 @@ def command(
             sink.close()
     if save is not None:
         err.print(f"saved {save}", highlight=False)
+
+
+def _serve_foxglove(port: int, duration: float) -> None:
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.console import err, out
+    from msctl.plane import connected
+    from msctl.view.foxglove_server import FoxgloveView
+    from msctl.view.scene import SceneError, scene_of
+
+    try:
+        assembly = load_assembly()
+        scene = scene_of(assembly)
+    except (AssemblyError, SceneError) as exc:
+        raise NotFoundError(str(exc)) from exc
+    stop = _stop_on_signals()
+    with connected("view") as node, FoxgloveView(node, assembly, scene, port=port) as server:
+        url = f"ws://127.0.0.1:{server.port}"
+        out.print(url, highlight=False, soft_wrap=True)
+        err.print(
+            f"serving {assembly.template} to Foxglove: open a connection to {url} (Ctrl-C to stop)"
+        )
+        err.print(f"following {len(server.topics)} topics", style="dim")
+        server.run(_until(stop, duration))
 
 
 def _stop_on_signals():

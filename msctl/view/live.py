@@ -42,7 +42,8 @@ class LiveView:
         assembly: The resolved assembly.
         scene: Its scene.
         sink: Where to draw (:class:`~msctl.view.rerun_sink.RerunSink`).
-        period: Seconds between two drawings.
+        period: Seconds between two drawings (10 Hz: what a ground station's radio budget
+            lets through of a module's joint_states by default; drawing faster shows nothing new).
         clock: Wall-clock seconds (the timeline's time).
     """
 
@@ -52,7 +53,7 @@ class LiveView:
         assembly: Any,
         scene: Scene,
         sink: Any,
-        period: float = 0.05,
+        period: float = 0.1,
         clock: Callable[[], float] = time.time,
     ) -> None:
         self.node = node
@@ -73,6 +74,7 @@ class LiveView:
         self._next_health = 0.0
         self.topics: list[str] = []
         self.drawn = 0
+        self._decode: Any = None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> LiveView:
@@ -88,7 +90,10 @@ class LiveView:
         for module in self.assembly.modules:
             slot = module.slot
             if module.joints:
-                self._subscribe(f"/{slot}/joint_states", JOINT_STATE, self._on_joints, slot)
+                # Raw: only the latest sample of each step is decoded, not every one.
+                self._subscribe(
+                    f"/{slot}/joint_states", JOINT_STATE, self._on_joints, slot, raw=True
+                )
             if module.chains:
                 for name in ("tip_pose", "ik_target"):
                     marker = f"{slot}/{'tip' if name == 'tip_pose' else 'ik_target'}"
@@ -102,10 +107,12 @@ class LiveView:
             self._on_claim(module, holder)
         return self
 
-    def _subscribe(self, topic: str, type_name: str, callback: Any, key: str) -> None:
+    def _subscribe(
+        self, topic: str, type_name: str, callback: Any, key: str, raw: bool = False
+    ) -> None:
         self.topics.append(topic)
         self._subscriptions.append(
-            self.node.subscription(topic, type_name, lambda m, k=key: callback(k, m))
+            self.node.subscription(topic, type_name, lambda m, k=key: callback(k, m), raw=raw)
         )
 
     def close(self) -> None:
@@ -149,6 +156,11 @@ class LiveView:
         """Apply what arrived, evaluate health when due, draw what changed."""
         from components.messages import joint_samples
 
+        if self._decode is None:
+            from components.comm.types import registry
+            from components.messages import JOINT_STATE
+
+            self._decode = registry().deserializer(JOINT_STATE)
         with self._lock:
             joints, self._joints = self._joints, {}
             markers, self._markers = self._markers, {}
@@ -157,8 +169,8 @@ class LiveView:
             self._holders_changed = False
         now = self.clock()
         self.sink.at(now)
-        for slot, message in joints.items():
-            samples = joint_samples(message)
+        for slot, payload in joints.items():
+            samples = joint_samples(self._decode(bytes(payload)))
             self.scene.set_joints(slot, {s.name: s.position for s in samples})
         for name, message in markers.items():
             frame, pose = _pose_of(message)

@@ -1,0 +1,225 @@
+"""``msctl view --foxglove``: a foxglove-sdk WebSocket server for Foxglove (or Lichtblick).
+
+Foxglove's 3D panel animates a URDF from ``/tf`` and ``/tf_static``; msctl puts no global
+``/tf`` on the network, so this server composes them here, from the lock's URDF and each
+module's own ``joint_states`` (:class:`~msctl.view.scene.Scene`'s forward kinematics), for its
+own clients only. Channels:
+
+* ``/robot_description`` (std_msgs/String): the composed URDF, sent again to each subscriber
+  (a late one gets it too, as a latched topic would give it);
+* ``/tf_static`` and ``/tf`` (tf2_msgs/TFMessage): ``world`` -> every drawn link, the static
+  ones once (and again to each subscriber), the moving ones as they move;
+* each module's own topics it shows (``joint_states``, ``health``, ``tip_pose``, ``ik_target``),
+  as the raw CDR they arrived in, with ``ros2msg`` schemas written as rosbag2 writes them.
+
+Assets: ``package://msctl/<path>`` URIs are files of msctl's installed packages (module URDFs
+and their meshes); anything else is not found.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from msctl.view.scene import Pose, Scene
+
+STRING = "std_msgs/msg/String"
+TF = "tf2_msgs/msg/TFMessage"
+#: The frame every link is placed in.
+WORLD = "world"
+#: What ``package://msctl/`` resolves to: the directory above msctl's packages.
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+
+
+def asset(uri: str) -> bytes | None:
+    """The bytes of a ``package://msctl/...`` file of msctl's own data, or ``None``."""
+    prefix = "package://msctl/"
+    if not uri.startswith(prefix):
+        return None
+    path = (PACKAGE_ROOT / uri[len(prefix) :]).resolve()
+    allowed = [PACKAGE_ROOT / name for name in ("assemblies", "components", "msctl")]
+    if not any(path.is_relative_to(root) for root in allowed) or not path.is_file():
+        return None
+    return path.read_bytes()
+
+
+class FoxgloveView:
+    """Serves a running assembly to Foxglove clients.
+
+    Args:
+        node: An open node; its owner closes it.
+        assembly: The resolved assembly.
+        scene: Its scene.
+        port: The WebSocket port on ``host`` (0: any free one).
+        host: Where to listen.
+        period: Seconds between two ``/tf`` updates.
+    """
+
+    def __init__(
+        self,
+        node: Any,
+        assembly: Any,
+        scene: Scene,
+        port: int = 8765,
+        host: str = "127.0.0.1",
+        period: float = 0.1,
+    ) -> None:
+        self.node = node
+        self.assembly = assembly
+        self.scene = scene
+        self.port = port
+        self.host = host
+        self.period = period
+        self.server: Any = None
+        self.channels: dict[str, Any] = {}
+        self.topics: list[str] = []
+        self._subscriptions: list[Any] = []
+        self._lock = threading.Lock()
+        self._joints: dict[str, bytes] = {}
+        self._decode: Any = None
+        self._static: list[str] = []
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> FoxgloveView:
+        """Open the server, advertise every channel, follow the modules' topics."""
+        import foxglove
+
+        from components.comm.types import registry
+        from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE
+        from msctl.recorder.definitions import message_definition
+
+        self._context = foxglove.Context()
+        types = registry()
+        self._encode_string = types.serializer(STRING)
+        self._encode_tf = types.serializer(TF)
+        self._decode = types.deserializer(JOINT_STATE)
+
+        def channel(topic: str, type_name: str) -> Any:
+            schema = foxglove.Schema(
+                name=type_name,
+                encoding="ros2msg",
+                data=(message_definition(type_name) or "").encode(),
+            )
+            made = foxglove.Channel(
+                topic, schema=schema, message_encoding="cdr", context=self._context
+            )
+            self.channels[topic] = made
+            return made
+
+        channel("/robot_description", STRING)
+        channel("/tf_static", TF)
+        channel("/tf", TF)
+        for module in self.assembly.modules:
+            slot = module.slot
+            shown = [(f"/{slot}/health", DIAGNOSTIC_ARRAY)]
+            if module.joints:
+                shown.append((f"/{slot}/joint_states", JOINT_STATE))
+            if module.chains:
+                shown += [
+                    (f"/{slot}/{t}", "geometry_msgs/msg/PoseStamped")
+                    for t in ("tip_pose", "ik_target")
+                ]
+            for topic, type_name in shown:
+                out = channel(topic, type_name)
+                joints = slot if topic.endswith("/joint_states") else None
+                self._forward(topic, type_name, out, joints)
+        self.server = foxglove.start_server(
+            name=f"msctl view {self.assembly.template}",
+            host=self.host,
+            port=self.port,
+            context=self._context,
+            server_listener=_Listener(self),
+            asset_handler=asset,
+            supported_encodings=["cdr"],
+        )
+        self.port = self.server.port
+        self.scene.changes()
+        self._send_description()
+        return self
+
+    def _forward(self, topic: str, type_name: str, out: Any, joints: str | None) -> None:
+        def arrived(payload: Any) -> None:
+            data = bytes(payload)
+            out.log(data, log_time=time.time_ns())
+            if joints is not None:
+                with self._lock:
+                    self._joints[joints] = data
+
+        self.topics.append(topic)
+        self._subscriptions.append(self.node.subscription(topic, type_name, arrived, raw=True))
+
+    def close(self) -> None:
+        """Stop following and stop the server (idempotent)."""
+        for subscription in self._subscriptions:
+            subscription.close()
+        self._subscriptions.clear()
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    def __enter__(self) -> FoxgloveView:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ what goes out
+    def _send_description(self) -> None:
+        """``/robot_description`` and ``/tf_static``: to every subscriber, the late ones too."""
+        from components.messages import msg
+
+        urdf = Path(self.assembly.urdf_path).read_text()
+        self.channels["/robot_description"].log(
+            self._encode_string(msg(STRING, data=urdf)), log_time=time.time_ns()
+        )
+        poses = self.scene.everything().poses
+        self.channels["/tf_static"].log(self._tf(poses), log_time=time.time_ns())
+
+    def _tf(self, poses: dict[str, Pose]) -> bytes:
+        from components.messages import msg
+
+        now = time.time_ns()
+        transforms = []
+        for link, (xyz, quaternion) in poses.items():
+            stamped = msg("geometry_msgs/msg/TransformStamped", child_frame_id=link)
+            stamped.header.frame_id = WORLD
+            stamped.header.stamp.sec, stamped.header.stamp.nanosec = divmod(now, 1_000_000_000)
+            t, r = stamped.transform.translation, stamped.transform.rotation
+            t.x, t.y, t.z = xyz
+            r.x, r.y, r.z, r.w = quaternion
+            transforms.append(stamped)
+        return self._encode_tf(msg(TF, transforms=transforms))
+
+    def step(self) -> None:
+        """Apply the latest joint states; send the links that moved on ``/tf``."""
+        from components.messages import joint_samples
+
+        with self._lock:
+            joints, self._joints = self._joints, {}
+        for slot, payload in joints.items():
+            samples = joint_samples(self._decode(payload))
+            self.scene.set_joints(slot, {s.name: s.position for s in samples})
+        changes = self.scene.changes()
+        if changes.poses:
+            self.channels["/tf"].log(self._tf(changes.poses), log_time=time.time_ns())
+
+    def run(self, until: Callable[[], bool]) -> None:
+        """Step every :attr:`period` seconds until ``until()`` says stop."""
+        while not until():
+            started = time.monotonic()
+            self.step()
+            time.sleep(max(0.0, self.period - (time.monotonic() - started)))
+
+
+class _Listener:
+    """Sends ``/robot_description`` and ``/tf_static`` again to each new subscriber."""
+
+    def __init__(self, view: FoxgloveView) -> None:
+        self.view = view
+
+    def on_subscribe(self, _client: Any, channel: Any) -> None:
+        if channel.topic in ("/robot_description", "/tf_static"):
+            self.view._send_description()
