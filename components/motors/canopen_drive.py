@@ -243,6 +243,10 @@ _RPDO_LAYOUT = {
 _SP_IDLE, _SP_REQUESTED, _SP_RELEASING = "idle", "requested", "releasing"
 
 
+#: NMT state OPERATIONAL as a heartbeat carries it (CiA 301).
+_NMT_OPERATIONAL = 0x05
+
+
 @dataclass
 class _Drive:
     """Runtime state of one drive, guarded by the backend lock."""
@@ -678,6 +682,18 @@ class CanopenBackend(MotorBackend):
                 d.configured = False
                 d.auto_reset = True
                 d.next_config_at = 0.0
+            elif d.lost_since is not None and d.configured:
+                if state == _NMT_OPERATIONAL:
+                    # Back, operational, no boot-up seen: it kept its configuration (a cut
+                    # cable, or heartbeats late on a loaded bus). Trusted again at once: a
+                    # configuration over SDO, one drive after another, left every drive of
+                    # a limb blind for seconds after a hiccup that lost them all.
+                    d.lost_since = None
+                else:
+                    # Pre-operational or stopped (its own reaction to a communication
+                    # error): its PDOs are off, configure it again.
+                    d.configured = False
+                    d.next_config_at = 0.0
 
     def _on_emcy(self, d: _Drive, emcy: EmcyError) -> None:
         with self._lock:
@@ -814,11 +830,12 @@ class CanopenBackend(MotorBackend):
             with self._lock:
                 alive = d.alive(now, self.heartbeat_timeout)
                 if d.configured and not alive:
-                    # Lost: stop trusting its state; pick it up when its heartbeat returns.
-                    d.configured = False
-                    d.lost_since = d.heartbeat_at
-                    d.auto_reset = True
-                    d.statusword = None
+                    # Lost: stop trusting its state (read() leaves it out, commands are not
+                    # sent); its next heartbeat says whether it kept its configuration.
+                    if d.lost_since is None:
+                        d.lost_since = d.heartbeat_at
+                        d.auto_reset = True
+                        d.statusword = None
                     continue
                 # A drive that answered before is only retried once its heartbeat is back;
                 # one that never answered is tried blind now and then (its heartbeat may be
@@ -927,7 +944,7 @@ class CanopenBackend(MotorBackend):
             values["emcy"] = ",".join(f"0x{e.code:04X}" for e in d.emcys)
         if self._bus_error:
             return MotorDiagnostic(joint, ERROR, f"{who}: unreachable, the bus is down", values)
-        if d.ever_configured and not d.configured and d.lost_since is not None:
+        if d.ever_configured and d.lost_since is not None:
             silent = now - d.lost_since
             return MotorDiagnostic(
                 joint,
