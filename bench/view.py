@@ -4,13 +4,13 @@ same run, and what it subscribes to.
 The fleet (:mod:`assemblies.fleet`, 40 modules cloned from the Dragon's limb and wheel) gets a
 composed URDF here (each module's links from the Dragon's, bolted to ``world`` on a grid), so
 the view draws every module. One process plays the fleet's graph and health (the fleet's own
-emulator), another publishes every module's ``joint_states`` at ``--rate`` Hz with every joint
+emulator), another publishes every module's ``joint_read`` at ``--rate`` Hz with every joint
 moving (the ground's radio budget is 10 Hz a module; the default is twice that). Then:
 
 * CPU at steady state (% of one core, user+system, over ``--window`` s after ``--warmup`` s) of
   the real ``msctl view --rerun`` (serving its web viewer, no browser attached) and of the
   baseline: a bare zenoh-python subscriber receiving exactly the same keys (every module's
-  ``joint_states`` and ``health``) and doing nothing else. Target: well under a core.
+  ``joint_read`` and ``health``) and doing nothing else. Target: well under a core.
 * Its subscriptions, read from the graph (its node's liveliness tokens, as ``ros2 topic info``
   sees them): every topic it subscribes to is one it shows; anything else is printed.
 
@@ -72,7 +72,7 @@ node = Node(session, "fleet_joints", "/")
 players = []
 for module in assembly.modules:
     names = [j.name for j in module.joints]
-    players.append((names, node.publisher(f"/{module.slot}/joint_states", JOINT_STATE)))
+    players.append((names, node.publisher(f"/{module.slot}/joint_read", JOINT_STATE)))
 done = threading.Event()
 signal.signal(signal.SIGTERM, lambda *_: done.set())
 start = time.monotonic()
@@ -191,7 +191,7 @@ def subscriptions_of(endpoint: str, node_prefix: str) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--count", type=int, default=40)
-    parser.add_argument("--rate", type=float, default=20.0, help="joint_states Hz per module")
+    parser.add_argument("--rate", type=float, default=20.0, help="joint_read Hz per module")
     parser.add_argument("--window", type=float, default=15.0)
     parser.add_argument("--warmup", type=float, default=8.0)
     args = parser.parse_args(argv)
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         lock = home / "assembly" / "assembly.lock.json"
         start(sys.executable, "-m", "assemblies.fleet", "emulate", "--lock", str(lock))
         start(sys.executable, "-c", JOINTS, str(args.rate))
-        keys = [f"0/{m.slot}/joint_states/**" for m in assembly.modules]
+        keys = [f"0/{m.slot}/joint_read/**" for m in assembly.modules]
         keys += [f"0/{m.slot}/health/**" for m in assembly.modules]
         baseline = start(sys.executable, "-c", BASELINE % (endpoint, keys), out=subprocess.PIPE)
         view = start(
@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         following = next(line for line in said if "following" in line)
         subscribed = subscriptions_of(endpoint, "msctl_view_")
         shown = {f"/{m.slot}/health" for m in assembly.modules}
-        shown |= {f"/{m.slot}/joint_states" for m in assembly.modules if m.joints}
+        shown |= {f"/{m.slot}/joint_read" for m in assembly.modules if m.joints}
         shown |= {
             f"/{m.slot}/{t}"
             for m in assembly.modules
@@ -275,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     import psutil
 
     print_table(
-        f"msctl view at {args.count} modules, joint_states at {args.rate:g} Hz each "
+        f"msctl view at {args.count} modules, joint_read at {args.rate:g} Hz each "
         f"({psutil.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; % of one core over "
         f"{args.window:g} s)",
         ["process", "cpu %"],

@@ -67,11 +67,11 @@ def write_bag(directory: Path) -> tuple[Path, int]:
     types = registry()
     start = time.time_ns()
     with BagWriter(directory) as writer:
-        joints = writer.add_topic(spec("/limb1/joint_states", JOINT_STATE))
+        joints = writer.add_topic(spec("/limb1/joint_read", JOINT_STATE))
         limb1 = writer.add_topic(spec("/limb1/health", DIAGNOSTICS))
         wheel2 = writer.add_topic(spec("/wheel2/health", DIAGNOSTICS))
         tip = writer.add_topic(spec("/limb1/tip_pose", POSE))
-        stranger = writer.add_topic(spec("/limb9/joint_states", JOINT_STATE))
+        stranger = writer.add_topic(spec("/limb9/joint_read", JOINT_STATE))
         encode_joints, encode_health = types.serializer(JOINT_STATE), types.serializer(DIAGNOSTICS)
         for i in range(81):
             at = start + i * SECOND // 20

@@ -137,7 +137,7 @@ def showing_3d(picture: np.ndarray) -> bool:
 
 class Jogger:
     """Sends limb1's joint2 a position, 20 times a second, as teleop would; watches where
-    limb1's joint_states says it is."""
+    limb1's joint_read says it is."""
 
     def __init__(self, up: Up) -> None:
         from components.comm import Node, open_session
@@ -145,7 +145,7 @@ class Jogger:
         self.session = open_session(up.settings())
         self.node = Node(self.session, "view_test_jog", "/")
         self.position: float | None = None
-        self.node.subscription("/limb1/joint_states", JOINT_STATE, self._on_states)
+        self.node.subscription("/limb1/joint_read", JOINT_STATE, self._on_states)
         self.publisher = self.node.publisher("/limb1/joint_set", JOINT_STATE)
         self.target: float | None = None
         self.stop = threading.Event()
@@ -194,7 +194,7 @@ def test_the_robot_shows_and_moves_with_a_jog(view: View, dragon: Up, tmp_path: 
 
             wait_until(robot_seen_and_still, 300, "the robot, still, in the viewer's 3D view")
             before = masks[-1]
-            wait_until(lambda: jogger.position is not None, 60, "limb1's joint_states")
+            wait_until(lambda: jogger.position is not None, 60, "limb1's joint_read")
             start = jogger.position
             assert start is not None
             jogger.target = 0.8

@@ -1,7 +1,7 @@
 """``msctl view --foxglove`` at protocol level: a WebSocket client offering ``foxglove.sdk.v1``
 against :class:`~msctl.view.foxglove_server.FoxgloveView` on a real Zenoh router, a dragon's
-``joint_states`` published by a node of the test. Advertise, subscribe, CDR decoded (the URDF on
-``/robot_description``, limb1's links on ``/tf``, the module's own ``joint_states`` as it was
+``joint_read`` published by a node of the test. Advertise, subscribe, CDR decoded (the URDF on
+``/robot_description``, limb1's links on ``/tf``, the module's own ``joint_read`` as it was
 sent), ``fetchAsset`` of a module's URDF, and an unknown asset refused."""
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ def test_foxglove_clients_get_the_robot_its_tf_and_the_modules_topics(
     dragon = resolved_assembly(tmp_path, "dragon")
     types = registry()
     talker = Node(open_sessions(), "joint_manager", "/limb1")
-    publisher = talker.publisher("/limb1/joint_states", JOINT_STATE)
+    publisher = talker.publisher("/limb1/joint_read", JOINT_STATE)
     view = FoxgloveView(Node(open_sessions(), "view", "/"), dragon, scene_of(dragon), port=0)
     stop = threading.Event()
     with view:
@@ -107,9 +107,9 @@ def test_foxglove_clients_get_the_robot_its_tf_and_the_modules_topics(
         runner.start()
         client = Client(view.port)
         try:
-            wanted = ["/robot_description", "/tf_static", "/tf", "/limb1/joint_states"]
+            wanted = ["/robot_description", "/tf_static", "/tf", "/limb1/joint_read"]
             wait_until(lambda: all(t in client.channels for t in wanted), 30, "advertise")
-            joints = client.channels["/limb1/joint_states"]
+            joints = client.channels["/limb1/joint_read"]
             assert (joints["encoding"], joints["schemaEncoding"]) == ("cdr", "ros2msg")
             assert joints["schemaName"] == JOINT_STATE
             assert "MSG: std_msgs/Header" in joints["schema"]
@@ -129,7 +129,7 @@ def test_foxglove_clients_get_the_robot_its_tf_and_the_modules_topics(
                 publisher.publish(state)
                 return bool(client.received(3)) and bool(client.received(4))
 
-            wait_until(sent_and_seen, 30, "/tf and /limb1/joint_states at the client")
+            wait_until(sent_and_seen, 30, "/tf and /limb1/joint_read at the client")
             tf = types.deserializer("tf2_msgs/msg/TFMessage")(client.received(3)[-1])
             moved = {t.child_frame_id: t.transform.translation for t in tf.transforms}
             assert "limb1_palm_link" in moved and "limb2_palm_link" not in moved

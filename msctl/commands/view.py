@@ -113,7 +113,7 @@ def command(
     duration: float = typer.Option(0.0, "--for", help="Stop after this many seconds (0: Ctrl-C)."),
 ) -> None:
     """Show the running assembly in 3D: its composed URDF, every joint from its module's
-    joint_states, limb tips and IK targets, health as colour, alarms, claims and halts. The
+    joint_read, limb tips and IK targets, health as colour, alarms, claims and halts. The
     address to open is printed on stdout."""
     check_options(rerun, foxglove, save)
     if duration < 0:

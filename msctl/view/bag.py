@@ -1,7 +1,7 @@
 """The picture of a recorded bag: the same :class:`~msctl.view.scene.Scene` as the live view,
 fed from the bag's messages at their recorded times, so rerun's timeline scrubs through it.
 
-What it reads, per module of the assembly: ``joint_states`` (forward kinematics at the
+What it reads, per module of the assembly: ``joint_read`` (forward kinematics at the
 viewer), ``tip_pose`` and ``ik_target`` (markers), ``health`` (its worst status is the
 module's level; a module whose health stops for :data:`STALE_AFTER` seconds of the bag's
 time turns STALE) and ``/cmd_vel`` (an arrow). The assembly is the resolved one of this
@@ -51,7 +51,7 @@ def wanted_topics(assembly: Any) -> dict[str, tuple[str, str]]:
         slot = module.slot
         topics[f"/{slot}/health"] = ("health", slot)
         if module.joints:
-            topics[f"/{slot}/joint_states"] = ("joints", slot)
+            topics[f"/{slot}/joint_read"] = ("joints", slot)
         if module.chains:
             topics[f"/{slot}/tip_pose"] = ("marker", f"{slot}/tip")
             topics[f"/{slot}/ik_target"] = ("marker", f"{slot}/ik_target")
@@ -164,6 +164,6 @@ def _unknown_modules(recorded: Iterable[Any], assembly: Any) -> list[str]:
     out = set()
     for topic in recorded:
         parts = topic.name.strip("/").split("/")
-        if len(parts) == 2 and parts[1] in ("joint_states", "health") and parts[0] not in slots:
+        if len(parts) == 2 and parts[1] in ("joint_read", "health") and parts[0] not in slots:
             out.add(parts[0])
     return sorted(out)

@@ -2,14 +2,14 @@
 
 Foxglove's 3D panel animates a URDF from ``/tf`` and ``/tf_static``; msctl puts no global
 ``/tf`` on the network, so this server composes them here, from the lock's URDF and each
-module's own ``joint_states`` (:class:`~msctl.view.scene.Scene`'s forward kinematics), for its
+module's own ``joint_read`` (:class:`~msctl.view.scene.Scene`'s forward kinematics), for its
 own clients only. Channels:
 
 * ``/robot_description`` (std_msgs/String): the composed URDF, sent again to each subscriber
   (a late one gets it too, as a latched topic would give it);
 * ``/tf_static`` and ``/tf`` (tf2_msgs/TFMessage): ``world`` -> every drawn link, the static
   ones once (and again to each subscriber), the moving ones as they move;
-* each module's own topics it shows (``joint_states``, ``health``, ``tip_pose``, ``ik_target``),
+* each module's own topics it shows (``joint_read``, ``health``, ``tip_pose``, ``ik_target``),
   as the raw CDR they arrived in, with ``ros2msg`` schemas written as rosbag2 writes them.
 
 Assets: ``package://msctl/<path>`` URIs are files of msctl's installed packages (module URDFs
@@ -116,7 +116,7 @@ class FoxgloveView:
             slot = module.slot
             shown = [(f"/{slot}/health", DIAGNOSTIC_ARRAY)]
             if module.joints:
-                shown.append((f"/{slot}/joint_states", JOINT_STATE))
+                shown.append((f"/{slot}/joint_read", JOINT_STATE))
             if module.chains:
                 shown += [
                     (f"/{slot}/{t}", "geometry_msgs/msg/PoseStamped")
@@ -124,7 +124,7 @@ class FoxgloveView:
                 ]
             for topic, type_name in shown:
                 out = channel(topic, type_name)
-                joints = slot if topic.endswith("/joint_states") else None
+                joints = slot if topic.endswith("/joint_read") else None
                 self._forward(topic, type_name, out, joints)
         self.server = foxglove.start_server(
             name=f"msctl view {self.assembly.template}",

@@ -2,7 +2,9 @@
 
 What it subscribes to is exactly what it shows, per module, nothing global:
 
-* ``/<slot>/joint_states`` of every module with joints (forward kinematics at the viewer);
+* ``/<slot>/joint_read`` of every module with joints: the joint manager's calibrated
+  positions, the joint space of the URDF (forward kinematics at the viewer, as the location
+  publishers and the kinematics manager do it; ``joint_states`` is the motors' raw feedback);
 * ``/<slot>/tip_pose`` and ``/<slot>/ik_target`` of every module with a kinematic chain;
 * ``/cmd_vel`` when the assembly is mobile (the commanded twist, as an arrow);
 * each module's ``/<slot>/health`` and the graph, through :class:`~msctl.health.live.LiveHealth`
@@ -43,7 +45,7 @@ class LiveView:
         scene: Its scene.
         sink: Where to draw (:class:`~msctl.view.rerun_sink.RerunSink`).
         period: Seconds between two drawings (10 Hz: what a ground station's radio budget
-            lets through of a module's joint_states by default; drawing faster shows nothing new).
+            lets through of a module's joint_read by default; drawing faster shows nothing new).
         clock: Wall-clock seconds (the timeline's time).
     """
 
@@ -91,9 +93,7 @@ class LiveView:
             slot = module.slot
             if module.joints:
                 # Raw: only the latest sample of each step is decoded, not every one.
-                self._subscribe(
-                    f"/{slot}/joint_states", JOINT_STATE, self._on_joints, slot, raw=True
-                )
+                self._subscribe(f"/{slot}/joint_read", JOINT_STATE, self._on_joints, slot, raw=True)
             if module.chains:
                 for name in ("tip_pose", "ik_target"):
                     marker = f"{slot}/{'tip' if name == 'tip_pose' else 'ik_target'}"

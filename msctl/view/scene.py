@@ -1,7 +1,7 @@
 """The picture of an assembly, composed at the operator's end: the Core of ``msctl view``.
 
 Everything here is pure: the lock's composed URDF gives every link's shapes and the kinematic
-tree; joint positions (each module's own ``joint_states``) go in by plain calls, and forward
+tree; joint positions (each module's own ``joint_read``) go in by plain calls, and forward
 kinematics gives every link's pose in the world, as robot_state_publisher would, but at the
 viewer, so nothing global is put on the radio. Health, presence, halts and claims go in as
 plain values too; :meth:`Scene.changes` says what to draw again. No Zenoh, no clock, no
@@ -16,8 +16,12 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from components.assembly import ResolvedAssembly
 
 #: Below this a joint's move (rad or m) does not redraw its links.
 MOVE_TOLERANCE = 1e-4
@@ -268,7 +272,7 @@ class Scene:
 
     # ------------------------------------------------------------------ inputs
     def set_joints(self, slot: str, positions: Mapping[str, float]) -> bool:
-        """Take a module's joint positions (by joint name, as its ``joint_states`` says).
+        """Take a module's joint positions (by joint name, as its ``joint_read`` says).
 
         Joints of no robot and non-finite values are skipped. Returns whether any joint moved
         by more than :data:`MOVE_TOLERANCE`.
@@ -316,7 +320,10 @@ class Scene:
         centre = (low + high) / 2
         reach = max(float(np.max(high - low)), 0.5)
         eye = centre + np.array([0.35, -1.1, 0.6]) * reach
-        return (tuple(float(v) for v in eye), tuple(float(v) for v in centre))  # type: ignore[return-value]
+        return (
+            (float(eye[0]), float(eye[1]), float(eye[2])),
+            (float(centre[0]), float(centre[1]), float(centre[2])),
+        )
 
     def link_pose(self, link: str) -> Pose | None:
         """A link's last computed pose in the world (after :meth:`changes`)."""
@@ -362,11 +369,12 @@ class Scene:
         return out
 
 
-def _pose(placement: object) -> Pose:
-    translation = placement.translation  # type: ignore[attr-defined]
+def _pose(placement: Any) -> Pose:
+    """A Pinocchio placement (``SE3``) as a :data:`Pose`."""
+    translation = placement.translation
     return (
         (float(translation[0]), float(translation[1]), float(translation[2])),
-        quaternion_from_matrix(placement.rotation),  # type: ignore[attr-defined]
+        quaternion_from_matrix(placement.rotation),
     )
 
 
@@ -379,20 +387,20 @@ def _moved(before: Pose | None, after: Pose) -> bool:
     )
 
 
-def scene_of(assembly: object) -> Scene:
+def scene_of(assembly: ResolvedAssembly) -> Scene:
     """The scene of a resolved assembly (its lock and composed URDF).
 
     Raises:
         SceneError: If the composed URDF is missing or unreadable (naming the file).
     """
-    urdf_path = Path(assembly.urdf_path)  # type: ignore[attr-defined]
+    urdf_path = Path(assembly.urdf_path)
     try:
         text = urdf_path.read_text()
     except OSError as exc:
         raise SceneError(
             f"cannot read the composed URDF {urdf_path}: {exc.strerror}; run `msctl assemble`"
         ) from None
-    lock = assembly.lock  # type: ignore[attr-defined]
+    lock = assembly.lock
     robots = [Placement(r.root_link, tuple(r.xyz), tuple(r.rpy)) for r in lock.robots] or [
         Placement(root) for root in lock.root_links
     ]
