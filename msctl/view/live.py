@@ -197,7 +197,12 @@ class LiveView:
     def _take_health(self) -> None:
         snapshot = self.health.evaluate()
         for row in snapshot.modules:
-            present = row.components_ok > 0 if row.components_expected else bool(row.health_age)
+            # On the graph: any of its components' nodes live (what the graph says now, not
+            # what its last health said); a module with none planned counts by its health.
+            if row.components:
+                present = any(c.live > 0 for c in row.components)
+            else:
+                present = row.health_age is not None
             before = self.scene.modules.get(row.name)
             was_present = before.present if before else False
             was_seen = before is not None and before.level != "UNSEEN"
