@@ -143,3 +143,49 @@ def test_view_refuses_contradictions(args: list[str], says: str) -> None:
     assert isinstance(result.exception, MsctlError), result.output
     assert result.exception.exit_code == 2
     assert says in str(result.exception)
+
+
+MESH_URDF = """<robot name="mesh_bot">
+  <link name="world"/>
+  <link name="arm1_base_link">
+    <visual><geometry><mesh filename="{mesh}" scale="1 1 1"/></geometry></visual>
+  </link>
+  <link name="arm1_tip_link">
+    <visual><geometry><mesh filename="package://msctl/no/such/mesh.obj"/></geometry></visual>
+  </link>
+  <joint name="arm1_mount" type="fixed">
+    <parent link="world"/><child link="arm1_base_link"/>
+  </joint>
+  <joint name="arm1_joint1" type="revolute">
+    <parent link="arm1_base_link"/><child link="arm1_tip_link"/>
+    <origin xyz="0 0 0.5"/><axis xyz="0 1 0"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/>
+  </joint>
+</robot>
+"""
+
+
+def test_meshes_are_drawn_from_their_files_and_a_missing_one_as_a_point(tmp_path: Path) -> None:
+    pytest.importorskip("rerun", reason="the view extra is not installed")
+    from rerun.chunk import RrdReader
+
+    from msctl.view.rerun_sink import RerunSink, mesh_path
+
+    mesh = tmp_path / "base.obj"
+    mesh.write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    scene = Scene(MESH_URDF.format(mesh=f"file://{mesh}"), [("arm1", "limb")], [Placement("world")])
+    assert [s.kind for look in scene.links for s in look.shapes] == ["mesh", "mesh"]
+    assert mesh_path(f"file://{mesh}") == mesh
+    assert mesh_path("package://msctl/assemblies/modules/urdf/hl_limb_v1.urdf") is not None
+    assert mesh_path("package://msctl/no/such/mesh.obj") is None
+    sink = RerunSink(save=tmp_path / "mesh.rrd")
+    sink.at(1.0)
+    sink.draw_shapes(scene)
+    sink.draw(scene, scene.everything())
+    sink.close()
+    columns = {
+        chunk.entity_path: chunk.to_record_batch().schema.names
+        for chunk in RrdReader(tmp_path / "mesh.rrd").stream()
+    }
+    assert any(n.startswith("Asset3D:") for n in columns["/robot/arm1/arm1_base_link/visual_0"])
+    assert any(n.startswith("Points3D:") for n in columns["/robot/arm1/arm1_tip_link/visual_0"])

@@ -62,6 +62,23 @@ def blueprint(eye: tuple[Vec, Vec] | None = None) -> Any:
     )
 
 
+def mesh_path(uri: str) -> Path | None:
+    """The file of a URDF mesh (``package://msctl/...``, ``file://...`` or a path), if it exists.
+
+    A mesh that cannot be found is drawn as a point (and the URDF named by ``msctl assemble``'s
+    checks is where to fix it).
+    """
+    from msctl.view.foxglove_server import PACKAGE_ROOT
+
+    if uri.startswith("package://msctl/"):
+        path = PACKAGE_ROOT / uri[len("package://msctl/") :]
+    elif uri.startswith("file://"):
+        path = Path(uri[len("file://") :])
+    else:
+        path = Path(uri)
+    return path if path.is_file() else None
+
+
 class RerunSink:
     """One rerun recording fed from a scene.
 
@@ -165,7 +182,10 @@ class RerunSink:
                 colors=[colour],
                 fill_mode="solid",
             )
-        return rr.Asset3D(path=shape.mesh, albedo_factor=colour)
+        path = mesh_path(shape.mesh)
+        if path is None:
+            return rr.Points3D([(x, y, z)], colors=[colour], radii=[0.01])
+        return rr.Asset3D(path=path, albedo_factor=colour)
 
     def draw(self, scene: Scene, changes: Changes) -> None:
         """What :meth:`Scene.changes` said: link poses, module colours, status, markers."""
