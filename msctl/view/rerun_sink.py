@@ -16,6 +16,7 @@ scrubs on rerun's timeline.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -155,37 +156,8 @@ class RerunSink:
             self._log(path, self._archetype(shape, colour))
 
     def _archetype(self, shape: Shape, colour: tuple[int, int, int, int]) -> Any:
-        rr = self.rr
-        (x, y, z), quaternion = shape.origin
-        if shape.kind == "box":
-            return rr.Boxes3D(
-                sizes=[shape.size],
-                centers=[(x, y, z)],
-                quaternions=[quaternion],
-                colors=[colour],
-                fill_mode="solid",
-            )
-        if shape.kind == "cylinder":
-            radius, length = shape.size
-            return rr.Cylinders3D(
-                lengths=[length],
-                radii=[radius],
-                centers=[(x, y, z)],
-                quaternions=[quaternion],
-                colors=[colour],
-                fill_mode="solid",
-            )
-        if shape.kind == "sphere":
-            return rr.Ellipsoids3D(
-                half_sizes=[(shape.size[0],) * 3],
-                centers=[(x, y, z)],
-                colors=[colour],
-                fill_mode="solid",
-            )
-        path = mesh_path(shape.mesh)
-        if path is None:
-            return rr.Points3D([(x, y, z)], colors=[colour], radii=[0.01])
-        return rr.Asset3D(path=path, albedo_factor=colour)
+        draw = _SHAPES.get(shape.kind, _mesh)
+        return draw(self.rr, shape, colour)
 
     def draw(self, scene: Scene, changes: Changes) -> None:
         """What :meth:`Scene.changes` said: link poses, module colours, status, markers."""
@@ -201,8 +173,8 @@ class RerunSink:
             text = "\n".join(f"- {line}" for _, line in sorted(self._status.items()))
             self._log("status", rr.TextDocument(text, media_type="text/markdown"))
         for name, pose in changes.markers.items():
-            kind = name.rsplit("/", 1)[-1]
-            colour = (60, 200, 90, 255) if kind == "tip" else (230, 120, 230, 255)
+            # A limb's tip green, an IK target (what it was asked to reach) magenta.
+            colour = _MARKER_COLOURS.get(name.rsplit("/", 1)[-1], _TARGET_COLOUR)
             self._log(
                 f"targets/{name}",
                 rr.Points3D([pose[0]], radii=[0.02], colors=[colour], labels=[name]),
@@ -230,3 +202,59 @@ class RerunSink:
 def _transform(rr: Any, pose: Pose) -> Any:
     translation, quaternion = pose
     return rr.Transform3D(translation=translation, quaternion=quaternion)
+
+
+Colour = tuple[int, int, int, int]
+
+
+def _box(rr: Any, shape: Shape, colour: Colour) -> Any:
+    (x, y, z), quaternion = shape.origin
+    return rr.Boxes3D(
+        sizes=[shape.size],
+        centers=[(x, y, z)],
+        quaternions=[quaternion],
+        colors=[colour],
+        fill_mode="solid",
+    )
+
+
+def _cylinder(rr: Any, shape: Shape, colour: Colour) -> Any:
+    (x, y, z), quaternion = shape.origin
+    radius, length = shape.size
+    return rr.Cylinders3D(
+        lengths=[length],
+        radii=[radius],
+        centers=[(x, y, z)],
+        quaternions=[quaternion],
+        colors=[colour],
+        fill_mode="solid",
+    )
+
+
+def _sphere(rr: Any, shape: Shape, colour: Colour) -> Any:
+    (x, y, z), _ = shape.origin
+    return rr.Ellipsoids3D(
+        half_sizes=[(shape.size[0],) * 3],
+        centers=[(x, y, z)],
+        colors=[colour],
+        fill_mode="solid",
+    )
+
+
+def _mesh(rr: Any, shape: Shape, colour: Colour) -> Any:
+    """A mesh file as an asset; a point where the file cannot be found."""
+    path = mesh_path(shape.mesh)
+    if path is None:
+        return rr.Points3D([shape.origin[0]], colors=[colour], radii=[0.01])
+    return rr.Asset3D(path=path, albedo_factor=colour)
+
+
+#: A URDF geometry's kind -> how rerun draws it (anything else is a mesh).
+_SHAPES: dict[str, Callable[[Any, Shape, Colour], Any]] = {
+    "box": _box,
+    "cylinder": _cylinder,
+    "sphere": _sphere,
+}
+#: A marker's last name chunk -> its colour; the rest are IK targets.
+_MARKER_COLOURS: dict[str, Colour] = {"tip": (60, 200, 90, 255)}
+_TARGET_COLOUR: Colour = (230, 120, 230, 255)
