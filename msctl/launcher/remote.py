@@ -210,13 +210,17 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
                     call_supervisor(
                         node, host, "ps", timeout=10.0, grace=UP_GRACE, attempt=UP_ATTEMPT / 2
                     )
+                # Its agent is there (on the graph, or it answered): a route that lapses now
+                # is a radio link reopening, not an agent gone, so it is asked again for as
+                # long as the answer may take (on a 256 kbit/s link losing a fifth of its
+                # packets, a robot's route was gone longer than UP_GRACE).
                 answer = call_supervisor(
                     node,
                     host,
                     "up",
                     {"assembly": document, "sim": sim, "speed": speed},
                     answer_bound,
-                    grace=UP_GRACE,
+                    grace=answer_bound,
                     attempt=UP_ATTEMPT,
                 )
             except ServiceError as exc:  # a timeout says how long it waited, and for what
