@@ -29,6 +29,7 @@ from components.messages import (
     joint_state,
     msg,
 )
+from components.roles import Role
 
 TRIGGER_REQ = msg("std_srvs/srv/Trigger_Request")
 LIST_REQ = msg("msctl_msgs/srv/ListJoints_Request")
@@ -717,7 +718,9 @@ def test_rezero_injection_rewrites_offsets_and_the_toml_file(tmp_path) -> None:
         "joint_manager",
         injections=[{"name": "rezero", "calibration_file": str(path), "max_shift": 1.0}],
     )
-    assert core.extra_serve == [Serve("rezero", "msctl_msgs/srv/Rezero", "on_rezero")]
+    assert core.extra_serve == [
+        Serve("rezero", "msctl_msgs/srv/Rezero", "on_rezero", role=Role.RAW)
+    ]
 
     core.on_joint_states(
         state(

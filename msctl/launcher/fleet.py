@@ -191,9 +191,11 @@ NO_SERVER_PAUSE = 0.25
 #: A request is sent again after a share of its bound with no answer (never sooner than
 #: :data:`MIN_ATTEMPT` seconds), the earlier copies still waiting: a radio link that closes
 #: while a query waits loses the query or its answer for good, and nothing resends it when
-#: the link reopens. The verbs asked this way (ps, doctor, down) are safe to repeat.
+#: the link reopens. Only :data:`REPEATED`'s verbs.
 ATTEMPTS = 3
 MIN_ATTEMPT = 2.0
+#: The verbs sent again that way: cheap to answer twice.
+REPEATED = ("ps", "down")
 
 
 def ask_hosts(
@@ -242,7 +244,9 @@ def ask_hosts(
         while True:
             asked_at = time.monotonic()
             budget = timeout - (asked_at - started)
-            every = max(MIN_ATTEMPT, timeout / ATTEMPTS)
+            # A verb that is cheap and safe to repeat goes again; doctor runs every check
+            # each time it is asked (a repeat would only queue more work at the agent).
+            every = max(MIN_ATTEMPT, timeout / ATTEMPTS) if verb in REPEATED else budget
             try:
                 response = clients[namespace].ask_repeating(verb, request, budget, every)
                 break

@@ -525,6 +525,7 @@ def _start_emulator(rehearsal: Rehearsal) -> int:
 
 def _wait_for_agents(rehearsal: Rehearsal, timeout: float) -> None:
     """Until the ground station sees every computer's agent (its request service)."""
+    from msctl.errors import OperationTimeout
     from msctl.launcher.control import host_namespace
 
     ground = rehearsal.ground
@@ -535,7 +536,7 @@ def _wait_for_agents(rehearsal: Rehearsal, timeout: float) -> None:
     while True:
         try:
             done = rehearsal.run(ground, ["msctl", "service", "list", "--json"], timeout=30.0)
-        except subprocess.TimeoutExpired:
+        except OperationTimeout:
             # A machine this loaded (five computers starting at once) is slow to answer, not
             # broken: asked again until the deadline, which says what is missing.
             done = subprocess.CompletedProcess([], 1, "", "")
