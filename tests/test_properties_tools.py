@@ -289,6 +289,8 @@ def test_update_takes_any_repos_file_without_an_internal_error(
     (home / "a-file").write_text("")
     repos = home / "fuzz.repos"
     repos.write_text(text)
+    # A relative lock path is the test's home's, never the directory the tests run in.
+    lock = lock if lock.startswith("/") else str(home / lock)
     args = ("update", str(repos), "-w", str(ws), *(a.format(lock=lock) for a in extra))
     code, _, stderr = msctl(*args)
     keeps_the_contract(code, stderr, args)
