@@ -10,7 +10,8 @@ simulator's, and the joint_set -> joint_read motion latency.
 Asserted: memory does not grow beyond a generous bound (before the fix the health monitor kept
 every name it saw), the health monitor counted the refused messages (the joint manager
 refuses the flood's ``joint_states`` by sender: not its motor interface), ``joint_set`` still
-moves the joint and ``halt`` still answers. Latencies are printed, never asserted (a shared machine).
+moves the joint and ``halt`` still answers. Latencies are printed, never asserted (a shared
+machine).
 """
 
 from __future__ import annotations

@@ -72,9 +72,7 @@ def test_add_operator_then_revoke_changes_the_generated_acl(home: Path) -> None:
     ).items()
     config = json.loads(_msctl(home, "net", "config").stdout)
     operators = next(s for s in config["access_control"]["subjects"] if s["id"] == acl.OPERATORS)
-    assert [pki.name_of(cn) for cn in operators["cert_common_names"]] == [
-        "operator:alice@ground1"
-    ]
+    assert [pki.name_of(cn) for cn in operators["cert_common_names"]] == ["operator:alice@ground1"]
 
 
 def test_config_is_written_and_zenoh_accepts_it(home: Path, tmp_path: Path) -> None:

@@ -57,4 +57,3 @@ def build(
     if module.calibration_file:
         built.extension_defaults = {"rezero": {"calibration_file": module.calibration_file}}
     return built
-

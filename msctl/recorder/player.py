@@ -278,8 +278,7 @@ class Player:
             return
         if not topic.type:
             self.report.skipped[topic.name] = (
-                "the bag names no type for it (its channel has no schema): nothing to "
-                "publish it as"
+                "the bag names no type for it (its channel has no schema): nothing to publish it as"
             )
             return
         if topic.encoding not in ("ros2msg", "") and not _known(topic.type):
