@@ -713,7 +713,10 @@ def test_record_tells_each_interruption_and_exits_3_when_it_ends_without_data(
     finally:
         flood.close()
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
+        # Not communicate(): it would read stderr too, racing Lines' thread for the last lines.
+        proc.wait(timeout=60)
+        assert proc.stdout is not None
+        out = proc.stdout.read()
     stderr = notices.text()
     assert proc.returncode == 3, stderr
     said = " ".join(stderr.split())  # the error line is wrapped at the console's width
