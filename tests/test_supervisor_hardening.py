@@ -236,6 +236,60 @@ def test_whatever_handling_a_request_raises_is_answered_as_an_error(
     assert any("could not answer" in event for event in launch.events)
 
 
+def test_a_slow_doctor_is_answered_off_the_loop_which_goes_on_answering(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """doctor (seconds of certificate checks and graph listing; tens on a starved machine)
+    runs on a thread of its own: the loop answers ps meanwhile (it supervises in the same
+    turns), and doctors asked again while one runs are answered by one more run, not a queue
+    of them."""
+    import threading
+
+    from msctl.launcher.plan import HostPlan
+    from msctl.launcher.run import Launch
+
+    monkeypatch.setenv("MSCTL_HOME", str(tmp_path))
+    launch = Launch(
+        assembly=SimpleNamespace(template="minimal"),  # type: ignore[arg-type]
+        plan=HostPlan(host=HOST, simulated=True, off_robot=True),
+        settings=SessionSettings(mode="peer", connect=(), listen=(), multicast=False),
+    )
+    release = threading.Event()
+    runs: list[str] = []
+
+    def slow_doctor(verb: str, args: dict[str, Any]) -> Any:
+        if verb == "doctor":
+            runs.append(threading.current_thread().name)
+            assert release.wait(60), "the test never released the doctor"
+            return {"host": HOST, "run": len(runs)}
+        return {"host": HOST, "verb": verb}
+
+    monkeypatch.setattr(launch, "_do", slow_doctor)
+    replies: dict[str, list[Any]] = {}
+
+    def asked(verb: str, name: str) -> SimpleNamespace:
+        return SimpleNamespace(
+            request=SimpleNamespace(verb=verb, args=""), reply=replies.setdefault(name, []).append
+        )
+
+    launch._answer(asked("doctor", "first"))  # returns at once: the doctor runs elsewhere
+    wait_until(lambda: runs, timeout=30, what="the first doctor running")
+    launch._answer(asked("ps", "ps"))  # answered now, on the loop, while the doctor runs
+    assert [json.loads(r.payload)["verb"] for r in replies["ps"]] == ["ps"]
+    for again in ("second", "third"):  # asked again while the first runs
+        launch._answer(asked("doctor", again))
+    assert not replies["first"] and runs == ["msctl-off-loop"]
+    release.set()
+    wait_until(
+        lambda: all(replies.get(n) for n in ("first", "second", "third")),
+        timeout=30,
+        what="every doctor answered",
+    )
+    answered = {n: json.loads(replies[n][0].payload)["run"] for n in ("first", "second", "third")}
+    assert answered == {"first": 1, "second": 2, "third": 2}  # two runs for three requests
+    assert all(len(replies[n]) == 1 and replies[n][0].success for n in answered)
+
+
 @pytest.mark.e2e
 def test_hostile_requests_get_error_replies_and_the_assembly_keeps_running(
     minimal_up: Home,

@@ -62,8 +62,8 @@ from msctl.launcher import desired as desired_state
 from msctl.launcher import state
 from msctl.launcher.control import (
     AGENT_SRV,
+    OffLoop,
     RequestError,
-    answer,
     host_namespace,
 )
 from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
@@ -243,6 +243,7 @@ class Agent:
         self.router = Supervisor(agent_dir() / "logs")
         self._log = log or (lambda line: print(line, file=sys.stderr, flush=True))
         self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._answerer: OffLoop | None = None
         #: Set when a request arrives, so the loop answers it at once rather than after its
         #: pause (up to 50 ms more on every `msctl ps`).
         self._request_came = threading.Event()
@@ -393,17 +394,19 @@ class Agent:
 
     # ------------------------------------------------------------------ requests
     def _answer(self, pending: Any) -> None:
-        """Answer one request; whatever it raises is an error reply, never the agent's end."""
+        """Answer one request (a slow read-only one from a thread of its own: the loop goes
+        on supervising); whatever it raises is an error reply, never the agent's end."""
+        if self._answerer is None:
+            self._answerer = OffLoop(self._handled, self.log, self.host)
+        self._answerer(pending)
 
-        def handle(verb: str, args: dict[str, Any]) -> tuple[bool, str, Any]:
-            try:
-                payload, message = self.handle(verb, args)
-            except RequestError as exc:
-                self.log(f"refused {verb!r}: {exc}")
-                raise
-            return True, message, payload
-
-        answer(pending, handle, self.log, self.host)
+    def _handled(self, verb: str, args: dict[str, Any]) -> tuple[bool, str, Any]:
+        try:
+            payload, message = self.handle(verb, args)
+        except RequestError as exc:
+            self.log(f"refused {verb!r}: {exc}")
+            raise
+        return True, message, payload
 
     def handle(self, verb: str, args: dict[str, Any]) -> tuple[Any, str]:
         """Carry out a validated request; returns ``(payload, message)``.

@@ -165,21 +165,104 @@ def answer(
         note: Where to say what went wrong (the supervisor's log or events).
         who: Names the supervisor in error replies (its host).
     """
+    _reply_all([pending], _outcome(pending, handle, note, who), note, who)
+
+
+def _outcome(
+    pending: Any,
+    handle: Callable[[str, dict[str, Any]], tuple[bool, str, Any]],
+    note: Callable[[str], None],
+    who: str,
+) -> tuple[bool, str, Any]:
+    """``(success, message, payload)`` of carrying out a pending request (never raises)."""
     verb = request_verb(pending)
     try:
         request = parse_request(pending.request.verb, pending.request.args)
-        success, message, payload = handle(request.verb, request.args)
+        return handle(request.verb, request.args)
     except RequestError as exc:
-        success, message, payload = False, str(exc), None
+        return False, str(exc), None
     except Exception as exc:  # RecursionError, MemoryError, a bug: an error reply
-        success, message, payload = False, f"{who} could not {verb}: {_describe(exc)}", None
         note(f"request {verb!r} failed: {_describe(exc)}")
-    try:
-        reply(pending, success, message, payload)
-    except Exception as exc:
-        note(f"could not answer request {verb!r}: {_describe(exc)}")
-        with contextlib.suppress(Exception):
-            reply(pending, False, f"{who} could not answer {verb}: {_describe(exc)}")
+        return False, f"{who} could not {verb}: {_describe(exc)}", None
+
+
+def _reply_all(
+    pendings: list[Any], outcome: tuple[bool, str, Any], note: Callable[[str], None], who: str
+) -> None:
+    """Send one outcome to each of ``pendings`` (never raises)."""
+    success, message, payload = outcome
+    for pending in pendings:
+        verb = request_verb(pending)
+        try:
+            reply(pending, success, message, payload)
+        except Exception as exc:
+            note(f"could not answer request {verb!r}: {_describe(exc)}")
+            with contextlib.suppress(Exception):
+                reply(pending, False, f"{who} could not answer {verb}: {_describe(exc)}")
+
+
+#: Verbs that only read and take seconds: ``doctor`` verifies every certificate of the fleet
+#: and lists the whole graph (1.4 s on an idle rehearsal, tens of seconds on a starved
+#: machine). On the supervisor's loop they would stop its supervision for that long (no
+#: heartbeat read, no restart), so :class:`OffLoop` answers them on a thread of their own.
+OFF_LOOP = frozenset({"doctor"})
+
+
+class OffLoop:
+    """Answers the :data:`OFF_LOOP` verbs on one worker thread, the others on the loop.
+
+    Requests of such a verb that arrive while one is being carried out wait for the next
+    run, and one run answers every identical request (same verb and arguments) waiting when
+    it began: a client asking again while a slow doctor runs adds one run, not a queue.
+
+    Args:
+        handle: Carries out ``(verb, args)``; returns ``(success, message, payload)``. Called
+            on the worker thread for the :data:`OFF_LOOP` verbs: they must only read.
+        note: Where to say what went wrong.
+        who: Names the supervisor in error replies (its host).
+    """
+
+    def __init__(
+        self,
+        handle: Callable[[str, dict[str, Any]], tuple[bool, str, Any]],
+        note: Callable[[str], None],
+        who: str,
+    ) -> None:
+        import threading
+
+        self._handle = handle
+        self._note = note
+        self._who = who
+        self._lock = threading.Lock()
+        self._waiting: dict[tuple[str, Any], list[Any]] = {}
+        self._working = False
+
+    def __call__(self, pending: Any) -> None:
+        """Answer ``pending``: now, or (an :data:`OFF_LOOP` verb) from the worker thread."""
+        verb = request_verb(pending)
+        if verb not in OFF_LOOP:
+            answer(pending, self._handle, self._note, self._who)
+            return
+        import threading
+
+        args = getattr(getattr(pending, "request", None), "args", None)
+        same = (verb, args if isinstance(args, str) else id(pending))
+        with self._lock:
+            self._waiting.setdefault(same, []).append(pending)
+            if self._working:
+                return
+            self._working = True
+        threading.Thread(target=self._work, name="msctl-off-loop", daemon=True).start()
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                if not self._waiting:
+                    self._working = False
+                    return
+                pendings = self._waiting.pop(next(iter(self._waiting)))
+            outcome = _outcome(pendings[0], self._handle, self._note, self._who)
+            _reply_all(pendings, outcome, self._note, self._who)
 
 
 def _describe(exc: BaseException) -> str:

@@ -23,7 +23,7 @@ from components.comm.session import SessionConfigError, SessionSettings, open_se
 from components.ros import rclpy_available
 from msctl.errors import MsctlError
 from msctl.launcher import boot, forkserver, state
-from msctl.launcher.control import AGENT_SRV, RequestError, answer, host_namespace
+from msctl.launcher.control import AGENT_SRV, OffLoop, RequestError, host_namespace
 from msctl.launcher.plan import HostPlan, ProcessPlan
 from msctl.launcher.supervisor import (
     LivenessPolicy,
@@ -429,6 +429,7 @@ class Launch:
         self._watch_session: Any = None
         self._node: Any = None
         self._requests: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._answerer: OffLoop | None = None
         #: Set when a request arrives, so the loop answers it at once rather than after its
         #: pause (up to 50 ms more on every `msctl ps`).
         self._request_came = threading.Event()
@@ -679,13 +680,15 @@ class Launch:
 
     # ------------------------------------------------------------------ control
     def _answer(self, pending: Any) -> None:
-        """Answer one request; whatever it raises is an error reply, never the loop's end."""
-        answer(
-            pending,
-            lambda verb, args: (True, "ok", self._do(verb, args)),
-            lambda line: self.events.append(f"supervisor: {line}"),
-            self.plan.host,
-        )
+        """Answer one request (a slow read-only one from a thread of its own: the loop goes
+        on supervising); whatever it raises is an error reply, never the loop's end."""
+        if self._answerer is None:
+            self._answerer = OffLoop(
+                lambda verb, args: (True, "ok", self._do(verb, args)),
+                lambda line: self.events.append(f"supervisor: {line}"),
+                self.plan.host,
+            )
+        self._answerer(pending)
 
     def _process_of(self, name: str) -> str:
         if name in self.supervisor.processes:
