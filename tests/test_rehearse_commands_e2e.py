@@ -239,12 +239,6 @@ def _doctor(stage: Stage) -> tuple[int, dict[str, Any]]:
     return done.returncode, _document(done)
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="failed in both full runs of 11-28 (some host named unreachable by doctor --all "
-    "for 120 s) after doctor's rework (4f14b6b) and the fleet's repeats (778f429, doctor "
-    "since excluded); cause not found yet",
-)
 def test_doctor_all_every_host_answers_and_agrees(field: Field) -> None:
     stage = field.stage
 
