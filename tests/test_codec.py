@@ -1,4 +1,4 @@
-"""The generated CDR codecs (components/comm/codec.py) against rosbags' own, type by type.
+"""The generated CDR codecs (components/comm/codec/) against rosbags' own, type by type.
 
 Every registered message type: random messages encode to rosbags' exact bytes and decode to
 equal messages; mutated payloads decode to what rosbags decodes or raise where it raises. The
@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from components.comm.codec import memory
 from components.comm.types import TypeRegistry, registry
 from components.messages import JOINT_STATE, msg
 
@@ -295,9 +296,9 @@ def test_each_stream_remembers_its_own_shape(reg: TypeRegistry) -> None:
     for encode, decode, message, other in zip(
         encoders, decoders, messages, messages[::-1], strict=True
     ):
-        (memo,) = decode.__defaults__
+        memo = memory(decode)
         assert memo[0][0] == len(encode(message)) != len(reg.serializer(JOINT_STATE)(other))
-        (memo,) = encode.__defaults__
+        memo = memory(encode)
         assert message.name in memo[0] and other.name not in memo[0]
     assert reg.deserializer(JOINT_STATE) not in decoders
 
@@ -311,7 +312,7 @@ def test_a_large_payload_is_not_remembered(reg: TypeRegistry) -> None:
         message = msg("std_msgs/msg/String", data="x" * size)
         assert decode(encode(message)).data == message.data
         for codec in (encode, decode):
-            (memo,) = codec.__defaults__
+            memo = memory(codec)
             assert (memo[0][0] in (None, False)) == (size == REMEMBER_AT_MOST)
 
 

@@ -24,7 +24,10 @@ import threading
 from collections.abc import Callable
 from functools import cache
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+if TYPE_CHECKING:
+    from components.comm.codec import Codec
 
 # rosbags (about 0.1 s to import) is imported where a definition is parsed or a field
 # description read: a process that only names types (a graph listing, a key) never needs it.
@@ -119,8 +122,9 @@ class TypeRegistry:
         self._services: dict[str, ServiceParts] = {}
         self._hashes: dict[str, str] = {}
         # Generated codecs per type (components.comm.codec), made on first use.
-        self._encoders: dict[str, Callable[[Any], bytes]] = {}
-        self._decoders: dict[str, Callable[[bytes], Any]] = {}
+        # Each as (the type's codec, the registry's own stream of it).
+        self._encoders: dict[str, tuple[Codec, Callable[[Any], bytes]]] = {}
+        self._decoders: dict[str, tuple[Codec, Callable[[bytes], Any]]] = {}
         self._load_bundled()
 
     # ----------------------------------------------------------------- registration
@@ -258,17 +262,10 @@ class TypeRegistry:
         Args:
             name: The message type.
             stream: For one subscription: a decoder that remembers the layout of the last
-                payload on its own (see :func:`components.comm.codec.own`).
+                payload on its own (see :meth:`components.comm.codec.Codec.stream`); else
+                the registry's own, shared by its callers.
         """
-        canonical = self._require_msg(name)
-        decode = self._decoders.get(canonical)
-        if decode is None:
-            decode = self._make_codec(canonical, decoding=True)
-        if not stream:
-            return decode
-        from components.comm.codec import own
-
-        return own(decode)
+        return self._codec(self._require_msg(name), decoding=True, stream=stream)
 
     def serializer(self, name: str, stream: bool = False) -> Callable[[Any], bytes]:
         """The encoder of one type, message -> CDR bytes with header (hot publish paths).
@@ -279,19 +276,21 @@ class TypeRegistry:
         Args:
             name: The message type.
             stream: For one publisher: an encoder that remembers the shape of the last
-                message on its own (see :func:`components.comm.codec.own`).
+                message on its own (see :meth:`components.comm.codec.Codec.stream`); else
+                the registry's own, shared by its callers.
         """
-        canonical = self._require_msg(name)
-        encode = self._encoders.get(canonical)
-        if encode is None:
-            encode = self._make_codec(canonical, decoding=False)
-        if not stream:
-            return encode
-        from components.comm.codec import own
+        return self._codec(self._require_msg(name), decoding=False, stream=stream)
 
-        return own(encode)
+    def _codec(self, canonical: str, decoding: bool, stream: bool) -> Callable[[Any], Any]:
+        """A stream of the type's codec: a new one, or the registry's shared one."""
+        made = (self._decoders if decoding else self._encoders).get(canonical)
+        if made is None:
+            made = self._make_codec(canonical, decoding)
+        if stream:
+            return made[0].stream()
+        return made[1]
 
-    def _make_codec(self, canonical: str, decoding: bool) -> Callable[[Any], Any]:
+    def _make_codec(self, canonical: str, decoding: bool) -> tuple[Codec, Callable[[Any], Any]]:
         from components.comm import codec
 
         store = self._store
@@ -301,28 +300,32 @@ class TypeRegistry:
                 return made
             try:
                 if decoding:
-                    made = codec.decoder(
+                    generated = codec.decoder(
                         canonical,
                         self.fields,
                         self.msg_class,
                         lambda data: store.deserialize_cdr(data, canonical),
                     )
                 else:
-                    made = codec.encoder(canonical, self.fields)
+                    generated = codec.encoder(canonical, self.fields)
             except codec.Unsupported:
-                made = self._rosbags_codec(canonical, decoding)
+                generated = self._rosbags_codec(canonical, decoding)
+            made = (generated, generated.stream())
             (self._decoders if decoding else self._encoders)[canonical] = made
             return made
 
-    def _rosbags_codec(self, canonical: str, decoding: bool) -> Callable[[Any], Any]:
+    def _rosbags_codec(self, canonical: str, decoding: bool) -> Codec:
         """``rosbags``' generated little-endian codec of a type, bound (the generic
-        ``serialize_cdr``/``deserialize_cdr`` look the type up on every call)."""
+        ``serialize_cdr``/``deserialize_cdr`` look the type up on every call). It remembers
+        no shape: its streams' memory stays unused."""
+        from components.comm.codec import Codec
+
         store = self._store
         definition = store.get_msgdef(canonical)
         if decoding:
             decode_le, cls = definition.deserialize_cdr_le, definition.cls
 
-            def decode(data: bytes) -> Any:
+            def decode(_memo: list[Any], data: bytes) -> Any:
                 if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
                     raise ValueError("invalid or unsupported CDR encapsulation")
                 if data[1] == 0:  # big-endian senders are rare; take the generic path
@@ -332,16 +335,16 @@ class TypeRegistry:
                     raise ValueError(f"{len(data) - pos - 4} trailing bytes after a {canonical}")
                 return message
 
-            return decode
+            return Codec(decode)
         size_of, encode_le = definition.getsize_cdr, definition.serialize_cdr_le
 
-        def encode(message: Any) -> bytes:
+        def encode(_memo: list[Any], message: Any) -> bytes:
             buffer = bytearray(4 + size_of(0, message, store))
             buffer[1] = 1  # CDR little-endian encapsulation
             encode_le(memoryview(buffer)[4:], 0, message, store)
             return bytes(buffer)
 
-        return encode
+        return Codec(encode)
 
     def deserialize(self, data: bytes, name: str) -> Any:
         """Decode CDR bytes (with header) into a message object."""
