@@ -14,9 +14,15 @@ INTERRUPTED = 130
 
 
 def main() -> None:
-    """Entry point: run the app and turn project errors into one red line and an exit code."""
+    """Entry point: run the app and turn project errors into one red line and an exit code.
+
+    Every error raised on purpose, the runtime's and the CLI's, is a
+    :class:`~components.errors.ComponentError`; its exit code is its category's
+    (:func:`msctl.errors.exit_code_of`), here and nowhere else.
+    """
     try:
-        from msctl.errors import MsctlError
+        from components.errors import ComponentError
+        from msctl.errors import exit_code_of
 
         try:
             from msctl import quick
@@ -27,7 +33,7 @@ def main() -> None:
 
                 # Standalone mode: typer prints its own usage errors and exits with code 2.
                 command(sys.argv[1:])()
-        except MsctlError as exc:
+        except ComponentError as exc:
             from rich.markup import escape
 
             from msctl.console import err
@@ -36,7 +42,7 @@ def main() -> None:
                 err.print_exception()
             # Escaped: an operator's text such as "[joints.joint3]" must print as written.
             err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
-            sys.exit(exc.exit_code)
+            sys.exit(exit_code_of(exc))
         except SystemExit as exc:
             # typer turns a Ctrl-C inside a command into a silent exit 130: say it once.
             if exc.code == INTERRUPTED and _from_ctrl_c(exc):
@@ -47,14 +53,8 @@ def main() -> None:
                 raise
             from rich.markup import escape
 
-            from components.comm.session import SessionConfigError
             from msctl.console import err
 
-            if isinstance(exc, SessionConfigError):
-                # Session settings come from MSCTL_ZENOH_* in the environment, whichever
-                # command reads them: the operator's input, not our bug.
-                err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
-                sys.exit(2)
             err.print(
                 f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))} "
                 "(run again with MSCTL_DEBUG=1 for the traceback, and report it)",

@@ -10,52 +10,81 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from components.errors import (
+    ComponentError,
+    ConfigError,
+    DeadlineError,
+    HardwareError,
+    LinkError,
+    NotFound,
+)
 
-class MsctlError(Exception):
+#: The exit code of each category of error, the first that matches winning: the one place
+#: a failure becomes a number (``msctl.cli.main``; an :class:`MsctlError` may carry its own).
+EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
+    (ConfigError, 2),  # usage or input: a file, field, argument or value
+    (LinkError, 3),  # the data plane or a peer could not be reached
+    (NotFound, 4),  # a template, unit, topic, type or component that does not exist
+    (DeadlineError, 5),  # a bounded wait ran out
+    (HardwareError, 6),  # a device or a disk failed
+)
+#: The exit code of a project error in no category.
+GENERAL = 1
+
+
+def exit_code_of(exc: BaseException) -> int:
+    """The exit code ``msctl`` ends with for ``exc``: its own, else its category's."""
+    own = vars(exc).get("exit_code")
+    if own is None:
+        own = next((vars(k)["exit_code"] for k in type(exc).__mro__ if _owns_code(k)), None)
+    if own is not None:
+        return int(own)
+    return next((code for category, code in EXIT_CODES if isinstance(exc, category)), GENERAL)
+
+
+def _owns_code(cls: type) -> bool:
+    # A class statement saying ``exit_code = N`` (not MsctlError's own property).
+    return isinstance(vars(cls).get("exit_code"), int)
+
+
+class MsctlError(ComponentError):
     """An error the operator can act on.
 
+    It is a :class:`~components.errors.ComponentError`: the runtime's and the CLI's errors
+    share one root, and ``msctl.cli.main`` turns each into one line and the exit code of its
+    category (:data:`EXIT_CODES`).
+
     Attributes:
-        exit_code: Process exit code for this error (2 usage/input, 3 runtime/network, ...).
+        exit_code: Process exit code for this error (2 usage/input, 3 runtime/network, ...):
+            an ``exit_code = N`` of its class or ``exit_code=`` given, else its category's.
         hint: What to do about it, appended to the message when printed.
     """
 
-    exit_code: int = 1
-
     def __init__(self, message: str, *, hint: str | None = None, exit_code: int | None = None):
-        super().__init__(message)
-        self.message = message
-        self.hint = hint
+        super().__init__(message, hint=hint)
         if exit_code is not None:
-            self.exit_code = exit_code
+            self.__dict__["exit_code"] = exit_code
 
-    def __str__(self) -> str:
-        if self.hint:
-            return f"{self.message} — {self.hint}"
-        return self.message
+    @property
+    def exit_code(self) -> int:
+        """The exit code ``msctl`` ends with for this error."""
+        return exit_code_of(self)
 
 
-class InputError(MsctlError, ValueError):
+class InputError(MsctlError, ConfigError):
     """Bad input: a file, field, argument or value that is wrong. Exit code 2."""
 
-    exit_code = 2
 
-
-class NotFoundError(MsctlError, LookupError):
+class NotFoundError(MsctlError, NotFound):
     """Something named does not exist (template, unit, topic, type, component). Exit code 4."""
 
-    exit_code = 4
 
-
-class NetworkError(MsctlError, ConnectionError):
+class NetworkError(MsctlError, LinkError):
     """The data plane could not be reached or did not answer. Exit code 3."""
 
-    exit_code = 3
 
-
-class OperationTimeout(MsctlError, TimeoutError):
+class OperationTimeout(MsctlError, DeadlineError):
     """A bounded wait ran out (no sample, no reply, no healthy component). Exit code 5."""
-
-    exit_code = 5
 
 
 def nearest(name: str, known: Iterable[str], count: int = 3) -> list[str]:

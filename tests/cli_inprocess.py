@@ -42,9 +42,9 @@ def msctl(home: Path, *args: str, env: dict[str, str] | None = None) -> Ran:
     """Run ``msctl ARGS`` here with ``MSCTL_HOME=home`` (and ``env``)."""
     from typer.testing import CliRunner
 
-    from components.comm.session import SessionConfigError
+    from components.errors import ComponentError
     from msctl.app import app
-    from msctl.errors import MsctlError
+    from msctl.errors import exit_code_of
 
     result = CliRunner().invoke(
         app,
@@ -55,13 +55,11 @@ def msctl(home: Path, *args: str, env: dict[str, str] | None = None) -> Ran:
     exc = result.exception
     if exc is None or isinstance(exc, SystemExit):
         code, exc = result.exit_code, None
-    elif isinstance(exc, MsctlError):
-        code = exc.exit_code
-    elif isinstance(exc, SessionConfigError):
-        code = 2
+    elif isinstance(exc, ComponentError):
+        code = exit_code_of(exc)
     else:
         code = INTERNAL
     stderr = result.stderr
-    if isinstance(exc, MsctlError):
+    if isinstance(exc, ComponentError):
         stderr += f"error: {exc}\n"  # main() prints it as this one line
     return Ran(code, result.stdout, stderr, exc)

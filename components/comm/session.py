@@ -34,6 +34,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, NamedTuple
 
+from components.errors import ConfigError
+
 #: Where rmw_zenoh's router (``rmw_zenohd``) listens, and so where ours does by default.
 DEFAULT_ROUTER_PORT = 7447
 DEFAULT_CONNECT = (f"tcp/localhost:{DEFAULT_ROUTER_PORT}",)
@@ -47,8 +49,13 @@ DEFAULT_LEASE_MS = 1000
 KEEP_ALIVES_PER_LEASE = 4
 
 
-class SessionConfigError(ValueError):
-    """A session setting (environment variable or file) that cannot be used."""
+class SessionConfigError(ConfigError):
+    """A session setting (environment variable or file) that cannot be used.
+
+    A :class:`~components.errors.ConfigError`: session settings come from
+    ``MSCTL_ZENOH_*`` in the environment, whichever command reads them: the operator's
+    input (exit 2), not our bug.
+    """
 
 
 class SessionOpenError(SessionConfigError):
