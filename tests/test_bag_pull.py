@@ -425,7 +425,7 @@ def test_the_agent_refuses_a_path_outside_its_bags_naming_it(
 ) -> None:
     from components.comm.node import Node
     from components.comm.session import SessionSettings, open_session
-    from msctl.agent_wire import AgentClient
+    from components.supervision.wire import SupervisorClient as AgentClient
 
     settings = SessionSettings(
         mode="client", connect=(net_env["MSCTL_ZENOH_CONNECT"],), listen=(), multicast=False

@@ -29,13 +29,13 @@ from components.comm import Node
 from components.comm.services import ServiceError, ServiceTimeout
 from components.comm.session import SessionSettings, open_session
 from components.comm.types import registry
-from msctl import quick
-from msctl.agent_wire import (
+from components.supervision.wire import (
     AGENT_SRV_HASH,
-    AgentClient,
     decode_response,
     encode_request,
 )
+from components.supervision.wire import SupervisorClient as AgentClient
+from msctl import quick
 from msctl.launcher.control import AGENT_SRV
 
 ROOT = Path(__file__).resolve().parents[1]

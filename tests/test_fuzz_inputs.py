@@ -29,8 +29,9 @@ from components.comm.stats import drops
 from components.comm.types import registry
 from components.executor.interface import InterfaceSpec
 from components.messages import JOINT_STATE, JointSample, joint_state, msg
+from components.supervision.contract import RequestError
+from components.supervision.protocol import VERBS, parse_request
 from msctl.errors import MsctlError
-from msctl.launcher.control import VERBS, RequestError, parse_request
 
 REPO = Path(__file__).resolve().parents[1]
 FUZZ = settings(

@@ -22,8 +22,9 @@ from supervisor_rig import quick_supervisor
 from components import kinds
 from components.assembly import ResolvedAssembly, from_document
 from components.build import buildable
+from components.supervision.contract import RequestError, host_namespace
+from components.supervision.protocol import parse_request
 from msctl.assembler import resolve
-from msctl.launcher.control import RequestError, host_namespace, parse_request
 from msctl.launcher.plan import plan_host
 from msctl.launcher.supervisor import (
     ProcessState,

@@ -30,14 +30,14 @@ import pytest
 from conftest import free_port, resolved_assembly, wait_until
 
 from components.comm.session import SessionSettings
-from msctl.launcher.control import (
+from components.supervision.contract import (
     AGENT_SRV,
     MAX_ARGS_BYTES,
     RequestError,
     encode_args,
     host_namespace,
-    parse_request,
 )
+from components.supervision.protocol import parse_request
 from msctl.launcher.state import RunLock, group_alive
 
 HOST = "e2e-laptop"  # none of the assembly's computers: off-robot, simulated

@@ -73,7 +73,7 @@ class NodeFeed:
 
 def supervisor_services(graph: GraphView) -> list[str]:
     """Every supervisor's request service on the graph (``/msctl/<host>/request``)."""
-    from msctl.launcher.control import AGENT_SRV
+    from components.supervision.contract import AGENT_SRV
 
     return [
         name
@@ -147,8 +147,7 @@ class SupervisorPoller:
 
     def poll_once(self) -> tuple[list[dict[str, Any]], list[str]]:
         """One round: ask every supervisor, post and return what came back."""
-        from components.comm.types import registry
-        from msctl.launcher.control import AGENT_SRV
+        from components.supervision.wire import SupervisorClient
 
         services = supervisor_services(self.graph)
         for gone in set(self._clients) - set(services):
@@ -160,10 +159,9 @@ class SupervisorPoller:
                 break
             client = self._clients.get(service)
             if client is None:
-                client = self._clients[service] = self.node.client(service, AGENT_SRV)
+                client = self._clients[service] = SupervisorClient(self.node, service)
             try:
-                request = registry().msg_class(client.parts.request)(verb="ps", args="{}")
-                response = client.call(request, timeout=self.timeout)
+                response = client.ask("ps", "{}", timeout=self.timeout)
                 document = json.loads(response.payload) if response.success else None
             except (ServiceError, ValueError):
                 document = None

@@ -14,5 +14,5 @@ KIND = ComponentKind(
     # Health is judged over seconds; a late aggregate by milliseconds changes nothing.
     niceness=5,
     # It asks each computer's agent what runs there (the launcher's control service).
-    preload=("msctl.launcher.control",),
+    preload=("components.supervision.wire",),
 )

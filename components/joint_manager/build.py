@@ -24,7 +24,7 @@ def build(
         raise BuildError(f"{plan.name}: a joint manager needs a module")
     module = assembly.module(plan.module)
     joints = module.actuated_joints
-    from msctl.launcher.plan import this_host
+    from components.supervision.contract import this_host
 
     presence = watched(assembly, module.slot, this_host())
     config_fields = {}

@@ -33,7 +33,7 @@ def stations_of(assembly: ResolvedAssembly) -> dict[Station, tuple[str, ...]]:
     """The assembly's ground stations and the node namespaces that show each one alive: its
     own and its computer's supervisor's."""
     from components import kinds
-    from msctl.launcher.control import host_namespace
+    from components.supervision.contract import host_namespace
 
     found: dict[Station, tuple[str, ...]] = {}
     for plan in assembly.components:

@@ -57,15 +57,13 @@ from components.assembly import (
     state_dir,
 )
 from components.comm.session import SessionSettings, open_session
+from components.supervision import protocol
+from components.supervision.contract import AGENT_SRV, RequestError, host_namespace
+from components.supervision.dispatch import OffLoop, Verbs
+from components.supervision.protocol import Checked, request_of
 from msctl.errors import MsctlError
 from msctl.launcher import desired as desired_state
 from msctl.launcher import state
-from msctl.launcher.control import (
-    AGENT_SRV,
-    OffLoop,
-    RequestError,
-    host_namespace,
-)
 from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
 from msctl.launcher.run import (
     EmbeddedRouter,
@@ -78,9 +76,6 @@ from msctl.launcher.run import (
 from msctl.launcher.state import RunLock
 from msctl.launcher.supervisor import Supervisor
 from msctl.recorder import shelf
-
-#: Verbs forwarded to the running :class:`Launch` as they are.
-_FORWARDED = ("logs", "restart", "stop", "start")
 
 #: Seconds the loop rests between two turns when no request comes (one wakes it).
 LOOP_PAUSE = 0.05
@@ -400,41 +395,62 @@ class Agent:
             self._answerer = OffLoop(self._handled, self.log, self.host)
         self._answerer(pending)
 
-    def _handled(self, verb: str, args: dict[str, Any]) -> tuple[bool, str, Any]:
+    def _handled(self, checked: Checked) -> tuple[str, Any]:
         try:
-            payload, message = self.handle(verb, args)
+            payload, message = self._verbs.run(checked.request)
         except RequestError as exc:
-            self.log(f"refused {verb!r}: {exc}")
+            self.log(f"refused {checked.verb!r}: {exc}")
             raise
-        return True, message, payload
+        return message, payload
 
     def handle(self, verb: str, args: dict[str, Any]) -> tuple[Any, str]:
-        """Carry out a validated request; returns ``(payload, message)``.
+        """Carry out a request given as its verb and arguments; returns ``(payload, message)``.
 
         Raises:
-            RequestError: If the request cannot be carried out in the agent's state.
+            RequestError: If the request is malformed, or cannot be carried out in the
+                agent's state.
         """
-        if verb == "doctor":
-            from msctl.launcher.run import doctor_payload
+        return self._verbs.run(request_of(verb, args))
 
-            return doctor_payload(self.host, self.session, self.settings), "ok"
-        if verb == "ps":
-            return self.document(), "ok"
-        if verb == "up":
-            return self._up(args)
-        if verb == "down":
-            return self._down()
-        if verb in shelf.VERBS:  # this computer's own bags, idle or not (`msctl bag pull`)
-            return shelf.serve(verb, args, self.host)
+    @property
+    def _verbs(self) -> Verbs:
+        """What an agent does, by request; each handler returns ``(payload, message)``."""
+        return Verbs(
+            "an agent",
+            {
+                protocol.Doctor: self._doctor,
+                protocol.Ps: lambda _: (self.document(), "ok"),
+                protocol.Up: self._up,
+                protocol.Down: lambda _: self._down(),
+                # This computer's own bags, idle or not (`msctl bag pull`).
+                protocol.Bags: self._shelf,
+                protocol.BagRead: self._shelf,
+                protocol.Logs: self._forward,
+                protocol.Restart: self._forward,
+                protocol.Stop: self._forward,
+                protocol.Start: self._forward,
+            },
+        )
+
+    def _doctor(self, _request: protocol.Doctor) -> tuple[Any, str]:
+        from msctl.launcher.run import doctor_payload
+
+        return doctor_payload(self.host, self.session, self.settings), "ok"
+
+    def _shelf(self, request: protocol.Bags | protocol.BagRead) -> tuple[Any, str]:
+        verb, args = protocol.wire_form(request)
+        return shelf.serve(verb, json.loads(args), self.host)
+
+    def _forward(self, request: protocol.Request) -> tuple[Any, str]:
+        """A verb on what runs, carried out by the run."""
         if self.launch is None:
             raise RequestError(
                 f"nothing runs on {self.host} (its agent is idle); start with `msctl up --all`"
             )
-        if verb in _FORWARDED:
-            if verb != "logs":
-                self.log(f"{verb} {args.get('component')}")
-            return self.launch._do(verb, args), "ok"
-        raise RequestError(f"{verb} is not something an agent does")  # pragma: no cover
+        verb, args = protocol.wire_form(request)
+        if verb != "logs":
+            self.log(f"{verb} {getattr(request, 'component', None)}")
+        return self.launch._do(verb, json.loads(args)), "ok"
 
     def document(self) -> dict[str, Any]:
         """What ``ps`` returns: the run's document, or an idle host with no components; with
@@ -455,7 +471,8 @@ class Agent:
             "not_built": [],
         }
 
-    def _up(self, args: dict[str, Any]) -> tuple[Any, str]:
+    def _up(self, request: protocol.Up) -> tuple[Any, str]:
+        args = json.loads(protocol.wire_form(request)[1])
         if self.launch is not None:
             if self._runs_already(args):
                 # The same up again (its answer lost on a flapping link, or `up --all` run

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
 from components.paths import state_dir
+from components.supervision.contract import AGENT_SRV, encode_args, host_namespace
 from msctl.launcher import state
-from msctl.launcher.control import AGENT_SRV, encode_args, host_namespace
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -215,7 +215,7 @@ def ask_hosts(
 
     Args:
         node: The asking node.
-        verb: The request's verb (:data:`msctl.launcher.control.VERBS`).
+        verb: The request's verb (:data:`components.supervision.protocol.VERBS`).
         hosts: Hosts that must be asked even if the graph does not show their supervisor
             (the plan's, see :func:`read_plan`).
         args: The request's arguments.
@@ -226,7 +226,7 @@ def ask_hosts(
         The answers and the silences, each by namespace, in asking order (graph first).
     """
     from components.comm.services import ServiceError, ServiceTimeout
-    from msctl.agent_wire import AgentClient
+    from components.supervision.wire import SupervisorClient
 
     found = supervisors(node) if found is None else found
     named = {namespace: namespace for namespace in found}  # what a silence is called
@@ -235,7 +235,7 @@ def ask_hosts(
         namespace = host_namespace(host)
         named[namespace] = host
         services.setdefault(namespace, f"{namespace}/request")
-    clients = {ns: AgentClient(node, service) for ns, service in services.items()}
+    clients = {ns: SupervisorClient(node, service) for ns, service in services.items()}
     request = encode_args(args)
 
     def ask(namespace: str) -> Any:

@@ -14,23 +14,17 @@ module's motor interface) and the others only drop their motor interfaces.
 
 from __future__ import annotations
 
-import os
 import re
-import socket
 from dataclasses import dataclass, field
 
 from components import kinds
 from components.assembly import ResolvedAssembly
 from components.build import buildable, node_name
+from components.supervision.contract import this_host
 
 #: What a process or component name may look like: it reaches an argument list, so nothing
 #: that could be read as an option, a path or a shell fragment.
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_./-]{0,127}$")
-
-
-def this_host() -> str:
-    """This computer's identity: ``MSCTL_HOST`` or the hostname."""
-    return os.environ.get("MSCTL_HOST") or socket.gethostname()
 
 
 @dataclass(frozen=True)

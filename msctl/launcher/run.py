@@ -21,9 +21,12 @@ from components import kinds
 from components.assembly import ResolvedAssembly
 from components.comm.session import SessionConfigError, SessionSettings, open_session
 from components.ros import rclpy_available
+from components.supervision import protocol
+from components.supervision.contract import AGENT_SRV, RequestError, host_namespace
+from components.supervision.dispatch import OffLoop, Verbs
+from components.supervision.protocol import request_of
 from msctl.errors import MsctlError
 from msctl.launcher import boot, forkserver, state
-from msctl.launcher.control import AGENT_SRV, OffLoop, RequestError, host_namespace
 from msctl.launcher.plan import HostPlan, ProcessPlan
 from msctl.launcher.supervisor import (
     LivenessPolicy,
@@ -684,11 +687,34 @@ class Launch:
         on supervising); whatever it raises is an error reply, never the loop's end."""
         if self._answerer is None:
             self._answerer = OffLoop(
-                lambda verb, args: (True, "ok", self._do(verb, args)),
+                lambda checked: ("ok", self._do(checked.verb, checked.args)),
                 lambda line: self.events.append(f"supervisor: {line}"),
                 self.plan.host,
             )
         self._answerer(pending)
+
+    def _do(self, verb: str, args: dict[str, Any]) -> Any:
+        """Carry out a checked request (its verb and arguments) with its handler."""
+        return self._verbs.run(request_of(verb, args))
+
+    @property
+    def _verbs(self) -> Verbs:
+        """What a foreground run does, by request."""
+        return Verbs(
+            f"the supervisor of {self.plan.host}",
+            {
+                protocol.Ps: lambda _: self.document(),
+                protocol.Doctor: lambda _: doctor_payload(
+                    self.plan.host, self.session, self.settings
+                ),
+                protocol.Down: self._down,
+                protocol.Up: self._up,
+                protocol.Logs: self._logs,
+                protocol.Restart: self._control,
+                protocol.Stop: self._control,
+                protocol.Start: self._control,
+            },
+        )
 
     def _process_of(self, name: str) -> str:
         if name in self.supervisor.processes:
@@ -701,60 +727,65 @@ class Launch:
             f"no component or process {name!r} on {self.plan.host}; known: " + ", ".join(known)
         )
 
-    def _do(self, verb: str, args: dict[str, Any]) -> Any:
-        if verb == "ps":
-            return self.document()
-        if verb == "doctor":
-            return doctor_payload(self.plan.host, self.session, self.settings)
-        if verb == "down":
-            self.request_stop()
-            return {"host": self.plan.host}
-        if verb == "up":
-            raise RequestError(f"{self.plan.host} already runs {self.assembly.template}")
-        name = args.get("component")
-        if name is None and verb == "logs":
-            return {
-                p: list(self.supervisor.processes[p].log.recent) for p in self.supervisor.processes
-            }
+    def _down(self, _request: protocol.Down) -> protocol.DownAnswer:
+        self.request_stop()
+        return protocol.DownAnswer(self.plan.host)
+
+    def _up(self, _request: protocol.Up) -> Any:
+        raise RequestError(f"{self.plan.host} already runs {self.assembly.template}")
+
+    def _logs(self, request: protocol.Logs) -> protocol.LogsAnswer:
+        processes = self.supervisor.processes
+        if request.component is None:
+            return {p: list(processes[p].log.recent) for p in processes}
+        process = self._process_of(request.component)
+        return {process: list(processes[process].log.recent)[-request.lines :]}
+
+    def _control(self, request: protocol.Restart | protocol.Stop | protocol.Start) -> Any:
+        """``restart``, ``stop`` or ``start`` of a component's process."""
+        verb = type(request).__struct_config__.tag
+        name = request.component
         if name is None:
             raise RequestError(f"{verb} needs a component")
         process = self._process_of(name)
-        if verb == "logs":
-            lines = int(args.get("lines", 50))
-            return {process: list(self.supervisor.processes[process].log.recent)[-lines:]}
-        if process == ROUTER_PROCESS and verb == "stop":
+        if process == ROUTER_PROCESS:
+            return self._control_router(verb, process)
+        members = self.supervisor.processes[process].components
+        if isinstance(request, protocol.Restart) and request.only and len(members) > 1:
+            return self._rebuild_alone(process, name)
+        act = {"restart": self.supervisor.restart, "stop": self.supervisor.stop}
+        act.get(verb, self.supervisor.start)(process)
+        if self.watch is not None:
+            self.watch.forget(members)
+        for member in members:
+            self._rebuilding.pop(member, None)
+        self.events.append(f"{process}: {verb} requested")
+        return protocol.ProcessAnswer(
+            process,
+            self.supervisor.processes[process].state.value,
+            # What the verb takes with it: every component sharing the process.
+            components=list(members),
+            siblings=[c for c in members if c != name],
+        )
+
+    def _control_router(self, verb: str, process: str) -> Any:
+        if verb == "stop":
             # Every request and reply goes through it: stopped alone, nothing could reach
             # this supervisor again, not even to start it.
             raise RequestError(
                 f"the embedded router carries every topic and request of {self.plan.host}; "
                 "restart it with `msctl restart router`, or stop everything with `msctl down`"
             )
-        if process == ROUTER_PROCESS and verb == "restart":
+        if verb == "restart":
             # After the reply has left through it, or the caller hears nothing.
             self._router_restart_at = time.monotonic() + 0.3
             self.events.append(f"{process}: restart requested")
-            return {"process": process, "state": ProcessState.RESTARTING.value}
-        members = self.supervisor.processes[process].components
-        if verb == "restart" and args.get("only") and len(members) > 1:
-            return self._rebuild_alone(process, name)
-        if verb == "restart":
-            self.supervisor.restart(process)
-        elif verb == "stop":
-            self.supervisor.stop(process)
-        elif verb == "start":
-            self.supervisor.start(process)
-        if self.watch is not None:
-            self.watch.forget(members)
-        for member in members:
-            self._rebuilding.pop(member, None)
+            return protocol.ProcessAnswer(process, ProcessState.RESTARTING.value, [], [])
+        self.supervisor.start(process)
         self.events.append(f"{process}: {verb} requested")
-        return {
-            "process": process,
-            "state": self.supervisor.processes[process].state.value,
-            # What the verb takes with it: every component sharing the process.
-            "components": list(members),
-            "siblings": [c for c in members if c != name],
-        }
+        return protocol.ProcessAnswer(
+            process, self.supervisor.processes[process].state.value, [], []
+        )
 
     def _rebuild_alone(self, process: str, name: str) -> dict[str, Any]:
         """``restart --only``: one component rebuilt in its process, the others untouched."""
@@ -781,13 +812,7 @@ class Launch:
         if self.watch is not None:
             self.watch.forget([name])
         self.events.append(f"{name}: rebuild requested (alone in {process})")
-        return {
-            "process": process,
-            "state": "rebuilding",
-            "components": [name],
-            "siblings": [],
-            "only": True,
-        }
+        return protocol.ProcessAnswer(process, "rebuilding", [name], [], only=True)
 
     # ------------------------------------------------------------------ state
     def components(self) -> list[ComponentView]:

@@ -511,7 +511,7 @@ class Puller:
         request_timeout: float = REQUEST_TIMEOUT,
         progress: Callable[[str, int], None] | None = None,
     ) -> None:
-        from msctl.agent_wire import AgentClient
+        from components.supervision.wire import SupervisorClient as AgentClient
         from msctl.launcher.control import host_namespace
 
         if not 0 < chunk <= MAX_READ:

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from components.paths import state_dir
-from msctl.launcher.control import RequestError
+from components.supervision.contract import RequestError
 
 #: The verbs an agent answers about its shelf.
 VERBS = ("bags", "bag_read")

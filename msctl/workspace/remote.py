@@ -174,7 +174,7 @@ class WorkspaceAgent:
     def serve(self, session: Any, domain: int) -> None:
         """Serve ``/msctl/<host>/workspace`` on ``session``."""
         from components.comm.node import Node
-        from msctl.launcher.control import AGENT_SRV, host_namespace
+        from components.supervision.contract import AGENT_SRV, host_namespace
 
         self.node = Node(session, "workspace", host_namespace(self.host), domain)
         self.node.service(SERVICE, AGENT_SRV, self._on_request, deferred=True)
@@ -191,7 +191,7 @@ class WorkspaceAgent:
             thread.join(wait)
 
     def _on_request(self, pending: Any) -> None:
-        from msctl.launcher.control import reply
+        from components.supervision.dispatch import reply
 
         verb = getattr(getattr(pending, "request", None), "verb", "?")
         try:
@@ -371,7 +371,7 @@ def workspace_services(node: Any, timeout: float = 1.0) -> dict[str, str]:
     answer within ``timeout`` seconds)."""
     from components.comm.graph import snapshot
     from components.comm.types import dds_type_name
-    from msctl.launcher.control import AGENT_SRV
+    from components.supervision.contract import AGENT_SRV
 
     # Only the servers of AgentRequest (zid/node/entity/SS/enclave/namespace/node/service/
     # type/hash/qos), as fleet.supervisors asks: not every token of the fleet.
@@ -388,7 +388,7 @@ def _expected_namespaces() -> dict[str, str]:
     """``{namespace: host}`` of the resolved assembly's computers (none if nothing is
     resolved): the agents that should answer."""
     from components.assembly import AssemblyError, load_assembly
-    from msctl.launcher.control import host_namespace
+    from components.supervision.contract import host_namespace
 
     try:
         assembly = load_assembly()
@@ -425,18 +425,16 @@ def build_all(packages_up_to: list[str], offline: bool, json_output: bool, timeo
 
 
 def _call(node: Any, service: str, verb: str, args: dict[str, Any], timeout: float) -> Any:
-    from components.comm.types import registry
-    from msctl.launcher.control import AGENT_SRV, encode_args
+    from components.supervision.contract import RequestError
+    from components.supervision.wire import SupervisorClient
 
-    client = node.client(service, AGENT_SRV)
+    client = SupervisorClient(node, service)
     try:
-        request = registry().msg_class(client.parts.request)(verb=verb, args=encode_args(args))
-        response = client.call(request, timeout=timeout)
+        return client.payload(verb, args, timeout)
+    except RequestError as exc:
+        raise Refused(str(exc)) from None
     finally:
         client.close()
-    if not response.success:
-        raise Refused(response.message)
-    return json.loads(response.payload) if response.payload else {}
 
 
 def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float) -> None:
