@@ -175,11 +175,6 @@ def test_a_hiccup_losing_every_drive_reads_them_again_without_configuring_them(l
     assert all(d.level == 0 for d in backend.diagnostics()), backend.diagnostics()
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="fails on main as committed (3 runs of 3 at 03:00 on 11-28): joint3 is read "
-    "again after its reboot with no SDO request seen; to be found (issue 32, case 11)",
-)
 def test_a_drive_back_pre_operational_is_configured_again(limb) -> None:
     emulator, backend, watch = limb
     drive, joint = emulator.drive(3), "limb1_joint3"

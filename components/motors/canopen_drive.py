@@ -673,8 +673,11 @@ class CanopenBackend(MotorBackend):
     def _on_heartbeat(self, d: _Drive, state: int) -> None:
         now = time.monotonic()
         with self._lock:
-            if d.heartbeat_at is None or now - d.heartbeat_at > self.heartbeat_timeout:
-                d.next_config_at = 0.0  # back after a silence: pick it up at once
+            # Back after a silence longer than the timeout, whether or not the supervisor
+            # (every 20 ms, later on a loaded machine) has marked it lost yet.
+            back = d.heartbeat_at is None or now - d.heartbeat_at > self.heartbeat_timeout
+            if back:
+                d.next_config_at = 0.0  # pick it up at once
             d.heartbeat_at = now
             d.nmt_state = state
             if state == 0 and d.configured:
@@ -682,18 +685,25 @@ class CanopenBackend(MotorBackend):
                 d.configured = False
                 d.auto_reset = True
                 d.next_config_at = 0.0
-            elif d.lost_since is not None and d.configured:
+            elif back and d.configured:
+                # What the supervisor does on a loss, in case it had not seen this one: the
+                # readings from before the silence are not passed off as fresh (they could
+                # be up to a timeout old, and read() took them for current), and the state
+                # is learnt again from the next statusword.
+                d.auto_reset = True
+                d.statusword = None
+                d.position = None
                 if state == _NMT_OPERATIONAL:
-                    # Back, operational, no boot-up seen: it kept its configuration (a cut
-                    # cable, or heartbeats late on a loaded bus). Trusted again at once: a
-                    # configuration over SDO, one drive after another, left every drive of
-                    # a limb blind for seconds after a hiccup that lost them all.
+                    # No boot-up seen: it kept its configuration (a cut cable, or heartbeats
+                    # late on a loaded bus). Trusted again at once: a configuration over SDO,
+                    # one drive after another, left every drive of a limb blind for seconds
+                    # after a hiccup that lost them all.
                     d.lost_since = None
                 else:
                     # Pre-operational or stopped (its own reaction to a communication
-                    # error): its PDOs are off, configure it again.
+                    # error, or a reboot whose boot-up was lost): its PDOs are off,
+                    # configure it again.
                     d.configured = False
-                    d.next_config_at = 0.0
 
     def _on_emcy(self, d: _Drive, emcy: EmcyError) -> None:
         with self._lock:
