@@ -25,8 +25,9 @@ from pathlib import Path
 from typing import Any
 
 from components.motors.base import MotorBackend, MotorSpec
-from components.motors.canopen_drive import CanopenBackend
-from components.motors.dynamixel_chain import MODELS, DynamixelBackend
+from components.motors.canopen.backend import CanopenBackend
+from components.motors.dynamixel.backend import DynamixelBackend
+from components.motors.dynamixel.units import MODELS
 from components.motors.emulation.cia402 import EmulatedCia402Bus
 from components.motors.emulation.dynamixel import EmulatedDynamixelChain
 

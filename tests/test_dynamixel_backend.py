@@ -18,12 +18,9 @@ from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
 from motor_rigs import DYNAMIXEL_OPTIONS, TICK, XM430
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
-from components.motors.dynamixel_chain import (
-    BUS_WATCHDOG_EXPIRED,
-    MODELS,
-    DynamixelBackend,
-    JointUnits,
-)
+from components.motors.dynamixel.backend import DynamixelBackend
+from components.motors.dynamixel.control_table import BUS_WATCHDOG_EXPIRED
+from components.motors.dynamixel.units import MODELS, JointUnits
 from components.motors.emulation.dynamixel import (
     EmulatedDynamixelChain,
     PacketParser,
@@ -257,15 +254,14 @@ def test_silent_servo_is_reported_alone_and_picked_up_again(
     chain: EmulatedDynamixelChain, backend: DynamixelBackend
 ) -> None:
     chain.silence(3)
-    silenced_at = time.monotonic()
 
     def reported():
         d = diag(backend, joint(3))
         states = backend.read()  # as of the same cycle or a later one
         return d.level == 2 and (states, d)
 
-    states, d = wait_until(reported, timeout=1.5)
-    assert time.monotonic() - silenced_at < 1.0
+    # No wall-clock bound: how soon it is named depends on the machine's load, not the code.
+    states, d = wait_until(reported, 15.0, "id 3 reported not answering")
     assert d.message == "limb1_joint3: servo id 3 not answering"
     assert sorted(states) == [joint(i) for i in IDS if i != 3]
     assert all(diag(backend, joint(i)).level == 0 for i in IDS if i != 3)
@@ -387,15 +383,13 @@ def test_model_mismatch_is_a_warning() -> None:
 
 #: The backend's default: 100 ms = 5 units of 20 ms.
 WATCHDOG_S = 0.1
-#: How late the emulator may notice an expiry: it steps every 5 ms, a loaded machine later.
-WATCHDOG_SLACK_S = 0.05
 
 #: A msctl process driving joint 2 by velocity at 100 Hz until it is killed.
 DRIVER = textwrap.dedent(
     """
     import sys, time
     from components.motors.base import MotorCommand, MotorSpec
-    from components.motors.dynamixel_chain import DynamixelBackend
+    from components.motors.dynamixel.backend import DynamixelBackend
 
     dxl = DynamixelBackend(sys.argv[1], [MotorSpec("limb1_joint2", 2, "XM430-W350")],
                            {"latency_timer_ms": 40.0})
@@ -420,20 +414,21 @@ def test_servo_stops_by_itself_when_the_driving_process_is_killed(
             assert driver.stdout is not None and driver.stdout.readline() == "open\n"
             wait_until(lambda: chain.register(2, "present_velocity") > 35, what="turning")
             assert chain.register(2, "bus_watchdog") == 5  # armed with the default 100 ms
-            # Fed at 100 Hz, it never trips while the process lives.
-            time.sleep(3 * WATCHDOG_S)
+            # Fed at 100 Hz, it never trips while the process lives: the servo hears the
+            # process for three watchdog periods (its own clock says when), still turning.
+            since = chain.watchdog(2)[0]
+            wait_until(lambda: chain.watchdog(2)[0] > since + 3 * WATCHDOG_S, 15.0, "fed 0.3 s")
             assert chain.register(2, "present_velocity") > 35
             assert chain.watchdog(2)[2] == 0
         finally:
             driver.send_signal(signal.SIGKILL)  # no close(), no torque off: just gone
             driver.wait()
-            killed_at = time.monotonic()
-    wait_until(lambda: chain.register(2, "present_velocity") == 0, timeout=1.0, what="stop")
-    stopped_at = time.monotonic()
+    wait_until(lambda: chain.register(2, "present_velocity") == 0, 15.0, "stop")
+    # How soon it stopped, on the servo's own clock (one period after the last packet),
+    # not the test's: the test's wall clock only measures the machine's load.
     heard_at, expired_at, trips = chain.watchdog(2)
     assert trips == 1 and expired_at is not None
     assert expired_at - heard_at == pytest.approx(WATCHDOG_S)
-    assert stopped_at - killed_at < WATCHDOG_S + WATCHDOG_SLACK_S + 0.1
     assert chain.register(2, "goal_velocity") == 0
     assert chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
     assert chain.register(2, "torque_enable") == 1  # stopped under torque, not dropped
@@ -455,11 +450,12 @@ def test_backend_abandoned_without_close_lets_the_servo_stop(
         # The process "dies": the port goes without the graceful close path, and the caller
         # keeps calling as if nothing happened.
         dxl._port.closePort()  # a crash, not the API
-        dropped_at = time.monotonic()
         wait_until(
-            lambda: not dxl.read() and chain.register(1, "present_velocity") == 0, timeout=1.0
+            lambda: not dxl.read() and chain.register(1, "present_velocity") == 0, 15.0, "stop"
         )
-        assert time.monotonic() - dropped_at < WATCHDOG_S + WATCHDOG_SLACK_S + 0.1
+        # Stopped by its watchdog one period after the last packet, on the servo's own clock.
+        heard_at, expired_at, _ = chain.watchdog(1)
+        assert expired_at is not None and expired_at - heard_at == pytest.approx(WATCHDOG_S)
         assert chain.register(1, "bus_watchdog") == BUS_WATCHDOG_EXPIRED
     finally:
         dxl.close()
@@ -475,8 +471,8 @@ def test_pause_longer_than_the_watchdog_is_reported_and_rearmed(
 
     # The caller stalls: no read, no write. The I/O thread goes on, but stops talking to the
     # armed servo (as if the whole process had stalled), so its watchdog stops it.
-    time.sleep(3 * WATCHDOG_S)
-    wait_until(lambda: chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED, 2.0, "expiry")
+    time.sleep(3 * WATCHDOG_S)  # the stall itself (its length is asserted below), not a wait
+    wait_until(lambda: chain.register(2, "bus_watchdog") == BUS_WATCHDOG_EXPIRED, 15.0, "expiry")
     assert chain.register(2, "present_velocity") == 0
     heard_at, expired_at, _ = chain.watchdog(2)
     assert expired_at is not None and expired_at - heard_at == pytest.approx(WATCHDOG_S)
@@ -557,7 +553,10 @@ def test_watchdog_option_zero_disables_it(chain: EmulatedDynamixelChain) -> None
     with DynamixelBackend(chain.port, motors, {**OPTIONS, "bus_watchdog_ms": 0}) as dxl:
         dxl.write([MotorCommand(joint(1), velocity=1.0)])
         wait_until(lambda: chain.register(1, "present_velocity") > 35, what="turning")
-        time.sleep(2 * WATCHDOG_S)  # the caller is silent longer than a watchdog would allow
+        # The caller is silent longer than a watchdog would allow: the servo hears the I/O
+        # thread for two periods (its own clock says when) and keeps turning.
+        since = chain.watchdog(1)[0]
+        wait_until(lambda: chain.watchdog(1)[0] > since + 2 * WATCHDOG_S, 15.0, "0.2 s heard")
         assert chain.register(1, "bus_watchdog") == 0
         assert chain.register(1, "present_velocity") > 35
     with pytest.raises(MotorError, match=r"bus_watchdog_ms"):

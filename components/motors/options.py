@@ -526,7 +526,7 @@ BACKENDS: dict[str, BackendInfo] = {
         channel_rule=_SERIAL_CHANNEL,
         channel_hint="use the serial device of the chain: /dev/ttyUSB0, "
         "/dev/serial/by-id/<adapter>, a pty /dev/pts/N, or COMn",
-        class_path="components.motors.dynamixel_chain:DynamixelBackend",
+        class_path="components.motors.dynamixel.backend:DynamixelBackend",
         emulator_path="components.motors.emulation:dynamixel_chain",
     ),
 }

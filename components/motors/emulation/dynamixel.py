@@ -2,7 +2,7 @@
 
 The emulator speaks Protocol 2.0 byte for byte (header ``FF FF FD 00``, CRC-16 with polynomial
 0x8005, byte stuffing, status packets with the alert bit), so the real dynamixel-sdk and the
-real :class:`~components.motors.dynamixel_chain.DynamixelBackend` talk to it through pyserial
+real :class:`~components.motors.dynamixel.backend.DynamixelBackend` talk to it through pyserial
 exactly as to a U2D2 adapter::
 
     with EmulatedDynamixelChain(ids=[1, 2, 3]) as chain:
@@ -31,17 +31,16 @@ import tty
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
-from components.motors.dynamixel_chain import (
+from components.motors.dynamixel.control_table import (
     BUS_WATCHDOG_EXPIRED,
     BUS_WATCHDOG_MAX_UNITS,
     BUS_WATCHDOG_UNIT_MS,
-    MODELS,
     OPERATING_MODES,
     SIGNED_REGISTERS,
     X_SERIES_REGISTERS,
-    DynamixelModel,
     to_signed,
 )
+from components.motors.dynamixel.units import MODELS, DynamixelModel
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -413,7 +412,7 @@ class EmulatedDynamixelChain:
 
     Args:
         ids: Servo ids on the chain.
-        model: Model key (from :data:`~components.motors.dynamixel_chain.MODELS`) for every
+        model: Model key (from :data:`~components.motors.dynamixel.units.MODELS`) for every
             servo, unless ``models`` names another for an id.
         models: Per-id model keys.
         boot_time_s: How long a servo stays silent after REBOOT.
