@@ -30,7 +30,7 @@ from conftest import wait_until
 from motor_rigs import CANOPEN_PARAMS, canopen_channel
 
 from components.motors.base import MotorCommand, MotorSpec
-from components.motors.canopen_drive import CanopenBackend
+from components.motors.canopen.backend import CanopenBackend
 from components.motors.emulation.cia402 import EmulatedCia402Bus
 
 pytestmark = pytest.mark.timeout(180)

@@ -516,7 +516,7 @@ BACKENDS: dict[str, BackendInfo] = {
         channel_rule=_CAN_CHANNEL,
         channel_hint="use the CAN interface name (can0, vcan1) or the python-can channel, "
         "without spaces",
-        class_path="components.motors.canopen_drive:CanopenBackend",
+        class_path="components.motors.canopen.backend:CanopenBackend",
         emulator_path="components.motors.emulation:cia402_drives",
     ),
     "dynamixel": BackendInfo(
