@@ -9,6 +9,7 @@ JSON or plain lines, no message codec.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 
 def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = False) -> None:
@@ -32,7 +33,7 @@ def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = F
             what to check, after the listing is printed.
     """
     from msctl.console import print_json
-    from msctl.launcher.fleet import NO_NETWORK, REFUSED, describe, fleet_state
+    from msctl.launcher.fleet import describe, fleet_state
 
     fleet = fleet_state(timeout, every_host=all_hosts)
     documents = fleet.documents
@@ -47,7 +48,6 @@ def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = F
         for c in d.get("components", [])
     ]
     failed = [s for s in fleet.silent if s.asked]
-    not_asked = [s for s in fleet.silent if not s.asked]
     if json_output:
         print_json(
             {
@@ -60,51 +60,75 @@ def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = F
     else:
         for note in notes:
             _warn(note)
-        if rows or failed:
-            from msctl.console import print_table
+        _print_ps_table(rows, failed, documents, all_hosts)
+    _warn_unasked(fleet, all_hosts)
+    if failed:
+        from msctl.errors import MsctlError
 
-            colours = {
-                "running": "green",
-                "failed": "red",
-                "unresponsive": "red",
-                "restarting": "yellow",
-            }
-            print_table(
-                ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"),
-                [
-                    [
-                        (r["name"], ""),
-                        (r["kind"], ""),
-                        (r["host"], ""),
-                        (r["state"], colours.get(r["state"], "")),
-                        (str(r["pid"] or "-"), ""),
-                        (f"{r['uptime']:.0f}s", ""),
-                        (str(r["restarts"]), ""),
-                        (r["last_error"] or "", ""),
-                    ]
-                    for r in rows
-                ]
-                + [
-                    [
-                        ("-", ""),
-                        ("-", ""),
-                        (s.host, ""),
-                        ("refused" if s.why == REFUSED else "unreachable", "red"),
-                        ("-", ""),
-                        ("-", ""),
-                        ("-", ""),
-                        (s.detail, ""),
-                    ]
-                    for s in failed
-                ],
-            )
-            idle = [d["host"] for d in documents if not d.get("components")]
-            if all_hosts and idle:
-                # Every host of the plan is accounted for: those that answered with nothing
-                # to list too.
-                _warn(f"answered, running nothing: {', '.join(idle)}")
-        else:
-            sys.stderr.write("nothing is running (start with `msctl up dragon`)\n")
+        raise MsctlError(
+            f"{len(failed)} host(s) did not answer: {describe(failed)}",
+            hint=_what_to_check(failed),
+        )
+
+
+#: The colour of a component's state in the table.
+_STATE_COLOURS = {
+    "running": "green",
+    "failed": "red",
+    "unresponsive": "red",
+    "restarting": "yellow",
+}
+
+
+def _print_ps_table(rows: list, failed: list, documents: list, all_hosts: bool) -> None:
+    """The table of ``msctl ps``: a row per component, one per host that did not answer."""
+    from msctl.launcher.fleet import REFUSED
+
+    if not (rows or failed):
+        sys.stderr.write("nothing is running (start with `msctl up dragon`)\n")
+        return
+    from msctl.console import print_table
+
+    print_table(
+        ("component", "kind", "host", "state", "pid", "uptime", "restarts", "last error"),
+        [
+            [
+                (r["name"], ""),
+                (r["kind"], ""),
+                (r["host"], ""),
+                (r["state"], _STATE_COLOURS.get(r["state"], "")),
+                (str(r["pid"] or "-"), ""),
+                (f"{r['uptime']:.0f}s", ""),
+                (str(r["restarts"]), ""),
+                (r["last_error"] or "", ""),
+            ]
+            for r in rows
+        ]
+        + [
+            [
+                ("-", ""),
+                ("-", ""),
+                (s.host, ""),
+                ("refused" if s.why == REFUSED else "unreachable", "red"),
+                ("-", ""),
+                ("-", ""),
+                ("-", ""),
+                (s.detail, ""),
+            ]
+            for s in failed
+        ],
+    )
+    idle = [d["host"] for d in documents if not d.get("components")]
+    if all_hosts and idle:
+        # Every host of the plan is accounted for: those that answered with nothing to
+        # list too.
+        _warn(f"answered, running nothing: {', '.join(idle)}")
+
+
+def _warn_unasked(fleet: Any, all_hosts: bool) -> None:
+    """Say which hosts of the plan were not asked, or that there is no plan to ask by."""
+    from msctl.launcher.fleet import NO_NETWORK
+
     if all_hosts and fleet.plan is None:
         from msctl.launcher.fleet import plan_path
 
@@ -112,6 +136,7 @@ def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = F
             f"no resolved assembly here ({plan_path()}): asked only the supervisors on the "
             "graph; `msctl assemble TEMPLATE` names every host to ask"
         )
+    not_asked = [s for s in fleet.silent if not s.asked]
     if not_asked:
         # Said in both forms: a JSON reader has the list, a person at a terminal this line.
         template = fleet.plan.template if fleet.plan else "the assembly"
@@ -119,13 +144,6 @@ def show_ps(json_output: bool = False, timeout: float = 5.0, all_hosts: bool = F
         _warn(
             f"not asked ({how}): {', '.join(s.host for s in not_asked)}, host(s) of "
             f"{template}'s plan: their components are not listed (`msctl ps --all` asks each)"
-        )
-    if failed:
-        from msctl.errors import MsctlError
-
-        raise MsctlError(
-            f"{len(failed)} host(s) did not answer: {describe(failed)}",
-            hint=_what_to_check(failed),
         )
 
 

@@ -555,7 +555,7 @@ def test_a_stale_state_file_never_blocks_up_nor_kills_strangers(tmp_path: Path) 
 def test_at_once_runs_every_call_together_keeps_the_order_and_raises_what_failed() -> None:
     import threading
 
-    from msctl.launcher.fleet import at_once
+    from msctl.launcher.fanout import at_once
 
     # Each call waits for all the others: one after another, the barrier would break.
     together = threading.Barrier(4, timeout=30.0)

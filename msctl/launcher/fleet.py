@@ -12,16 +12,14 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, NamedTuple
 
 from components.paths import state_dir
 from components.supervision.contract import AGENT_SRV, encode_args, host_namespace
 from msctl.launcher import state
-
-T = TypeVar("T")
-R = TypeVar("R")
+from msctl.launcher.fanout import ask_each
 
 #: Why a host did not answer (:attr:`Silence.why`): no supervisor of it on the graph (the
 #: query ended at once: no server known), ...
@@ -151,39 +149,6 @@ def supervisors(node: Any) -> dict[str, str]:
     return found
 
 
-def at_once(work: Callable[[T], R], items: Sequence[T]) -> list[R]:
-    """``[work(item) for item in items]``, every call in its own thread at the same time.
-
-    For asking a fleet: one after another, loaded computers took the sum of their answer
-    times, and a slow one ate the time the others had. Plain threads, because
-    concurrent.futures imports logging, which ``msctl ps`` has no use for.
-
-    Raises:
-        Exception: The first exception a call raised, after every call ended.
-    """
-    import threading
-
-    results: list[Any] = [None] * len(items)
-    failures: list[BaseException] = []
-
-    def run(index: int, item: T) -> None:
-        try:
-            results[index] = work(item)
-        except BaseException as exc:  # handed to the caller's thread below
-            failures.append(exc)
-
-    threads = [
-        threading.Thread(target=run, args=(i, item), daemon=True) for i, item in enumerate(items)
-    ]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    if failures:
-        raise failures[0]
-    return results
-
-
 #: Seconds a host whose router knows no server for it is asked again before it is called
 #: gone (a busy agent that missed its lease is back within that), and the pause between.
 NO_SERVER_GRACE = 2.0
@@ -225,7 +190,6 @@ def ask_hosts(
     Returns:
         The answers and the silences, each by namespace, in asking order (graph first).
     """
-    from components.comm.services import ServiceError, ServiceTimeout
     from components.supervision.wire import SupervisorClient
 
     found = supervisors(node) if found is None else found
@@ -239,49 +203,59 @@ def ask_hosts(
     request = encode_args(args)
 
     def ask(namespace: str) -> Any:
-        host = named[namespace]
-        started = time.monotonic()
-        while True:
-            asked_at = time.monotonic()
-            budget = timeout - (asked_at - started)
-            # A verb that is cheap and safe to repeat goes again; doctor runs every check
-            # each time it is asked (a repeat would only queue more work at the agent).
-            every = max(MIN_ATTEMPT, timeout / ATTEMPTS) if verb in REPEATED else budget
-            try:
-                response = clients[namespace].ask_repeating(verb, request, budget, every)
-                break
-            except ServiceTimeout:
-                # Timed by the clock, not by the error's wording: a query that ended well
-                # before its bound ended because the router knows no server for that host.
-                if time.monotonic() - asked_at >= 0.9 * budget:
-                    return Silence(host, NO_ANSWER, f"no answer within {timeout:g} s")
-                # A busy agent's route lapses for a moment when it misses its lease: look
-                # again for a while (within half the bound) before calling it gone. The
-                # verbs asked this way (ps, doctor, down) are safe to repeat.
-                elapsed = time.monotonic() - started + NO_SERVER_PAUSE
-                if elapsed >= min(NO_SERVER_GRACE, timeout / 2):
-                    left = " (it left while asked)" if namespace in found else ""
-                    return Silence(host, NO_SUPERVISOR, f"no supervisor on the graph{left}")
-                time.sleep(NO_SERVER_PAUSE)
-            except ServiceError as exc:  # an error reply, or one that is not a response
-                return Silence(host, REFUSED, str(exc))
-        if not response.success:
-            return Silence(host, REFUSED, response.message)
-        return json.loads(response.payload) if response.payload else {}
+        return _ask_one(
+            clients[namespace], verb, request, timeout, named[namespace], namespace in found
+        )
 
     try:
-        results = at_once(ask, list(clients))
+        replies = ask_each(clients, ask, lambda result: isinstance(result, Silence))
     finally:
         for client in clients.values():
             client.close()
-    answers: dict[str, Any] = {}
-    silent: dict[str, Silence] = {}
-    for namespace, result in zip(clients, results, strict=True):
-        if isinstance(result, Silence):
-            silent[namespace] = result
-        else:
-            answers[namespace] = result
-    return Asked(answers, silent)
+    return Asked(replies.answers, replies.silent)
+
+
+def _ask_one(client: Any, verb: str, request: str, timeout: float, host: str, seen: bool) -> Any:
+    """One host's answer to :func:`ask_hosts`' request, or the :class:`Silence` it kept.
+
+    Args:
+        client: The client of its supervisor.
+        verb: The request's verb.
+        request: Its arguments' JSON.
+        timeout: Seconds it may take to answer.
+        host: What a silence of it is called.
+        seen: Whether the graph showed its supervisor.
+    """
+    from components.comm.services import ServiceError, ServiceTimeout
+
+    started = time.monotonic()
+    while True:
+        asked_at = time.monotonic()
+        budget = timeout - (asked_at - started)
+        # A verb that is cheap and safe to repeat goes again; doctor runs every check
+        # each time it is asked (a repeat would only queue more work at the agent).
+        every = max(MIN_ATTEMPT, timeout / ATTEMPTS) if verb in REPEATED else budget
+        try:
+            response = client.ask_repeating(verb, request, budget, every)
+            break
+        except ServiceTimeout:
+            # Timed by the clock, not by the error's wording: a query that ended well
+            # before its bound ended because the router knows no server for that host.
+            if time.monotonic() - asked_at >= 0.9 * budget:
+                return Silence(host, NO_ANSWER, f"no answer within {timeout:g} s")
+            # A busy agent's route lapses for a moment when it misses its lease: look
+            # again for a while (within half the bound) before calling it gone. The
+            # verbs asked this way (ps, doctor, down) are safe to repeat.
+            elapsed = time.monotonic() - started + NO_SERVER_PAUSE
+            if elapsed >= min(NO_SERVER_GRACE, timeout / 2):
+                left = " (it left while asked)" if seen else ""
+                return Silence(host, NO_SUPERVISOR, f"no supervisor on the graph{left}")
+            time.sleep(NO_SERVER_PAUSE)
+        except ServiceError as exc:  # an error reply, or one that is not a response
+            return Silence(host, REFUSED, str(exc))
+    if not response.success:
+        return Silence(host, REFUSED, response.message)
+    return json.loads(response.payload) if response.payload else {}
 
 
 def ask_all(

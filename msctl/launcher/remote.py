@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 from msctl.errors import InputError, MsctlError, NetworkError, NotFoundError
 from msctl.launcher.control import RequestError
@@ -137,6 +137,13 @@ UP_ATTEMPT = 10.0
 PS_BOUND = 8.0
 
 
+class Unstarted(NamedTuple):
+    """A host ``up --all`` did not start: ``unreachable`` or ``refused``, and why."""
+
+    outcome: str
+    why: str
+
+
 def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> None:
     """Start every host's part through its agent, with one progress view for all of them.
 
@@ -151,134 +158,147 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
     import json
     import time
 
-    from rich.markup import escape
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
-
-    from components.comm.services import ServiceError
-    from msctl.console import err
-    from msctl.errors import OperationTimeout
-    from msctl.launcher.control import (
-        MAX_ARGS_BYTES,
-        args_size,
-        call_supervisor,
-        encode_args,
-        host_namespace,
-    )
-    from msctl.launcher.fleet import at_once, supervisors
     from msctl.plane import connected
 
     document = json.loads(assembly.lock_path.read_text()) if assembly.lock_path else {}
-    size = args_size(encode_args({"assembly": document, "sim": sim, "speed": speed}))
+    request = {"assembly": document, "sim": sim, "speed": speed}
+    _refuse_oversized(assembly, request)
+    hosts = list(dict.fromkeys(assembly.hosts))
+    with connected("up_all") as node:
+        # One budget for the whole start: the answers, then the wait for healthy (it was
+        # two: a slow link took twice the --timeout the user gave).
+        deadline = time.monotonic() + timeout
+        replies = _start_each(node, hosts, request, timeout)
+        status = _wait_healthy(node, replies.answers, deadline)
+    _show_hosts(assembly.template, replies, status)
+    _fail_unless_healthy(replies, status, timeout)
+
+
+def _refuse_oversized(assembly: Any, request: dict[str, Any]) -> None:
+    from msctl.launcher.control import MAX_ARGS_BYTES, args_size, encode_args
+
+    size = args_size(encode_args(request))
     if size > MAX_ARGS_BYTES:
         # Every agent would refuse it: say why once, here, rather than once per host.
         raise InputError(
             f"the resolved {assembly.template} ({assembly.lock_path}) is {size} bytes as an "
             f"`up` request; agents accept at most {MAX_ARGS_BYTES}",
-            hint="MAX_ARGS_BYTES in msctl/launcher/control.py bounds it: raise it there",
+            hint="MAX_ARGS_BYTES in components/supervision/contract.py bounds it: raise it there",
         )
-    hosts = list(dict.fromkeys(assembly.hosts))
-    started: dict[str, dict[str, Any]] = {}
-    unreachable: list[tuple[str, str]] = []
-    refused: list[tuple[str, str]] = []
+
+
+def _start_each(node: Any, hosts: list[str], request: dict[str, Any], timeout: float) -> Any:
+    """Ask every host's agent to start its part, all at once (:func:`fanout.ask_each`).
+
+    An agent the router's graph does not show is first asked a cheap `ps`: with no agent
+    anywhere the query ends as soon as the router says it knows no server (in well under a
+    second), so its generous bound only waits for an agent that is there but slow (a loaded
+    computer: 2 s was too short, and a host that was there was named unreachable). The `up`
+    itself gets longer still: an agent starts its processes before it answers, and one told
+    "unreachable" must not be starting.
+
+    Returns:
+        :class:`~msctl.launcher.fanout.Replies`: each started host's answer, and an
+        :class:`Unstarted` for each other.
+    """
+    from components.comm.services import ServiceError
+    from msctl.console import err
+    from msctl.launcher.control import call_supervisor, host_namespace
+    from msctl.launcher.fanout import ask_each
+    from msctl.launcher.fleet import supervisors
+
+    present = set(supervisors(node))
+    # An agent answers `up` once its processes are started: on a loaded computer that took
+    # over 30 s (seen with four agents starting on one 2-core machine), so it gets as long
+    # as the user gave the whole start, never less than 30 s.
+    answer_bound = max(30.0, timeout)
+
+    def ask(host: str) -> Any:
+        try:
+            if host_namespace(host) not in present:
+                call_supervisor(
+                    node, host, "ps", timeout=10.0, grace=UP_GRACE, attempt=UP_ATTEMPT / 2
+                )
+            # Its agent is there (on the graph, or it answered): a route that lapses now
+            # is a radio link reopening, not an agent gone, so it is asked again for as
+            # long as the answer may take (on a 256 kbit/s link losing a fifth of its
+            # packets, a robot's route was gone longer than UP_GRACE).
+            return call_supervisor(
+                node, host, "up", request, answer_bound, grace=answer_bound, attempt=UP_ATTEMPT
+            )
+        except ServiceError as exc:  # a timeout says how long it waited, and for what
+            return Unstarted("unreachable", str(exc))
+        except RequestError as exc:
+            return Unstarted("refused", str(exc))
+
+    for host in hosts:
+        err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
+    return ask_each(hosts, ask, lambda result: isinstance(result, Unstarted))
+
+
+def _healthy(document: dict[str, Any]) -> bool:
+    # A host whose part is only kinds not built yet runs nothing, and is done at once.
+    return "error" not in document and all(
+        c["state"] == "running" for c in document.get("components", [])
+    )
+
+
+def _not_running(status: dict[str, dict[str, Any]]) -> list[str]:
+    return [
+        f"{host}: {c['name']}"
+        for host, d in status.items()
+        for c in d.get("components", [])
+        if c["state"] != "running"
+    ]
+
+
+def _wait_healthy(
+    node: Any, started: dict[str, dict[str, Any]], deadline: float
+) -> dict[str, dict[str, Any]]:
+    """Ask every started host what runs (all at once, :func:`fanout.rounds`) until every
+    component is healthy or the deadline passes; each host's last ``ps`` (or its error)."""
+    from components.comm.services import ServiceError
+    from msctl.launcher.control import call_supervisor
+    from msctl.launcher.fanout import progress, rounds
+
     status: dict[str, dict[str, Any]] = {}
+    total = sum(len(answer.get("components", [])) for answer in started.values())
 
-    def healthy(d: dict[str, Any]) -> bool:
-        # A host whose part is only kinds not built yet runs nothing, and is done at once.
-        return "error" not in d and all(c["state"] == "running" for c in d.get("components", []))
+    def look(host: str) -> dict[str, Any]:
+        # Each given a round trip to the Moon and back.
+        try:
+            return call_supervisor(node, host, "ps", timeout=PS_BOUND, attempt=2.0)
+        except (ServiceError, RequestError) as exc:
+            return {"error": str(exc)}
 
-    with connected("up_all") as node:
-        # An agent the router's graph does not show is first asked a cheap `ps`: with no
-        # agent anywhere the query ends as soon as the router says it knows no server (in
-        # well under a second), so its generous bound only waits for an agent that is there
-        # but slow (a loaded computer: 2 s was too short, and a host that was there was
-        # named unreachable). The `up` itself gets longer still: an agent starts its
-        # processes before it answers, and one told "unreachable" must not be starting.
-        # Every host is asked at once (fleet.at_once).
-        # One budget for the whole start: the answers, then the wait for healthy (it was
-        # two: a slow link took twice the --timeout the user gave).
-        deadline = time.monotonic() + timeout
-        present = set(supervisors(node))
-        # An agent answers `up` once its processes are started: on a loaded computer that took
-        # over 30 s (seen with four agents starting on one 2-core machine), so it gets as long
-        # as the user gave the whole start, never less than 30 s.
-        answer_bound = max(30.0, timeout)
+    with progress("{task.completed}/{task.total} healthy") as view:
+        task = view.add_task("starting", total=total)
 
-        def ask(host: str) -> tuple[str, Any]:
-            try:
-                if host_namespace(host) not in present:
-                    call_supervisor(
-                        node, host, "ps", timeout=10.0, grace=UP_GRACE, attempt=UP_ATTEMPT / 2
-                    )
-                # Its agent is there (on the graph, or it answered): a route that lapses now
-                # is a radio link reopening, not an agent gone, so it is asked again for as
-                # long as the answer may take (on a 256 kbit/s link losing a fifth of its
-                # packets, a robot's route was gone longer than UP_GRACE).
-                answer = call_supervisor(
-                    node,
-                    host,
-                    "up",
-                    {"assembly": document, "sim": sim, "speed": speed},
-                    answer_bound,
-                    grace=answer_bound,
-                    attempt=UP_ATTEMPT,
-                )
-            except ServiceError as exc:  # a timeout says how long it waited, and for what
-                return "unreachable", str(exc)
-            except RequestError as exc:
-                return "refused", str(exc)
-            return "started", answer
+        def settle(results: dict[str, dict[str, Any]]) -> Any:
+            status.update(results)
+            waiting = _not_running(status)
+            running = sum(
+                c["state"] == "running" for d in status.values() for c in d.get("components", [])
+            )
+            described = "waiting for " + ", ".join(waiting[:3]) if waiting else "healthy"
+            view.update(task, completed=running, description=described)
+            return results if all(_healthy(d) for d in status.values()) else ()
 
-        for host in hosts:
-            err.print(f"[dim]asking {host} to start its part...[/]", highlight=False)
-        answers = at_once(ask, hosts)
-        for host, (outcome, answer) in zip(hosts, answers, strict=True):
-            if outcome == "started":
-                started[host] = answer
-            else:
-                (unreachable if outcome == "unreachable" else refused).append((host, answer))
-        total = sum(len(answer.get("components", [])) for answer in started.values())
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} healthy"),
-            TimeElapsedColumn(),
-            console=err,
-            transient=True,
-        ) as progress:
-            task = progress.add_task("starting", total=total)
+        rounds(started, look, settle, deadline, 0.2)
+    return status
 
-            def look(host: str) -> dict[str, Any]:
-                try:
-                    return call_supervisor(node, host, "ps", timeout=PS_BOUND, attempt=2.0)
-                except (ServiceError, RequestError) as exc:
-                    return {"error": str(exc)}
 
-            while started:
-                # Every host at once, each given a round trip to the Moon and back.
-                status = dict(zip(started, at_once(look, list(started)), strict=True))
-                waiting = [
-                    f"{host}: {c['name']}"
-                    for host, d in status.items()
-                    for c in d.get("components", [])
-                    if c["state"] != "running"
-                ]
-                progress.update(
-                    task,
-                    completed=sum(
-                        c["state"] == "running"
-                        for d in status.values()
-                        for c in d.get("components", [])
-                    ),
-                    description="waiting for " + ", ".join(waiting[:3]) if waiting else "healthy",
-                )
-                if all(healthy(d) for d in status.values()) or time.monotonic() > deadline:
-                    break
-                time.sleep(0.2)
-    table = Table(title=f"{assembly.template}: every host", title_justify="left")
+def _show_hosts(template: str, replies: Any, status: dict[str, dict[str, Any]]) -> None:
+    """The table of every host: what it runs and how much is healthy, or why it did not."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    from msctl.console import err
+
+    table = Table(title=f"{template}: every host", title_justify="left")
     for column in ("host", "components", "healthy", "note"):
         table.add_column(column)
-    for host, answer in started.items():
+    for host, answer in replies.answers.items():
         d = status.get(host, {})
         components = d.get("components", [])
         note = d.get("error", "")
@@ -289,28 +309,36 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
             )
         healthy_count = sum(c["state"] == "running" for c in components)
         table.add_row(host, str(len(components)), str(healthy_count), note)
-    for host, why in unreachable:
-        table.add_row(host, "-", "-", f"[red]unreachable: {escape(why)}[/]")
-    for host, why in refused:
-        table.add_row(host, "-", "-", f"[red]{escape(why)}[/]")
+    for outcome in ("unreachable", "refused"):
+        for host, silence in replies.silent.items():
+            if silence.outcome == outcome:
+                shown = (
+                    f"unreachable: {escape(silence.why)}"
+                    if outcome == "unreachable"
+                    else escape(silence.why)
+                )
+                table.add_row(host, "-", "-", f"[red]{shown}[/]")
     err.print(table)
-    also = f"; refused: {'; '.join(why for _, why in refused)}" if refused else ""
+
+
+def _fail_unless_healthy(replies: Any, status: dict[str, dict[str, Any]], timeout: float) -> None:
+    """Raise for the hosts that did not start, else for the components not healthy."""
+    from msctl.errors import OperationTimeout
+
+    unreachable = [h for h, s in replies.silent.items() if s.outcome == "unreachable"]
+    refused = [s.why for s in replies.silent.values() if s.outcome == "refused"]
+    also = f"; refused: {'; '.join(refused)}" if refused else ""
     # Exactly which hosts did start: an operator decides from it whether to `down --all`.
+    started = replies.answers
     outcome = f"started: {', '.join(started)}" if started else "no host was started"
     if unreachable:
-        names = ", ".join(h for h, _ in unreachable)
         raise NetworkError(
-            f"no agent answered for {names}{also} ({outcome})",
+            f"no agent answered for {', '.join(unreachable)}{also} ({outcome})",
             hint="start `msctl agent` there (or `msctl agent install`), check its network",
         )
     if refused:
-        raise MsctlError("; ".join(why for _, why in refused) + f" ({outcome})")
-    late = [
-        f"{h}: {c['name']}"
-        for h, d in status.items()
-        for c in d.get("components", [])
-        if c["state"] != "running"
-    ] + [f"{h}: {d['error']}" for h, d in status.items() if "error" in d]
+        raise MsctlError("; ".join(refused) + f" ({outcome})")
+    late = _not_running(status) + [f"{h}: {d['error']}" for h, d in status.items() if "error" in d]
     if late:
         raise OperationTimeout(
             f"not healthy after {timeout:g} s: {', '.join(late[:6])}",

@@ -458,7 +458,7 @@ def _make(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
 
 def _on_every(rehearsal: Rehearsal, argv: list[str], timeout: float) -> None:
     """Run ``argv`` on every computer at once; the first failure raises, naming its host."""
-    from msctl.launcher.fleet import at_once
+    from msctl.launcher.fanout import at_once
 
     results = at_once(lambda c: (c, rehearsal.run(c, argv, timeout)), rehearsal.computers)
     for computer, done in results:
@@ -615,7 +615,7 @@ def down(root: Path | None = None) -> list[str]:
     places = _places(root, rehearsal)
     for privileges in places:
         privileges.need()
-    from msctl.launcher.fleet import at_once
+    from msctl.launcher.fanout import at_once
 
     kept = {c.netns for c in rehearsal.computers} if rehearsal else set()
     # A keeper that died took its namespaces with it: nothing of them to reach.

@@ -38,7 +38,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from msctl.errors import MsctlError, NetworkError
 
@@ -437,127 +437,37 @@ def _call(node: Any, service: str, verb: str, args: dict[str, Any], timeout: flo
         client.close()
 
 
-def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float) -> None:
-    from rich.markup import escape
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.table import Table
+class Problem(NamedTuple):
+    """Why an agent's job is not done: said in its row of the summary."""
 
-    from components.comm.services import ServiceError
-    from msctl.console import err, out, print_json
+    text: str
+
+
+def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float) -> None:
     from msctl.plane import connected
 
     expected = _expected_namespaces()
-    started: dict[str, dict[str, Any]] = {}
-    problems: dict[str, str] = {}
     with connected(f"{verb}_all") as node:
         services = _discover(node, expected)
-        for namespace in expected:
-            if namespace not in services:
-                problems[namespace] = f"unreachable: no agent serves {namespace}/{SERVICE}"
+        problems = {
+            namespace: f"unreachable: no agent serves {namespace}/{SERVICE}"
+            for namespace in expected
+            if namespace not in services
+        }
         if not services and not expected:
             raise NetworkError(
                 f"no agent serves /msctl/<host>/{SERVICE} on this network",
                 hint="start `msctl agent` on each robot computer (or `msctl agent install`)",
             )
-        for namespace, service in sorted(services.items()):
-            err.print(f"[dim]asking {namespace} to {verb}...[/]", highlight=False)
-            try:
-                started[namespace] = _call(node, service, verb, args, 10.0)
-            except Refused as exc:
-                problems[namespace] = f"refused: {exc}"
-            except ServiceError as exc:
-                problems[namespace] = f"unreachable: {exc}"
-        final: dict[str, dict[str, Any]] = {}
-        deadline = time.monotonic() + timeout
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(bar_width=20),
-            TextColumn("{task.completed}/{task.total}"),
-            TextColumn("{task.fields[stage]}"),
-            TimeElapsedColumn(),
-            console=err,
-            transient=True,
-        ) as progress:
-            rows = {
-                ns: progress.add_task(answer.get("host", ns), total=None, stage="starting")
-                for ns, answer in started.items()
-            }
-            waiting = set(started)
-            watch = Unanswered(started, time.monotonic())
-            last_seen: dict[str, str] = {}
-            while waiting and time.monotonic() < deadline:
-                for namespace in sorted(waiting):
-                    try:
-                        state = _call(node, services[namespace], "progress", {}, 3.0)
-                    except (Refused, ServiceError) as exc:
-                        # A robot whose agent died or whose radio link dropped mid-job is
-                        # named within seconds, not after the whole --timeout: once its
-                        # agent has stayed out of the graph, else once it stayed silent.
-                        # A generous wait for the graph's answer: on a loaded link an
-                        # answer cut short would read as the agent gone.
-                        now = time.monotonic()
-                        seen = namespace in workspace_services(node, timeout=5.0)
-                        verdict = watch.failed(namespace, now, seen)
-                        if verdict is not None:
-                            why = "its agent left the network" if verdict == LEFT else str(exc)
-                            seen = last_seen.get(namespace)
-                            problems[namespace] = f"unreachable during the {verb}: {why}" + (
-                                f" (last seen: {seen})" if seen else ""
-                            )
-                            waiting.discard(namespace)
-                            progress.update(rows[namespace], stage="[red]unreachable[/]")
-                        else:
-                            progress.update(rows[namespace], stage=f"[yellow]{exc}[/]")
-                        continue
-                    watch.answered(namespace, time.monotonic())
-                    job = state.get("job") or {}
-                    asked = (started[namespace].get("job") or {}).get("id")
-                    if job.get("id") != asked:
-                        problems[namespace] = (
-                            f"its agent restarted during the {verb} (job {asked} is gone); "
-                            "ask again"
-                        )
-                        waiting.discard(namespace)
-                        progress.update(rows[namespace], stage="[red]restarted[/]")
-                        continue
-                    items = job.get("items", {})
-                    done = sum(stage in _DONE for stage in items.values())
-                    busy = [n for n, s in items.items() if s not in _DONE and s != "waiting"]
-                    last_seen[namespace] = f"{done}/{len(items)} done" + (
-                        f", {', '.join(busy[:3])}" if busy else ""
-                    )
-                    progress.update(
-                        rows[namespace],
-                        total=len(items) or None,
-                        completed=done,
-                        stage=", ".join(busy[:3]) if job.get("state") == "running" else "done",
-                    )
-                    if job.get("state") == "done":
-                        final[namespace] = state
-                        waiting.discard(namespace)
-                if waiting:
-                    time.sleep(0.5)
-            for namespace in waiting:
-                problems[namespace] = f"still running after {timeout:g} s (see its agent's log)"
+        replies = _start_jobs(node, services, verb, args)
+        problems.update({ns: p.text for ns, p in replies.silent.items()})
+        final, unfinished = _follow_jobs(node, services, verb, replies.answers, timeout)
+        problems.update(unfinished)
     # Each agent said its host's name when it started: name it so, not by its namespace.
+    started = replies.answers
     hosts = {**expected, **{ns: a["host"] for ns, a in started.items() if a.get("host")}}
     document = _summarise(verb, final, problems, hosts)
-    if json_output:
-        print_json(document)
-    else:
-        table = Table(title=f"{verb} on every agent", title_justify="left")
-        for column in ("host", "result", "done", "not done", "note"):
-            table.add_column(column, overflow="fold")
-        for host in document["hosts"]:
-            colour = "green" if host["ok"] else "red"
-            table.add_row(
-                escape(host["host"]),
-                f"[{colour}]{'ok' if host['ok'] else 'failed'}[/]",
-                str(len(host["done"])),
-                escape(", ".join(host["not_done"])),
-                escape(host["note"]),
-            )
-        out.print(table)
+    _print_outcome(verb, document, json_output)
     bad = [h for h in document["hosts"] if not h["ok"]]
     if bad:
         raise MsctlError(
@@ -566,6 +476,163 @@ def _run_all(verb: str, args: dict[str, Any], json_output: bool, timeout: float)
             hint="see the note of each; `msctl agent` logs on the robot say more",
             exit_code=1,
         )
+
+
+def _start_jobs(node: Any, services: dict[str, str], verb: str, args: dict[str, Any]) -> Any:
+    """Ask every agent to start its job, all at once; the answers, and a :class:`Problem`
+    for each agent that refused or did not answer (:func:`fanout.ask_each`)."""
+    from components.comm.services import ServiceError
+    from msctl.console import err
+    from msctl.launcher.fanout import ask_each
+
+    def ask(namespace: str) -> Any:
+        try:
+            return _call(node, services[namespace], verb, args, 10.0)
+        except Refused as exc:
+            return Problem(f"refused: {exc}")
+        except ServiceError as exc:
+            return Problem(f"unreachable: {exc}")
+
+    namespaces = sorted(services)
+    for namespace in namespaces:
+        err.print(f"[dim]asking {namespace} to {verb}...[/]", highlight=False)
+    return ask_each(namespaces, ask, lambda result: isinstance(result, Problem))
+
+
+def _follow_jobs(
+    node: Any,
+    services: dict[str, str],
+    verb: str,
+    started: dict[str, dict[str, Any]],
+    timeout: float,
+) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
+    """Ask every started agent for its job's progress, all at once, every half second, and
+    show it (:func:`fanout.rounds`) until each is done, gone or the time is up.
+
+    Returns:
+        The final progress of each agent whose job ended, and the problem of each other.
+    """
+    from components.comm.services import ServiceError
+    from msctl.launcher.fanout import progress, rounds
+
+    with progress("{task.completed}/{task.total}", "{task.fields[stage]}", bar_width=20) as view:
+        rows = {
+            ns: view.add_task(answer.get("host", ns), total=None, stage="starting")
+            for ns, answer in started.items()
+        }
+        follow = _JobFollower(node, verb, started, view, rows)
+
+        def look(namespace: str) -> Any:
+            try:
+                return _call(node, services[namespace], "progress", {}, 3.0)
+            except (Refused, ServiceError) as exc:
+                return exc
+
+        def settle(results: dict[str, Any]) -> set[str]:
+            return {ns for ns, result in results.items() if follow.settled(ns, result)}
+
+        waiting = rounds(started, look, settle, time.monotonic() + timeout, 0.5)
+    final, problems = follow.final, follow.problems
+    for namespace in waiting:
+        problems[namespace] = f"still running after {timeout:g} s (see its agent's log)"
+    return final, problems
+
+
+class _JobFollower:
+    """What each progress answer (or failure to answer) means for an agent's job."""
+
+    def __init__(
+        self,
+        node: Any,
+        verb: str,
+        started: dict[str, dict[str, Any]],
+        view: Any,
+        rows: dict[str, Any],
+    ) -> None:
+        self.node = node
+        self.verb = verb
+        self.started = started
+        self.view = view
+        self.rows = rows
+        self.watch = Unanswered(started, time.monotonic())
+        self.last_seen: dict[str, str] = {}
+        self.final: dict[str, dict[str, Any]] = {}
+        self.problems: dict[str, str] = {}
+
+    def settled(self, namespace: str, result: Any) -> bool:
+        """Show ``result`` (a progress answer, or the error of asking); whether the agent's
+        job is settled now (done, or the agent named unreachable or restarted)."""
+        if isinstance(result, Exception):
+            return self._unanswered(namespace, result)
+        self.watch.answered(namespace, time.monotonic())
+        job = result.get("job") or {}
+        asked = (self.started[namespace].get("job") or {}).get("id")
+        if job.get("id") != asked:
+            self.problems[namespace] = (
+                f"its agent restarted during the {self.verb} (job {asked} is gone); ask again"
+            )
+            self.view.update(self.rows[namespace], stage="[red]restarted[/]")
+            return True
+        items = job.get("items", {})
+        done = sum(stage in _DONE for stage in items.values())
+        busy = [n for n, s in items.items() if s not in _DONE and s != "waiting"]
+        self.last_seen[namespace] = f"{done}/{len(items)} done" + (
+            f", {', '.join(busy[:3])}" if busy else ""
+        )
+        self.view.update(
+            self.rows[namespace],
+            total=len(items) or None,
+            completed=done,
+            stage=", ".join(busy[:3]) if job.get("state") == "running" else "done",
+        )
+        if job.get("state") == "done":
+            self.final[namespace] = result
+            return True
+        return False
+
+    def _unanswered(self, namespace: str, exc: Exception) -> bool:
+        # A robot whose agent died or whose radio link dropped mid-job is named within
+        # seconds, not after the whole --timeout: once its agent has stayed out of the
+        # graph, else once it stayed silent. A generous wait for the graph's answer: on a
+        # loaded link an answer cut short would read as the agent gone.
+        now = time.monotonic()
+        seen = namespace in workspace_services(self.node, timeout=5.0)
+        verdict = self.watch.failed(namespace, now, seen)
+        if verdict is None:
+            self.view.update(self.rows[namespace], stage=f"[yellow]{exc}[/]")
+            return False
+        why = "its agent left the network" if verdict == LEFT else str(exc)
+        last = self.last_seen.get(namespace)
+        self.problems[namespace] = f"unreachable during the {self.verb}: {why}" + (
+            f" (last seen: {last})" if last else ""
+        )
+        self.view.update(self.rows[namespace], stage="[red]unreachable[/]")
+        return True
+
+
+def _print_outcome(verb: str, document: dict[str, Any], json_output: bool) -> None:
+    """Every host's outcome: one JSON document, or a table."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    from msctl.console import out, print_json
+
+    if json_output:
+        print_json(document)
+        return
+    table = Table(title=f"{verb} on every agent", title_justify="left")
+    for column in ("host", "result", "done", "not done", "note"):
+        table.add_column(column, overflow="fold")
+    for host in document["hosts"]:
+        colour = "green" if host["ok"] else "red"
+        table.add_row(
+            escape(host["host"]),
+            f"[{colour}]{'ok' if host['ok'] else 'failed'}[/]",
+            str(len(host["done"])),
+            escape(", ".join(host["not_done"])),
+            escape(host["note"]),
+        )
+    out.print(table)
 
 
 def _discover(node: Any, expected: dict[str, str], settle: float = 3.0) -> dict[str, str]:
