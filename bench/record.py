@@ -221,7 +221,7 @@ def _mcap_baseline(payload: bytes, count: int, directory: Path) -> dict[str, flo
 def run(flood: int, large: int, fleet_seconds: float) -> None:
     from components.comm.session import SessionSettings, open_session
     from components.data_archiver.core import TopicSelection
-    from msctl.recorder.recorder import Recorder
+    from components.recording.recorder import Recorder
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(SessionSettings(mode="router", connect=(), listen=(endpoint,)))

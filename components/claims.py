@@ -27,7 +27,7 @@ API summary::
 
 Enforcement (robot side): an interface's ``Subscribe`` carrying a :class:`ClaimRule` (set on
 every input whose declared role is a command by the builder's
-:func:`components.roles.bind`, with ``command_rule(assembly, slot)``) is kept by the
+:func:`components.roles.bind`, with :func:`components.roles.command_rule`) is kept by the
 executor's :class:`ClaimGuard` on the module's holder; other senders are refused, counted
 under ``not_holder`` (or ``unclaimed`` when the template says ``claims = "required"``), and
 warned about once naming the holder.
@@ -303,30 +303,6 @@ class ClaimGuard:
             entries = list(self._guarded.get(module, ()))
         for subscription, rule in entries:
             self._apply(subscription, rule)
-
-
-def command_rule(assembly: Any, slot: str, *more: str) -> ClaimRule:
-    """The claim rule of module ``slot``'s command inputs, from the resolved assembly (with
-    ``more`` modules: of an input that moves them all, such as the steering's ``cmd_vel``).
-
-    Relays are the planned components of kinds marked ``claim_relay`` in the kind registry:
-    those of the modules themselves, and those of ground stations (they command any module).
-    """
-    from components import kinds
-    from components.build import node_name
-
-    modules = (slot, *more)
-    relays = []
-    for plan in assembly.components:
-        entry = kinds.registry().get(plan.kind)
-        if (
-            entry is None
-            or not entry.claim_relay
-            or not (plan.module is None or plan.module in modules)
-        ):
-            continue
-        relays.append(f"{plan.namespace.rstrip('/')}/{node_name(plan.name)}")
-    return ClaimRule(slot, tuple(relays), required=assembly.claims == "required", also=more)
 
 
 class Claim:

@@ -92,7 +92,7 @@ class ComponentKind:
         claim_relay: It forwards commands to joint managers (``joint_set``) only after
             checking, on its own inputs, that they come from the holder of the module's
             claim; joint managers then take its commands as the holder's (see
-            :func:`components.claims.command_rule`). A module-placed relay forwards to its
+            :func:`components.roles.command_rule`). A module-placed relay forwards to its
             own module, a station-placed one to any.
         own_process: Each of its components runs in a process of its own rather than with
             the other components of its kind on its station or module, so that one failing

@@ -34,6 +34,7 @@ from enum import Enum
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from components.claims import ClaimRule
     from components.executor.interface import InterfaceSpec
 
 
@@ -339,16 +340,39 @@ def senders(role: Role | None, assembly: Any, slot: str, name: str) -> tuple[str
     return tuple(dict.fromkeys(nodes))
 
 
+def command_rule(assembly: Any, slot: str, *more: str) -> ClaimRule:
+    """The claim rule of module ``slot``'s command inputs, from the resolved assembly (with
+    ``more`` modules: of an input that moves them all, such as the steering's ``cmd_vel``).
+
+    Relays are the planned components of kinds marked ``claim_relay`` in the kind registry:
+    those of the modules themselves, and those of ground stations (they command any module).
+    """
+    from components import kinds
+    from components.build import node_name
+    from components.claims import ClaimRule
+
+    modules = (slot, *more)
+    relays = []
+    for plan in assembly.components:
+        entry = kinds.registry().get(plan.kind)
+        if (
+            entry is None
+            or not entry.claim_relay
+            or not (plan.module is None or plan.module in modules)
+        ):
+            continue
+        relays.append(f"{plan.namespace.rstrip('/')}/{node_name(plan.name)}")
+    return ClaimRule(slot, tuple(relays), required=assembly.claims == "required", also=more)
+
+
 def bind(spec: InterfaceSpec, assembly: Any, slot: str) -> InterfaceSpec:
     """``spec`` of a component of module ``slot``, with each input's run-time rule from its
     role: raw commands and feedback only from their senders (:func:`senders`), commands
-    only from the module's claim holder (:func:`components.claims.command_rule`).
+    only from the module's claim holder (:func:`command_rule`).
 
     Raises:
         RoleError: If an input declares no role.
     """
-    from components.claims import command_rule
-
     check_declared(f"{slot}'s interface", spec)
     subscribe = []
     for sub in spec.subscribe:

@@ -29,13 +29,13 @@ from components.comm import LATCHED, Node
 from components.comm.session import SessionSettings
 from components.comm.types import registry
 from components.messages import msg
+from components.recording.definitions import message_definition, qos_profiles
+from components.recording.errors import BagError
+from components.recording.metadata import read_metadata
+from components.recording.writer import BagWriter, TopicSpec
 from msctl.app import app
 from msctl.recorder.bag import inspect
-from msctl.recorder.definitions import message_definition, qos_profiles
-from msctl.recorder.errors import BagError
-from msctl.recorder.metadata import read_metadata
 from msctl.recorder.player import Player, is_command_topic, parse_remaps
-from msctl.recorder.writer import BagWriter, TopicSpec
 
 MSCTL = shutil.which("msctl") or str(Path(sys.executable).with_name("msctl"))
 STRING = "std_msgs/msg/String"

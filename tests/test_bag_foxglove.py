@@ -25,15 +25,15 @@ from typer.testing import CliRunner
 from components.comm.qos import QoS
 from components.comm.types import registry
 from components.messages import msg
-from msctl.app import app
-from msctl.recorder.definitions import (
+from components.recording.definitions import (
     SEPARATOR,
     fixed_definition,
     message_definition,
     needs_fixing,
     qos_profiles,
 )
-from msctl.recorder.writer import BagWriter, TopicSpec
+from components.recording.writer import BagWriter, TopicSpec
+from msctl.app import app
 
 JS = Path(__file__).parent / "js"
 NODE = shutil.which("node")

@@ -37,9 +37,9 @@ from components.comm.topics import INTRUDER
 from components.comm.types import registry
 from components.executor.executor import Executor
 from components.messages import JOINT_STATE, JointSample, joint_samples, joint_state
+from components.recording.definitions import message_definition
+from components.recording.writer import BagWriter, TopicSpec
 from msctl.errors import InputError
-from msctl.recorder.definitions import message_definition
-from msctl.recorder.writer import BagWriter, TopicSpec
 
 pytestmark = pytest.mark.e2e
 

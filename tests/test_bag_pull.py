@@ -21,9 +21,10 @@ from conftest import wait_until
 
 from components.comm.types import registry
 from components.messages import msg
+from components.recording.definitions import message_definition
+from components.recording.writer import BagWriter, TopicSpec
 from msctl.launcher.control import RequestError, encode_args, host_namespace
 from msctl.recorder import shelf
-from msctl.recorder.definitions import message_definition
 from msctl.recorder.pull import (
     CONFLICT,
     FETCH,
@@ -39,7 +40,6 @@ from msctl.recorder.pull import (
     remote_files,
     request_timeout,
 )
-from msctl.recorder.writer import BagWriter, TopicSpec
 
 # The real pulls start an agent and run the command, each a Python start-up on a machine
 # shared with other runs (345 s for this module at load 40): the default 120 s is too short.

@@ -368,8 +368,8 @@ def good_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     from components.comm.types import registry
     from components.messages import msg
-    from msctl.recorder.definitions import message_definition
-    from msctl.recorder.writer import BagWriter, TopicSpec
+    from components.recording.definitions import message_definition
+    from components.recording.writer import BagWriter, TopicSpec
 
     directory = tmp_path_factory.mktemp("bags") / "good"
     string = "std_msgs/msg/String"

@@ -251,9 +251,9 @@ def test_the_archiver_records_and_reports_on_diagnostics(
 def test_a_recorder_on_the_ground_knows_which_topics_the_radio_samples(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    from components.recording.thinned import radio_thinned
     from msctl.assembler import resolve
     from msctl.assembler.store import write_resolution
-    from msctl.recorder.recorder import radio_thinned
 
     monkeypatch.setenv("MSCTL_HOME", str(tmp_path))
     monkeypatch.delenv("MSCTL_SECURE", raising=False)

@@ -24,10 +24,11 @@ from components.comm.liveliness import EntityKind
 from components.comm.session import SessionSettings
 from components.data_archiver.core import TopicSelection
 from components.messages import msg
+from components.recording.errors import BagError
+from components.recording.keys import parse_key
+from components.recording.metadata import read_metadata
+from components.recording.recorder import Recorder
 from msctl.recorder.bag import inspect, read_messages
-from msctl.recorder.errors import BagError
-from msctl.recorder.metadata import read_metadata
-from msctl.recorder.recorder import Recorder, parse_key
 
 STRING = "std_msgs/msg/String"
 STORE = get_typestore(Stores.ROS2_JAZZY)

@@ -18,12 +18,12 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from components.comm.qos import LATCHED, QoS
 from components.comm.types import registry
 from components.messages import msg
+from components.recording.definitions import message_definition, qos_profiles
+from components.recording.errors import BagError
+from components.recording.metadata import read_metadata
+from components.recording.writer import BagWriter, TopicSpec
 from msctl.recorder.bag import inspect
-from msctl.recorder.definitions import message_definition, qos_profiles
-from msctl.recorder.errors import BagError
-from msctl.recorder.metadata import read_metadata
 from msctl.recorder.recover import recover
-from msctl.recorder.writer import BagWriter, TopicSpec
 
 STRING = "std_msgs/msg/String"
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -147,7 +147,7 @@ def test_the_lean_chunk_builder_writes_exactly_the_librarys_files(
 
     from mcap.writer import Writer
 
-    import msctl.recorder.writer as writer_module
+    import components.recording.writer as writer_module
 
     assert writer_module._use_lean_chunks(Writer(io.BytesIO()))  # this mcap takes it
     (tmp_path / "lean").mkdir()

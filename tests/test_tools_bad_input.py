@@ -21,10 +21,10 @@ from mcap.writer import Writer
 from components.comm.qos import LATCHED
 from components.comm.types import registry
 from components.messages import msg
+from components.recording.definitions import message_definition, qos_profiles
+from components.recording.metadata import read_metadata
+from components.recording.writer import BagWriter, TopicSpec
 from msctl.recorder.bag import inspect
-from msctl.recorder.definitions import message_definition, qos_profiles
-from msctl.recorder.metadata import read_metadata
-from msctl.recorder.writer import BagWriter, TopicSpec
 
 pytestmark = pytest.mark.timeout(300)
 

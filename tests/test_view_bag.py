@@ -16,9 +16,9 @@ from typer.testing import CliRunner
 from components.comm.qos import QoS
 from components.comm.types import registry
 from components.messages import msg
+from components.recording.definitions import message_definition, qos_profiles
+from components.recording.writer import BagWriter, TopicSpec
 from msctl.app import app
-from msctl.recorder.definitions import message_definition, qos_profiles
-from msctl.recorder.writer import BagWriter, TopicSpec
 
 pytest.importorskip("rerun", reason="the view extra is not installed: pip install '.[view]'")
 
@@ -135,8 +135,8 @@ def test_bag_view_draws_the_bag_on_its_own_timeline(home: Path, tmp_path: Path) 
 
 
 def test_bag_view_refuses_what_it_cannot_do(home: Path, tmp_path: Path) -> None:
+    from components.recording.errors import BagError
     from msctl.errors import MsctlError
-    from msctl.recorder.errors import BagError
 
     runner = CliRunner()
     missing = runner.invoke(

@@ -111,7 +111,7 @@ class OperatorRobot(Robot):
                 claimed one); others are refused and counted. The steering takes
                 ``cmd_vel`` so, from the holder of the modules it moves.
         """
-        from components.claims import command_rule
+        from components.roles import command_rule
 
         def deliver(message: Any) -> None:
             try:

@@ -1,7 +1,7 @@
 """Build a data archiver from the resolved assembly, and start its recording when bound.
 
 The core only reports; the recording is the recorder of ``msctl record``
-(:class:`msctl.recorder.recorder.Recorder`), started by the ``on_bound`` hook on the
+(:class:`components.recording.recorder.Recorder`), started by the ``on_bound`` hook on the
 executor's session, as the component's node, so the graph shows its subscriptions under
 the archiver's name. It is stopped, and its bag closed, with the component's resources.
 
@@ -49,8 +49,9 @@ class Recording:
 
     def __call__(self, executor: Executor, component: Component) -> None:
         """Start recording as ``component``'s node (called once, before it runs)."""
-        from msctl.recorder.errors import BagError
-        from msctl.recorder.recorder import Recorder, radio_thinned
+        from components.recording.errors import BagError
+        from components.recording.recorder import Recorder
+        from components.recording.thinned import radio_thinned
 
         if executor.transport != "zenoh":
             # The recorder reads Zenoh keys and tokens; on rclpy the data is on DDS.

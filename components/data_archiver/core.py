@@ -1,7 +1,7 @@
 """The data archiver's logic: which topics to record, with what QoS, what was lost, and how
 the recording is doing. Pure Python: no Zenoh, no files, no clocks (time is passed in).
 
-The recorder (:mod:`msctl.recorder.recorder`) does the I/O and asks this module every
+The recorder (:mod:`components.recording.recorder`) does the I/O and asks this module every
 decision; ``msctl record`` and the ``data_archiver`` component share it.
 """
 

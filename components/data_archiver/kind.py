@@ -14,5 +14,5 @@ KIND = ComponentKind(
     # Recording is buffered: a burst written milliseconds later loses nothing.
     niceness=10,
     # The recorder's writer (MCAP, its compressors) and its metadata's YAML.
-    preload=("msctl.recorder.recorder", "msctl.recorder.writer", "mcap.writer", "yaml"),
+    preload=("components.recording.recorder", "components.recording.writer", "mcap.writer", "yaml"),
 )

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-from msctl.errors import InputError, MsctlError
+from components.errors import ConfigError, HardwareError
 
 
-class BagError(InputError):
-    """A directory or file that is not a readable bag (what is missing or wrong is named)."""
+class BagError(ConfigError):
+    """A directory or file that is not a readable bag (what is missing or wrong is named).
+
+    Exit code 2 (the operator's input).
+    """
 
 
-class BagWriteError(MsctlError, OSError):
+class BagWriteError(HardwareError):
     """Writing a bag failed (full disk, lost permissions); what was written stays readable.
 
     Exit code 6.
     """
-
-    exit_code = 6

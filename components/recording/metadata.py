@@ -15,7 +15,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from msctl.recorder.errors import BagError
+from components.recording.errors import BagError
 
 #: The file name rosbag2 looks for in a bag directory.
 METADATA_FILE = "metadata.yaml"

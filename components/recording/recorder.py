@@ -14,7 +14,7 @@ token per recorded topic, with the QoS rosbag2's rule gives it).
 
 The sample callback (on a Zenoh thread) only stamps the receive time and appends
 ``(topic, time, payload, attachment)`` to a bounded queue; a writer thread drains it into a
-:class:`~msctl.recorder.writer.BagWriter`. A full queue drops the sample and counts it. Gaps
+:class:`~components.recording.writer.BagWriter`. A full queue drops the sample and counts it. Gaps
 in the publishers' sequence numbers are counted as losses upstream.
 
 The queue is a plain deque the writer thread polls (a short nap when it is empty), not a
@@ -31,7 +31,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,9 +42,10 @@ from components.data_archiver.core import (
     subscription_qos,
 )
 from components.data_archiver.gaps import Gap, GapWatch
-from msctl.recorder.definitions import message_definition, qos_profiles
-from msctl.recorder.errors import BagWriteError
-from msctl.recorder.writer import BagWriter, TopicSpec
+from components.recording.definitions import message_definition, qos_profiles
+from components.recording.errors import BagWriteError
+from components.recording.keys import TopicKey, parse_key, read_attachment
+from components.recording.writer import BagWriter, TopicSpec
 
 #: Messages the queue holds before it drops (about 2 s of 50 kHz).
 DEFAULT_QUEUE_MESSAGES = 100_000
@@ -62,29 +62,6 @@ _QOS_QUERY = 0.5
 _SEQ_STAMP = struct.Struct("<qq")
 _CONTROL = -1
 _IGNORED = -2
-
-
-@dataclass(frozen=True)
-class TopicKey:
-    """What a data key says: topic, type and hash."""
-
-    topic: str
-    type: str
-    type_hash: str
-
-
-def parse_key(key: str, domain: int) -> TopicKey | None:
-    """Topic, type and hash of an rmw_zenoh data key (``None`` if it is not one)."""
-    from components.comm.types import UnknownTypeError, normalize_type_name
-
-    parts = key.split("/")
-    if len(parts) < 4 or parts[0] != str(domain) or "::" not in parts[-2]:
-        return None
-    try:
-        type_name = normalize_type_name(parts[-2])
-    except UnknownTypeError:
-        return None
-    return TopicKey("/" + "/".join(parts[1:-2]), type_name, parts[-1])
 
 
 class Recorder:
@@ -412,7 +389,7 @@ class Recorder:
                         sequence, publish_time = unpack(attachment)
                         missing = count(topic_id, attachment[17:33], sequence)
                     else:
-                        sequence, publish_time, missing = _keyed(
+                        sequence, publish_time, missing = read_attachment(
                             attachment, topic_id, self._sequences
                         )
                 if not self._first_time:
@@ -438,7 +415,9 @@ class Recorder:
                 sequence, publish_time = _SEQ_STAMP.unpack_from(attachment)
                 missing = self._sequences.count(topic_id, attachment[17:33], sequence)
             else:
-                sequence, publish_time, missing = _keyed(attachment, topic_id, self._sequences)
+                sequence, publish_time, missing = read_attachment(
+                    attachment, topic_id, self._sequences
+                )
         if not self._first_time:
             self._first_time = log_time
         self._last_time = log_time
@@ -612,46 +591,3 @@ def _who(node: Any, name: str, namespace: str) -> dict[str, str]:
 
     fqn = getattr(node, "fqn", None) or f"{namespace.rstrip('/')}/{name}"
     return {"recorded_by": f"msctl {fqn}", "host": socket.gethostname()}
-
-
-def _keyed(
-    attachment: bytes, topic_id: int, tracker: SequenceTracker
-) -> tuple[int, int, int | None]:
-    from components.comm.attachment import Attachment, AttachmentError
-
-    try:
-        parsed = Attachment.decode(attachment)
-    except AttachmentError:
-        return 0, 0, None
-    missing = tracker.count(topic_id, parsed.gid, parsed.sequence_number)
-    return parsed.sequence_number, parsed.source_timestamp, missing
-
-
-def radio_thinned(here: str | None = None) -> dict[str, float]:
-    """Topic -> rate of each topic of this computer's assembly that reaches it sampled on a
-    radio link (:func:`msctl.net.radio.thinned_topics`); none when nothing is resolved here,
-    the fleet is not secure (only the generated TLS/QUIC links filter: the template says so,
-    or this computer's run, started with ``MSCTL_SECURE=1``), this computer is not one of the
-    assembly's, or it runs the whole assembly itself (off-robot: no radio)."""
-    from components.assembly import AssemblyError, load_assembly
-    from msctl.launcher.plan import this_host
-    from msctl.launcher.state import read_state
-    from msctl.net import radio
-
-    here = here or this_host()
-    try:
-        assembly = load_assembly()
-    except (AssemblyError, OSError, ValueError):
-        return {}
-    try:
-        run = read_state() or {}
-    except (OSError, ValueError):
-        run = {}
-    # The template's [network] secure, or this computer's run (its agent's MSCTL_SECURE=1).
-    secure = assembly.secure or bool(run.get("secure")) or os.environ.get("MSCTL_SECURE") == "1"
-    if not secure or here not in assembly.hosts:
-        return {}
-    if run.get("off_robot") and run.get("state") == "running" and not run.get("agent"):
-        return {}
-    network = radio.Network.from_dict(assembly.lock.network)
-    return radio.thinned_topics(network, {m.slot: m.host for m in assembly.modules}, here)

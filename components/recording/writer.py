@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from msctl.recorder.definitions import profiles_yaml
-from msctl.recorder.errors import BagError, BagWriteError
-from msctl.recorder.metadata import (
+from components.recording.definitions import profiles_yaml
+from components.recording.errors import BagError, BagWriteError
+from components.recording.metadata import (
     METADATA_FILE,
     ROS_DISTRO,
     BagMetadata,

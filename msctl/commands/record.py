@@ -75,10 +75,11 @@ def command(
 ) -> None:
     """Record topics into a new bag until Ctrl-C (or SIGTERM)."""
     from components.data_archiver.core import TopicSelection
+    from components.recording.metadata import default_bag_name
+    from components.recording.recorder import Recorder
+    from components.recording.thinned import radio_thinned
     from msctl.console import err
     from msctl.plane import connected
-    from msctl.recorder.metadata import default_bag_name
-    from msctl.recorder.recorder import Recorder, radio_thinned
 
     size = parse_size(max_bag_size)
     if max_bag_duration < 0:

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from msctl.recorder.errors import BagError
-from msctl.recorder.metadata import (
+from components.recording.errors import BagError
+from components.recording.metadata import (
     METADATA_FILE,
     BagMetadata,
     FileRecord,

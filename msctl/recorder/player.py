@@ -22,9 +22,9 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from components.recording.definitions import SEPARATOR, profiles_to_qos
+from components.recording.errors import BagError
 from msctl.recorder.bag import BagInfo, TopicDefinition, read_messages
-from msctl.recorder.definitions import SEPARATOR, profiles_to_qos
-from msctl.recorder.errors import BagError
 
 
 def is_command_topic(topic: str) -> bool:

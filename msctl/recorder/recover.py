@@ -15,9 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from msctl.recorder.bag import FileInfo, _file_info, data_files, rebuilt_metadata
-from msctl.recorder.errors import BagError, BagWriteError
-from msctl.recorder.metadata import (
+from components.recording.errors import BagError, BagWriteError
+from components.recording.metadata import (
     METADATA_FILE,
     ROS_DISTRO,
     BagMetadata,
@@ -25,6 +24,7 @@ from msctl.recorder.metadata import (
     read_metadata,
     write_metadata,
 )
+from msctl.recorder.bag import FileInfo, _file_info, data_files, rebuilt_metadata
 from msctl.recorder.scan import FileScan, NotMcapError, ScannedMessage, ScanReport
 
 
@@ -203,7 +203,7 @@ def _has_stale_schemas(path: Path) -> bool:
     """Whether a finished file holds a ``ros2msg`` schema in msctl's old ``MSG:`` form."""
     from mcap.reader import make_reader
 
-    from msctl.recorder.definitions import needs_fixing
+    from components.recording.definitions import needs_fixing
 
     with open(path, "rb") as stream:
         summary = make_reader(stream).get_summary()
@@ -219,7 +219,7 @@ def _rebuild(
     from mcap.records import Channel, Metadata, Schema
     from mcap.writer import CompressionType, Writer
 
-    from msctl.recorder.definitions import fixed_definition, needs_fixing
+    from components.recording.definitions import fixed_definition, needs_fixing
 
     outcome = FileRecovery(path, "rebuilt")
     temporary = path.with_name(f".{path.name}.recovering")
@@ -329,7 +329,7 @@ def _channel_from_metadata(
 ) -> int | None:
     """msctl numbers channels by topic (channel = topic index + 1) and lists every topic in
     ``metadata.yaml``, so a channel whose record was in a lost chunk can be described again."""
-    from msctl.recorder.definitions import message_definition, profiles_yaml
+    from components.recording.definitions import message_definition, profiles_yaml
 
     index = channel_id - 1
     if not 0 <= index < len(old.topics):

@@ -89,7 +89,7 @@ class FoxgloveView:
 
         from components.comm.types import registry
         from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE
-        from msctl.recorder.definitions import message_definition
+        from components.recording.definitions import message_definition
 
         self._context = foxglove.Context()
         types = registry()
