@@ -13,8 +13,9 @@ from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
-from components.simulator.core import SIM_NAMESPACE, SimulatorConfig, SimulatorCore
+from components.simulator.core import SimulatorConfig, SimulatorCore
 from components.simulator.interface import simulator_interface
+from components.simulator.topics import SIM_NAMESPACE
 from components.simulator.world import SimulationError, SimWorld
 
 _CONFIG_OPTIONS = ("speed", "tick_period", "state_period", "pose_period", "diagnostics_period")

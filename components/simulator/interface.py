@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 from components.comm.qos import SENSOR
 from components.executor.interface import Every, InterfaceSpec, Publish, Serve, Subscribe
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, POSE_STAMPED, TRIGGER
-from components.simulator.core import (
+from components.simulator.core import SimulatorConfig
+from components.simulator.topics import (
     CLOCK,
     CLOCK_TOPIC,
     SIM_NAMESPACE,
-    SimulatorConfig,
     commands_handler,
     commands_topic,
     halt_handler,
