@@ -15,7 +15,8 @@ import pytest
 
 from components.api.errors import ApiError
 from components.api.joints import JointHandler, JointInfo
-from components.api.wheels import WheelDrive, WheelSteering
+from components.api.steering import WheelSteering
+from components.api.wheels import WheelDrive
 from components.messages import joint_samples
 
 pytestmark = pytest.mark.e2e

@@ -47,7 +47,7 @@ _LAZY = {
     "IkSyncSettings": "components.api.ik_syncer",
     "WheelDrive": "components.api.wheels",
     "WheelGeometry": "components.api.wheels",
-    "WheelSteering": "components.api.wheels",
+    "WheelSteering": "components.api.steering",
 }
 
 

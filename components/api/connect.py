@@ -218,8 +218,9 @@ class Robot:
         """A :class:`~components.api.wheels.WheelDrive` over wheel modules ``slots``
         (default: every wheel module), geometry from the resolved assembly's URDF at the
         measured limb angles (again at the start of every motion), steering with the limbs
-        (:class:`~components.api.wheels.WheelSteering`)."""
-        from components.api.wheels import WheelDrive, WheelSteering, wheel_joints
+        (:class:`~components.api.steering.WheelSteering`)."""
+        from components.api.steering import WheelSteering
+        from components.api.wheels import WheelDrive, wheel_joints
 
         urdf = self._urdf("the wheel helper")
         wheels = slots or tuple(self.wheels)

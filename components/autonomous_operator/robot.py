@@ -31,7 +31,8 @@ from components.api.joints import JointHandler
 
 # At import, i.e. while the worker builds (see components.autonomous_operator.runner): Pinocchio's
 # start must not hold the GIL on the script's thread beside a beating executor.
-from components.api.wheels import WheelDrive, WheelSteering, wheel_joints
+from components.api.steering import WheelSteering
+from components.api.wheels import WheelDrive, wheel_joints
 
 
 class OperatorRobot(Robot):

@@ -13,7 +13,7 @@ A Twist on ``cmd_vel`` (``geometry_msgs/msg/Twist``) asks for a body velocity: f
   silence: the joint managers' watchdogs stop the wheels if this operator dies;
 * when the Twist has a sideways part, and the limbs are in a pose that can turn the wheel
   modules (see ``examples/dragon_square.py``), stops, points every module along the
-  direction with the limbs (the API's :class:`~components.api.wheels.WheelSteering`,
+  direction with the limbs (the API's :class:`~components.api.steering.WheelSteering`,
   ``steer_path``), and drives along it without turning the body; a Twist straight ahead
   turns them back. Limbs that cannot steer (lying straight) drive what the wheels can, and
   the sideways part is counted as dropped;
