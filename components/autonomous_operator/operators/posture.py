@@ -22,6 +22,8 @@ from __future__ import annotations
 import asyncio
 import math
 
+from components.autonomous_operator.cores.posture import PostureCore
+
 
 async def main(
     robot,
@@ -70,13 +72,8 @@ async def main(
     ]
     wheels = [robot.handler(slot) for slot in robot.wheels]
     loop = asyncio.get_running_loop()
-    posture: dict[str, float] | None = None
-    astray_since: float | None = None
+    core = PostureCore(joints, tolerance, settle, still_after, report_period)
     correction = None
-    corrections = 0
-    moved_at = -math.inf  # when a wheel last turned
-    worst_seen = 0.0
-    next_report = 0.0
 
     def driving() -> bool:
         for handler in wheels:
@@ -86,44 +83,11 @@ async def main(
         return False
 
     while True:
-        now = loop.time()
-        measured = robot.positions()
-        worst_joint, worst = "", 0.0
-        if driving():
-            moved_at = now
-        if now - moved_at < still_after:
-            if posture is None:
-                posture = {j: measured[j] for j in joints if j in measured}
-                astray_since = None
-            for joint, held in posture.items():
-                off = abs(measured.get(joint, held) - held)
-                if off > worst:
-                    worst_joint, worst = joint, off
-            worst_seen = max(worst_seen, worst)
-            busy = correction is not None and not correction.done()
-            if worst > tolerance and not busy:
-                astray_since = now if astray_since is None else astray_since
-                if now - astray_since >= settle:
-                    correction = limbs.lerp(posture)
-                    corrections += 1
-                    astray_since = None
-            elif worst <= tolerance:
-                astray_since = None
-        else:
-            posture = None  # standing still: the limbs are free
-            astray_since = None
-        if now >= next_report:
-            next_report = now + report_period
-            state = (
-                f"holding {len(posture)} joints; worst {worst_joint or '-'} {worst:.3f} rad off"
-                if posture is not None
-                else "not driving: limbs free"
-            )
-            robot.report(
-                state,
-                corrections=corrections,
-                tolerance=tolerance,
-                worst_seen=f"{worst_seen:.3f}",
-                holding=posture is not None,
-            )
+        correcting = correction is not None and not correction.done()
+        step = core.step(loop.time(), robot.positions(), driving(), correcting)
+        if step.correct_to is not None:
+            correction = limbs.lerp(step.correct_to)
+        if step.status is not None:
+            message, values = step.status
+            robot.report(message, **values)
         await asyncio.sleep(period)
