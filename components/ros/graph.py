@@ -122,7 +122,7 @@ class RclpyGraph(GraphView):
             for instance in range(count)
         ]
         ros = self._ros
-        from components.ros.plane import msctl_qos
+        from components.ros.plane_topics import msctl_qos
 
         for topic, _types in ros.get_topic_names_and_types():
             for kind, infos in (
