@@ -1,19 +1,23 @@
 """What an operator reads when something is named wrong, mistyped, or interrupted.
 
 In-process: the nearest-name suggestions and the assembler's errors. Subprocesses (e2e): the
-help's metavars, Ctrl-C at any moment, and ``msctl run`` failing fast with nothing up.
+help's metavars, Ctrl-C at any moment, ``msctl run`` failing fast with nothing up, an
+``assemble`` while an ``up`` is starting, and ``down --all`` with only idle agents.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import re
+import signal
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import free_port
+from conftest import free_port, wait_until
 
 from msctl.errors import InputError, NotFoundError, did_you_mean, nearest
 
@@ -200,3 +204,177 @@ def test_a_bad_session_variable_is_the_operators_error_naming_it(tmp_path: Path)
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip().startswith("error: MSCTL_ZENOH_LISTEN: endpoint 'garbage'")
     assert "internal error" not in result.stderr
+
+
+def msctl(*args: str, env: dict[str, str], timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """One ``msctl`` command, run as the operator runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "msctl", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+        timeout=timeout,
+        check=False,
+        cwd=ROOT,
+    )
+
+
+def one_line(result: subprocess.CompletedProcess) -> str:
+    """The one line a failing command printed."""
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    return lines[0]
+
+
+@pytest.fixture
+def nowhere(tmp_path: Path) -> dict[str, str]:
+    """A home, and a router endpoint where nothing listens."""
+    return {
+        "MSCTL_HOME": str(tmp_path / "home"),
+        "MSCTL_HOST": "test-laptop",
+        "MSCTL_ZENOH_CONNECT": f"tcp/127.0.0.1:{free_port()}",
+        "MSCTL_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+        "MSCTL_ZENOH_MULTICAST": "0",
+    }
+
+
+# Issue 18, point 12.
+@pytest.mark.e2e
+def test_run_with_no_router_fails_at_the_refusal_as_topic_list_does(
+    tmp_path: Path, nowhere: dict[str, str]
+) -> None:
+    script = tmp_path / "noop.py"
+    script.write_text("async def main(robot):\n    pass\n")
+    endpoint = nowhere["MSCTL_ZENOH_CONNECT"]
+    result = msctl("run", str(script), "--timeout", "60", env=nowhere)
+    assert result.returncode == 3, result.stderr
+    line = one_line(result)
+    # The refused connection itself, as `msctl topic list` knows it: no wait for an answer
+    # that cannot come ("within 2 s" was a wait of its own, after the refusal).
+    assert f"no Zenoh router or peer reachable at {endpoint} (connection refused)" in line, line
+    assert "within" not in line, line
+    listed = msctl("topic", "list", env=nowhere)
+    assert listed.returncode == result.returncode == 3, listed.stderr
+
+
+# Issue 18, point 11.
+@pytest.mark.e2e
+def test_assembling_while_an_up_is_still_starting_is_refused_and_the_lock_file_kept(
+    tmp_path: Path, nowhere: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from msctl.launcher.state import RunLock
+
+    assert msctl("assemble", "minimal", env=nowhere).returncode == 0
+    lock_file = tmp_path / "home" / "assembly" / "assembly.lock.json"
+    before = lock_file.read_bytes()
+    # An `msctl up` holds the run lock from its first moment; its state file comes only
+    # once its processes have started (and read the lock file): hold the lock as it does.
+    monkeypatch.setenv("MSCTL_HOME", nowhere["MSCTL_HOME"])
+    run = RunLock.acquire(template="minimal", host="test-laptop", by="msctl up")
+    try:
+        result = msctl("assemble", "dragon", env=nowhere)
+        assert result.returncode == 2, result.stderr
+        line = one_line(result)
+        assert f"assembly minimal is starting (pid {os.getpid()}: msctl up" in line, line
+        assert "would replace the lock file under it" in line and "msctl down" in line, line
+        assert lock_file.read_bytes() == before
+        # The same lock refuses a second `up` (the check above did not take it over).
+        again = msctl("up", "minimal", "--for", "1", env=nowhere)
+        assert again.returncode == 3 and "minimal is already up" in again.stderr, again.stderr
+    finally:
+        run.release()
+    assert msctl("assemble", "dragon", env=nowhere).returncode == 0
+    assert lock_file.read_bytes() != before
+
+
+# Issue 18, point 5.
+@pytest.mark.e2e
+def test_down_all_with_only_idle_agents_says_nothing_is_running(
+    tmp_path: Path, zenoh_env: dict[str, str]
+) -> None:
+    operator = {**zenoh_env, "MSCTL_HOME": str(tmp_path / "ground"), "MSCTL_HOST": "ground1"}
+    with (tmp_path / "agent.log").open("w") as log:
+        agent = subprocess.Popen(
+            [sys.executable, "-m", "msctl", "agent"],
+            env={
+                **os.environ,
+                **zenoh_env,
+                "MSCTL_HOME": str(tmp_path / "limb"),
+                "MSCTL_HOST": "hl-limb-01",
+            },
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=ROOT,
+        )
+    try:
+
+        def agent_answers() -> bool:
+            result = msctl("ps", "--json", env=operator)
+            return result.returncode == 0 and "hl-limb-01" in json.loads(result.stdout)["hosts"]
+
+        wait_until(agent_answers, 60.0, "the agent answering ps", interval=0.5)
+        result = msctl("down", "--all", env=operator)
+        assert result.returncode == 0, result.stderr
+        # Nothing was stopped: no "stopping" for an agent that ran nothing.
+        assert "stopping" not in result.stderr, result.stderr
+        assert one_line(result) == "nothing is running: the agents of hl-limb-01 run nothing"
+    finally:
+        agent.send_signal(signal.SIGTERM)
+        assert agent.wait(timeout=30) == 0, (tmp_path / "agent.log").read_text()
+
+
+# Issue 18, point 8: every help in plain words.
+_HELP_OF_EVERY_COMMAND = """
+import contextlib, io, sys
+from msctl.app import command
+
+def walk(cmd, path):
+    yield path
+    for name, sub in sorted(getattr(cmd, "commands", {}).items()):
+        yield from walk(sub, [*path, name])
+
+for path in walk(command(None), []):
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        try:
+            command(path).main([*path, "--help"], prog_name="msctl", standalone_mode=False)
+        except SystemExit:
+            pass
+    print("@@@ msctl " + " ".join(path))
+    print(buffer.getvalue())
+"""
+
+#: A Python type where a value's word belongs (typer's ``<bool>``, ``<list[str]>``...).
+_PYTHON_METAVAR = re.compile(r"<(?:bool|str|int|float|path|list\[[^\]]*\]|[a-z_]+\[[^\]]*\])>")
+
+
+@pytest.mark.e2e
+def test_every_help_uses_plain_words_and_fits_80_columns() -> None:
+    """Point 8: every command's help, as typer renders it (the same code path as ``msctl X
+    --help``), in one subprocess."""
+    result = subprocess.run(
+        [sys.executable, "-c", _HELP_OF_EVERY_COMMAND],
+        env={**os.environ, "COLUMNS": "80", "TERM": "dumb", "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    helps = dict(part.split("\n", 1) for part in result.stdout.split("@@@ ")[1:] if "\n" in part)
+    assert {"msctl ", "msctl topic pub", "msctl assemble", "msctl logs"} <= set(helps)
+    for name, text in helps.items():
+        assert "Usage:" in text, name
+        assert not _PYTHON_METAVAR.findall(text), (name, _PYTHON_METAVAR.findall(text), text)
+        assert all(len(line) <= 80 for line in text.splitlines()), (name, text)
+    # The examples of `msctl assemble --help`: each command whole on its line, its
+    # description on the next (they wrapped mid-command).
+    assemble = helps["msctl assemble"]
+    for example in (
+        "msctl assemble dragon --use limb1=hlv1-limb-04",
+        "msctl assemble urdf -o /tmp/dragon.urdf",
+    ):
+        assert f"\n {example} " in assemble, assemble

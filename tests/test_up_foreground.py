@@ -333,3 +333,27 @@ def test_processes_failing_alike_are_named_together_before_their_one_cause() -> 
     # A cause naming its component still names it, and its own process.
     assert f"limb1/joint_manager (process limb1) failed: {own}" in text
     assert error.exit_code == 3
+
+
+# Issue 18, point 15: a setting every worker refuses.
+def test_a_setting_every_worker_refuses_is_said_once_and_the_up_ends(
+    foreground: Foreground,
+) -> None:
+    # Deterministic wherever it runs: every component process refuses the transport, a
+    # bad argument (exit 2) that no restart would cure.
+    proc = foreground.start("up", "dragon", "--for", "600", MSCTL_TRANSPORT="carrier-pigeon")
+    try:
+        code = proc.wait(timeout=300.0)  # ending at once: never its --for
+    except subprocess.TimeoutExpired:
+        raise AssertionError("msctl up kept running:\n" + foreground.stderr()) from None
+    stderr = foreground.stderr()
+    cause = "MSCTL_TRANSPORT='carrier-pigeon': use zenoh or rclpy"
+    assert code == 3, stderr
+    assert stderr.count(cause) == 1, stderr  # it was printed once per process, six times
+    assert " up in " not in stderr, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("error: ") and cause in last, last
+    assert "gave up after one try" in last and "msctl logs" in last, last
+    failed = [p for p in foreground.state()["processes"] if p["state"] == "failed"]
+    assert failed, foreground.state()
+    assert not foreground.leftovers()
