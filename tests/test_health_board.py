@@ -9,15 +9,8 @@ from typing import Any
 import pytest
 
 from components.assembly import ResolvedAssembly, from_document
-from components.data_monitor.board import (
-    MAX_MESSAGE,
-    MAX_NAME,
-    STALE_AFTER,
-    Alarm,
-    HealthBoard,
-    RateMeter,
-    sparkline,
-)
+from components.data_monitor.alarms import Alarm
+from components.data_monitor.board import STALE_AFTER, HealthBoard
 from components.data_monitor.core import (
     DataMonitorConfig,
     DataMonitorCore,
@@ -25,6 +18,8 @@ from components.data_monitor.core import (
     alarm_from_message,
     alarm_message,
 )
+from components.data_monitor.measures import RateMeter, sparkline
+from components.data_monitor.model import MAX_MESSAGE, MAX_NAME
 from components.data_monitor.plan import board_for, watched
 from components.executor.core import RecordingOutbox
 from components.messages import (
@@ -286,8 +281,18 @@ def test_bad_supervisor_documents_are_skipped(dragon) -> None:
     board.on_supervisors(
         [None, "x", {"host": 5, "components": "many"}, {"components": [7, {"name": 3}]}], 0.0
     )
+    # Nothing of them is kept: every component is as on a board that heard no supervisor.
+    untouched = board_for(dragon).evaluate(0.1)
+    snapshot = board.evaluate(0.1)
+    assert [(r.name, r.level, r.components) for r in (*snapshot.modules, *snapshot.stations)] == [
+        (r.name, r.level, r.components) for r in (*untouched.modules, *untouched.stations)
+    ]
+    # An entry with a name is kept; its pid that is no integer is dropped, not shown.
     board.on_supervisors([{"components": [{"name": "limb1/joint_manager", "pid": "x"}]}], 0.0)
-    board.evaluate(0.1)
+    views = [c for c in board.evaluate(0.2).row("limb1").components if c.label == "joint_manager"]
+    assert [(v.component, v.pid, v.state, v.level) for v in views] == [
+        ("limb1/joint_manager", None, "", OK)
+    ]
 
 
 # ---------------------------------------------------------------------------- bad input

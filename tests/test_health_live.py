@@ -16,7 +16,7 @@ from test_health_board import good, health
 from components.assembly import ResolvedAssembly, from_document
 from components.comm.node import Node
 from components.comm.session import SessionSettings, open_session
-from components.data_monitor.board import Alarm
+from components.data_monitor.alarms import Alarm
 from components.messages import DIAGNOSTIC_ARRAY, ERROR, OK, STALE, WARN
 from msctl.assembler import resolve
 from msctl.errors import InputError, NotFoundError

@@ -9,7 +9,8 @@ from typing import Any
 import pytest
 
 from components.assembly import ResolvedAssembly, from_document
-from components.data_monitor.board import STALE_AFTER, RateMeter
+from components.data_monitor.board import STALE_AFTER
+from components.data_monitor.measures import RateMeter
 from components.data_monitor.plan import board_for
 from components.messages import STALE, diagnostic_array, diagnostic_status
 from msctl.assembler import resolve

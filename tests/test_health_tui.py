@@ -20,7 +20,7 @@ from test_health_live import FakeModule
 from components.assembly import ResolvedAssembly, from_document
 from components.comm.node import Node
 from components.comm.session import SessionSettings, open_session
-from components.data_monitor.board import RateStats
+from components.data_monitor.measures import RateStats
 from components.data_monitor.plan import board_for
 from components.messages import diagnostic_array, diagnostic_status
 from msctl.assembler import resolve

@@ -27,17 +27,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from components.config import require
-from components.data_monitor.board import (
-    MAX_ALARMS,
-    MAX_ITEMS,
-    STALE_AFTER,
-    Alarm,
-    BoardSnapshot,
-    HealthBoard,
-    Item,
-    Row,
-)
+from components.data_monitor.alarms import MAX_ALARMS, Alarm
+from components.data_monitor.board import MAX_ITEMS, STALE_AFTER, HealthBoard
 from components.data_monitor.encoding import AggregateEncoder
+from components.data_monitor.model import BoardSnapshot, Item, Row
 from components.executor.core import Core, Outbox
 from components.messages import (
     OK,
@@ -100,7 +93,7 @@ def alarm_from_message(message: Any) -> Alarm:
     Raises:
         ValueError: If it is not an alarm (a field is missing).
     """
-    from components.data_monitor.board import MAX_MESSAGE, MAX_NAME, clip
+    from components.data_monitor.model import MAX_MESSAGE, MAX_NAME, clip
     from components.messages import from_time
 
     try:

@@ -18,7 +18,7 @@ from components.messages import DIAGNOSTIC_ARRAY
 from components.roles import Role
 
 if TYPE_CHECKING:
-    from components.data_monitor.board import WatchedSpec
+    from components.data_monitor.model import WatchedSpec
 
 #: Seconds between evaluations: a level change is published within this (and min_period).
 TICK_PERIOD = 0.2

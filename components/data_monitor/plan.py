@@ -1,6 +1,6 @@
 """What the health board watches, read from the resolved assembly (static knowledge only).
 
-One :class:`~components.data_monitor.board.WatchedSpec` per module (its health topic and the
+One :class:`~components.data_monitor.model.WatchedSpec` per module (its health topic and the
 nodes its components run as) and per ground station (its components; kinds with no code yet
 listed as planned). A component whose kind something stands in for in simulation (the motor
 interface, for the simulator) is satisfied by either node, since the assembly does not say
@@ -14,7 +14,8 @@ from collections.abc import Iterable
 from components import kinds
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import buildable, node_name
-from components.data_monitor.board import ExpectedNode, HealthBoard, WatchedSpec
+from components.data_monitor.board import HealthBoard
+from components.data_monitor.model import ExpectedNode, WatchedSpec
 
 
 def expected_nodes(plans: Iterable[ComponentPlan]) -> list[ExpectedNode]:

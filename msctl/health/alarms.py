@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from components.assembly import state_dir
-from components.data_monitor.board import Alarm
+from components.data_monitor.alarms import Alarm
 
 FILE_NAME = "alarms.jsonl"
 #: Size past which the file is rotated when a session starts.

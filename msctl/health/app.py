@@ -28,15 +28,9 @@ from textual.message import Message
 from textual.screen import ModalScreen, Screen
 from textual.widgets import Button, DataTable, Footer, Label, RichLog, Static
 
-from components.data_monitor.board import (
-    Alarm,
-    BoardSnapshot,
-    ComponentView,
-    Row,
-    finite,
-    level_name,
-    sparkline,
-)
+from components.data_monitor.alarms import Alarm
+from components.data_monitor.measures import sparkline
+from components.data_monitor.model import BoardSnapshot, ComponentView, Row, finite, level_name
 from components.messages import ERROR, OK, STALE, WARN, Level
 from msctl.health.source import ActionError, HealthSource
 

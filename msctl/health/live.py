@@ -21,16 +21,12 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from components.assembly import ResolvedAssembly
-from components.data_monitor.board import (
-    COMPONENT_GRACE,
-    STALE_AFTER,
-    Alarm,
-    BoardSnapshot,
-    History,
-    RateMeter,
-)
+from components.data_monitor.alarms import Alarm
+from components.data_monitor.board import COMPONENT_GRACE, STALE_AFTER
 from components.data_monitor.core import GET_ALARMS, alarm_from_message
 from components.data_monitor.feeds import NodeFeed, SupervisorPoller
+from components.data_monitor.measures import History, RateMeter
+from components.data_monitor.model import BoardSnapshot
 from components.data_monitor.plan import board_for
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, TRIGGER
 from msctl.health.source import ActionError, TopicRow

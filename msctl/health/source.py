@@ -12,7 +12,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from components.data_monitor.board import Alarm, BoardSnapshot, HealthBoard, RateStats
+from components.data_monitor.alarms import Alarm
+from components.data_monitor.board import HealthBoard
+from components.data_monitor.measures import RateStats
+from components.data_monitor.model import BoardSnapshot
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from textual.css.query import NoMatches
 from textual.message import Message
 from textual.widgets import Static
 
-from components.data_monitor.board import level_name
+from components.data_monitor.model import level_name
 from components.messages import ERROR, OK, STALE, WARN
 from msctl.teleop.core import TeleopView
 from msctl.teleop.keys import (
