@@ -219,8 +219,11 @@ def test_the_screen_shows_a_killed_component_error_and_restarts_one_after_confir
 
     from components.assembly import load_assembly
     from components.messages import ERROR
-    from msctl.health.app import ConfirmScreen, HealthApp, LogScreen, ModuleScreen
+    from msctl.health.app import HealthApp
+    from msctl.health.confirm_screen import ConfirmScreen
     from msctl.health.live import LiveHealth
+    from msctl.health.log_screen import LogScreen
+    from msctl.health.module_screen import ModuleScreen
     from msctl.plane import connected
 
     dragon = on_dragon

@@ -8,13 +8,9 @@ from typing import Any
 import pytest
 
 from components.build import BuildError, build_component
-from components.health.core import (
-    ExpectedComponent,
-    HealthMonitorCore,
-    HealthThresholds,
-    MotorWatch,
-    TopicWatch,
-)
+from components.health.core import ExpectedComponent, HealthMonitorCore
+from components.health.motors import MotorWatch
+from components.health.thresholds import HealthThresholds, TopicWatch
 from components.messages import (
     ERROR,
     OK,
@@ -551,7 +547,7 @@ def test_a_100k_name_flood_is_refused_whole_and_nothing_of_it_is_stored() -> Non
 
 
 def test_invented_diagnostics_sources_and_nodes_are_bounded() -> None:
-    from components.health.core import MAX_SOURCES
+    from components.health.motors import MAX_SOURCES
 
     core = make()
     flood = diagnostics(*((f"x{i}/limb1_joint1", OK, "ok", {}) for i in range(1000)))

@@ -14,7 +14,7 @@ from components.data_monitor.measures import RateMeter
 from components.data_monitor.plan import board_for
 from components.messages import STALE, diagnostic_array, diagnostic_status
 from msctl.assembler import resolve
-from msctl.health.app import _reported_rate
+from msctl.health.module_screen import _reported_rate
 
 
 @pytest.fixture(scope="module")

@@ -24,18 +24,15 @@ from components.data_monitor.measures import RateStats
 from components.data_monitor.plan import board_for
 from components.messages import diagnostic_array, diagnostic_status
 from msctl.assembler import resolve
-from msctl.health.app import (
-    REFRESH_PERIOD,
-    AlarmsScreen,
-    ConfirmScreen,
-    HealthApp,
-    LogScreen,
-    ModuleScreen,
-    OverviewScreen,
-    TopicsScreen,
-)
+from msctl.health.alarms_screen import AlarmsScreen
+from msctl.health.app import REFRESH_PERIOD, HealthApp
+from msctl.health.confirm_screen import ConfirmScreen
 from msctl.health.live import LiveHealth
+from msctl.health.log_screen import LogScreen
+from msctl.health.module_screen import ModuleScreen
+from msctl.health.overview_screen import OverviewScreen
 from msctl.health.source import BoardSource, TopicRow
+from msctl.health.topics_screen import TopicsScreen
 
 #: 2026-01-02 03:04:05 UTC, the clock of every canned screen.
 FIXED_WALL = 1767323045.0

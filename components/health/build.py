@@ -24,14 +24,11 @@ from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent, buildable
 from components.build import node_name as component_node_name
 from components.comm.liveliness import Entity, EntityKind
-from components.health.core import (
-    ExpectedComponent,
-    HealthMonitorCore,
-    HealthThresholds,
-    MotorWatch,
-)
+from components.health.core import ExpectedComponent, HealthMonitorCore
 from components.health.host import HostMetricsReader
 from components.health.interface import HEALTH_MONITOR
+from components.health.motors import MotorWatch
+from components.health.thresholds import HealthThresholds
 
 if TYPE_CHECKING:
     from components.comm.graph import Graph

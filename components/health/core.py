@@ -33,10 +33,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields, replace
-from typing import Any, NamedTuple
+from dataclasses import dataclass
+from typing import Any
 
 from components.executor.core import Core
+from components.health.host_items import host_items
+from components.health.items import Item
+from components.health.motors import MAX_SOURCES, MotorWatch, SourceReport, motor_item
+from components.health.thresholds import HealthThresholds, TopicWatch
 from components.messages import (
     ERROR,
     OK,
@@ -49,151 +53,6 @@ from components.messages import (
     joint_samples,
     worst,
 )
-
-#: Most diagnostics sources kept per motor (motor interface, joint manager, simulator... are
-#: three): status names are free text, and a flood of invented ones must not grow memory.
-MAX_SOURCES = 8
-
-#: Keys motor backends use for a motor's temperature (°C) and supply voltage (V).
-TEMPERATURE_KEYS = ("temperature", "temperature_c")
-VOLTAGE_KEYS = ("input_voltage_v", "voltage")
-
-
-@dataclass(frozen=True)
-class TopicWatch:
-    """One topic the monitor listens to.
-
-    Attributes:
-        topic: Name relative to the module namespace (``joint_states``).
-        stale_after: Seconds of silence after which the item is STALE.
-        min_rate: Expected minimum rate in Hz (WARN below it); ``None``: rate not checked
-            (topics published on change with a slow keep-alive).
-    """
-
-    topic: str
-    stale_after: float
-    min_rate: float | None = None
-
-
-@dataclass(frozen=True)
-class HealthThresholds:
-    """Thresholds of one module's health, from the module's ``[health]`` data.
-
-    Every field is optional in the data; the defaults below apply when a key is absent.
-
-    Attributes:
-        stale_after: Silence (s) after which ``joint_states`` is STALE.
-        min_rate: Minimum ``joint_states`` rate (Hz) before WARN.
-        joint_read_stale_after: Silence (s) after which ``joint_read`` is STALE; the joint
-            manager publishes it on change with a 1 Hz keep-alive, so above 1 s.
-        diagnostics_stale_after: Silence (s) after which ``diagnostics``, and a motor with
-            no fresh diagnostics, are STALE (diagnostics come at 1 Hz).
-        rate_window: Seconds over which topic rates are measured.
-        component_grace: Seconds after start during which a component not yet seen is STALE
-            rather than ERROR (processes start in any order).
-        max_temperature: Motor temperature (°C) at which a motor is ERROR; ``None``: the
-            motor backends' own limits only.
-        temperature_margin: A motor is WARN from ``max_temperature - temperature_margin``.
-        min_voltage: Motor supply voltage (V) below which a motor is WARN.
-        cpu_warn: Host CPU load (%) for WARN.
-        cpu_error: Host CPU load (%) for ERROR.
-        memory_warn: Host memory use (%) for WARN.
-        memory_error: Host memory use (%) for ERROR.
-        disk_warn: Host disk use of ``/`` (%) for WARN.
-        disk_error: Host disk use of ``/`` (%) for ERROR.
-        host_temperature_warn: Onboard computer temperature (°C) for WARN.
-        host_temperature_error: Onboard computer temperature (°C) for ERROR.
-        publish_period: Seconds between regular publications of ``health``.
-        max_tracking_error: A joint farther than this (rad or m, raw) from its commanded
-            position while not moving is WARN: stalled, blocked or too weak for its load.
-            ``None``: not checked.
-        tracking_grace: Seconds a joint must stay stalled off target before it is WARN (a
-            servo settling, or starting a move, is not a fault).
-        stall_velocity: Below this speed (rad/s or m/s) a joint counts as not moving.
-        topics: Per-topic overrides, ``{"joint_read": {"stale_after": 2.0, "min_rate": 1}}``.
-    """
-
-    stale_after: float = 0.5
-    min_rate: float = 50.0
-    joint_read_stale_after: float = 2.5
-    diagnostics_stale_after: float = 3.0
-    rate_window: float = 1.0
-    component_grace: float = 5.0
-    max_temperature: float | None = None
-    temperature_margin: float = 10.0
-    min_voltage: float | None = None
-    cpu_warn: float = 85.0
-    cpu_error: float = 98.0
-    memory_warn: float = 85.0
-    memory_error: float = 95.0
-    disk_warn: float = 90.0
-    disk_error: float = 97.0
-    host_temperature_warn: float = 80.0
-    host_temperature_error: float = 90.0
-    publish_period: float = 1.0
-    max_tracking_error: float | None = None
-    tracking_grace: float = 1.0
-    stall_velocity: float = 0.05
-    topics: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-
-    @classmethod
-    def from_mapping(cls, data: Mapping[str, Any], where: str = "[health]") -> HealthThresholds:
-        """Thresholds from module data; absent keys keep their defaults.
-
-        Keys this monitor does not use are ignored so that module data can serve several
-        readers.
-
-        Raises:
-            ValueError: If a known key holds something other than a number (the message
-                names ``where`` and the key).
-        """
-        changes: dict[str, Any] = {}
-        for f in fields(cls):
-            if f.name not in data:
-                continue
-            value = data[f.name]
-            if f.name == "topics":
-                if not isinstance(value, Mapping) or not all(
-                    isinstance(v, Mapping) for v in value.values()
-                ):
-                    raise ValueError(f"{where}.topics must be a table of tables, got {value!r}")
-                for topic, table in value.items():
-                    for key, number in table.items():
-                        if key not in ("stale_after", "min_rate"):
-                            raise ValueError(
-                                f"{where}.topics.{topic}.{key}: unknown key "
-                                "(use stale_after or min_rate)"
-                            )
-                        _number(number, f"{where}.topics.{topic}.{key}")
-                changes[f.name] = {k: dict(v) for k, v in value.items()}
-                continue
-            changes[f.name] = _number(value, f"{where}.{f.name}")
-        return replace(cls(), **changes)
-
-    def topic_watches(self) -> tuple[TopicWatch, ...]:
-        """The module's main topics with their silence and rate thresholds."""
-        watches = (
-            TopicWatch("joint_states", self.stale_after, self.min_rate),
-            TopicWatch("joint_read", self.joint_read_stale_after),
-            TopicWatch("diagnostics", self.diagnostics_stale_after),
-        )
-        out = []
-        for watch in watches:
-            extra = self.topics.get(watch.topic, {})
-            out.append(
-                TopicWatch(
-                    watch.topic,
-                    float(extra.get("stale_after", watch.stale_after)),
-                    float(extra["min_rate"]) if "min_rate" in extra else watch.min_rate,
-                )
-            )
-        return tuple(out)
-
-
-def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or math.isnan(value):
-        raise ValueError(f"{where} must be a number, got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -220,29 +79,6 @@ class ExpectedComponent:
         return (self.node, *self.alternatives)
 
 
-@dataclass(frozen=True)
-class MotorWatch:
-    """An actuated joint whose motor diagnostics the monitor follows.
-
-    Attributes:
-        joint: Assembly joint name (``limb1_joint3``), the item label.
-        raw_name: The joint's name inside its module (``joint3``), as some backends say it.
-    """
-
-    joint: str
-    raw_name: str = ""
-
-
-class Item(NamedTuple):
-    """One evaluated health item, before it becomes a DiagnosticStatus."""
-
-    name: str
-    level: Level
-    message: str
-    hardware_id: str
-    values: Mapping[str, Any]
-
-
 class _ComponentState:
     __slots__ = ("alive", "appearances", "changed_at", "expected", "live", "live_node")
 
@@ -264,13 +100,6 @@ class _TopicState:
         self.count = 0
         self.first: float | None = None
         self.last: float | None = None
-
-
-class _SourceReport(NamedTuple):
-    level: Level
-    message: str
-    values: dict[str, str]
-    at: float
 
 
 class HealthMonitorCore(Core):
@@ -322,7 +151,7 @@ class HealthMonitorCore(Core):
             if motor.raw_name:
                 self._motor_names.setdefault(motor.raw_name, motor.joint)
         # label -> source status name -> latest report; "bus" appears once something reports it.
-        self._motor_reports: dict[str, dict[str, _SourceReport]] = {
+        self._motor_reports: dict[str, dict[str, SourceReport]] = {
             m.joint: {} for m in self._motors
         }
         self._host: Mapping[str, Any] | None = None
@@ -454,7 +283,7 @@ class HealthMonitorCore(Core):
                     self.counters["dropped_sources"] += 1
                     continue
                 del reports[oldest]
-            reports[status.name] = _SourceReport(
+            reports[status.name] = SourceReport(
                 Level.of(status.level), status.message, diagnostic_values(status), now
             )
             touched = True
@@ -484,7 +313,9 @@ class HealthMonitorCore(Core):
         if self.thresholds.max_tracking_error is not None:
             items.append(self._tracking_item(now))
         if self._read_host_metrics is not None:
-            items.extend(self._host_items())
+            items.extend(
+                host_items(self.module, self.host, self.thresholds, self._host, self._host_error)
+            )
         bad = [i for i in items if i.level != OK]
         level = worst([i.level for i in items])
         if bad:
@@ -663,100 +494,4 @@ class HealthMonitorCore(Core):
 
     def _motor_item(self, label: str, now: float) -> Item:
         name = f"{self.module}/motors/{label}"
-        limit = self.thresholds.diagnostics_stale_after
-        reports = self._motor_reports[label]
-        fresh = {src: r for src, r in reports.items() if now - r.at <= limit}
-        if not fresh:
-            message = (
-                "no diagnostics yet"
-                if not reports
-                else f"no diagnostics for {now - max(r.at for r in reports.values()):.1f} s"
-            )
-            return Item(name, STALE, message, self.unit, {"sources": len(reports)})
-        checked = [(src, r, *self._motor_limits(r)) for src, r in sorted(fresh.items())]
-        source, report, level, message = max(checked, key=lambda c: c[2].severity)
-        values: dict[str, Any] = {"source": source, **report.values}
-        values["sources"] = len(fresh)
-        return Item(name, level, message, self.unit, values)
-
-    def _motor_limits(self, report: _SourceReport) -> tuple[Level, str]:
-        """A source's level and message, made worse by the module's temperature/voltage limits."""
-        level, message = report.level, report.message
-        t = self.thresholds
-        temperature = _first_float(report.values, TEMPERATURE_KEYS)
-        if t.max_temperature is not None and temperature is not None:
-            limit = f"the module limit {t.max_temperature:g} °C"
-            extra = None
-            if temperature >= t.max_temperature:
-                extra = (ERROR, f"{temperature:.0f} °C reaches {limit}: let it cool")
-            elif temperature >= t.max_temperature - t.temperature_margin:
-                extra = (WARN, f"{temperature:.0f} °C near {limit}")
-            if extra is not None and extra[0].severity > level.severity:
-                level, message = extra
-        voltage = _first_float(report.values, VOLTAGE_KEYS)
-        low = t.min_voltage is not None and voltage is not None and voltage < t.min_voltage
-        if low and WARN.severity > level.severity:
-            level = WARN
-            message = f"supply {voltage:.1f} V below {t.min_voltage:g} V: charge the battery"
-        return level, message
-
-    def _host_items(self) -> list[Item]:
-        t = self.thresholds
-        prefix = f"{self.module}/host"
-        specs = (
-            ("cpu", "cpu_percent", "%", t.cpu_warn, t.cpu_error, "CPU load"),
-            ("memory", "memory_percent", "%", t.memory_warn, t.memory_error, "memory in use"),
-            ("disk", "disk_percent", "%", t.disk_warn, t.disk_error, "disk / in use"),
-            (
-                "temperature",
-                "temperature",
-                " °C",
-                t.host_temperature_warn,
-                t.host_temperature_error,
-                "temperature",
-            ),
-        )
-        items = []
-        for label, key, unit, warn_at, error_at, what in specs:
-            name = f"{prefix}/{label}"
-            if self._host is None or self._host_error:
-                # Never read, or the last read failed: old numbers would be misleading.
-                message = (
-                    f"cannot read host metrics: {self._host_error}"
-                    if self._host_error
-                    else "not read yet"
-                )
-                items.append(Item(name, STALE, message, self.host, {}))
-                continue
-            value = self._host.get(key)
-            values: dict[str, Any] = {"warn_at": warn_at, "error_at": error_at}
-            if value is None:
-                items.append(
-                    Item(name, OK, f"{what}: not readable on this computer", self.host, values)
-                )
-                continue
-            value = float(value)
-            values[key] = f"{value:.1f}"
-            if key == "temperature" and self._host.get("temperature_sensor"):
-                values["sensor"] = self._host["temperature_sensor"]
-            if value >= error_at:
-                level = ERROR
-            elif value >= warn_at:
-                level = WARN
-            else:
-                level = OK
-            text = f"{what} {value:.0f}{unit}"
-            if level != OK:
-                text += f" (warn at {warn_at:g}{unit}, error at {error_at:g}{unit})"
-            items.append(Item(name, level, text, self.host, values))
-        return items
-
-
-def _first_float(values: Mapping[str, str], keys: Sequence[str]) -> float | None:
-    for key in keys:
-        if key in values:
-            try:
-                return float(values[key])
-            except ValueError:
-                return None
-    return None
+        return motor_item(name, self._motor_reports[label], now, self.thresholds, self.unit)

@@ -10,7 +10,7 @@ from components.kinds import ComponentKind, Placement
 
 def check_thresholds(value: Mapping[str, Any]) -> None:
     """Check a module's ``[health]`` table (raises ValueError naming the key at fault)."""
-    from components.health.core import HealthThresholds
+    from components.health.thresholds import HealthThresholds
 
     if not isinstance(value, Mapping):
         raise ValueError(f"must be a table, not {value!r}")
