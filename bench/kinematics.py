@@ -8,7 +8,7 @@ the same model, targets and tolerance:
 1. **Bare loop**: a minimal hand-written Pinocchio damped-least-squares loop (the classic
    ``log6`` / ``Jlog6`` iteration: no limits, no restarts, no unwrap, no step control), from
    the same start as ours, up to the same iteration cap of one descent.
-2. **Ours**: :class:`components.kinematics.ik.IkSolver` with its default settings (limits
+2. **Ours**: :class:`components.kinematics_manager.ik.IkSolver` with its default settings (limits
    with margin, LM damping, restarts within the budget, unwrap, jump bound), given what the
    limb's module data gives its kinematics manager: the ``analytic_guess`` injection (the
    closed-form solutions of the limb's shape seed far targets). ``--no-guess`` measures the
@@ -56,9 +56,9 @@ import pinocchio as pin
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import print_table
 
-from components.kinematics.core import KinematicsConfig, KinematicsCore
-from components.kinematics.ik import IkSettings, IkSolver
-from components.kinematics.model import ChainModel, chain_model
+from components.kinematics_manager.core import KinematicsConfig, KinematicsCore
+from components.kinematics_manager.ik import IkSettings, IkSolver
+from components.kinematics_manager.model import ChainModel, chain_model
 
 LIMBS = {"H-line (7 joints)": "hlv1-limb-01", "G-line (4 joints)": "gl-limb-01"}
 

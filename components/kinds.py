@@ -29,9 +29,9 @@ from typing import Any
 BUILTIN: tuple[str, ...] = (
     "components.motor_interface.kind",
     "components.joint_manager.kind",
-    "components.health.kind",
-    "components.location.kind",
-    "components.kinematics.kind",
+    "components.health_monitor.kind",
+    "components.location_publisher.kind",
+    "components.kinematics_manager.kind",
     "components.simulator.kind",
     "components.data_monitor.kind",
     "components.data_archiver.kind",

@@ -8,9 +8,9 @@ from typing import Any
 import pytest
 
 from components.build import BuildError, build_component
-from components.health.core import ExpectedComponent, HealthMonitorCore
-from components.health.motors import MotorWatch
-from components.health.thresholds import HealthThresholds, TopicWatch
+from components.health_monitor.core import ExpectedComponent, HealthMonitorCore
+from components.health_monitor.motors import MotorWatch
+from components.health_monitor.thresholds import HealthThresholds, TopicWatch
 from components.messages import (
     ERROR,
     OK,
@@ -177,7 +177,7 @@ def test_graph_feed_counts_node_tokens_and_posts_changes_only() -> None:
     from components.build import BuiltComponent
     from components.comm.liveliness import Entity, EntityKind
     from components.executor.interface import InterfaceSpec
-    from components.health.build import GraphFeed
+    from components.health_monitor.build import GraphFeed
 
     posted: list[tuple[str, int]] = []
     feed = GraphFeed(BuiltComponent(None, InterfaceSpec(), "/limb1", "h"), {JM})  # type: ignore[arg-type]
@@ -547,7 +547,7 @@ def test_a_100k_name_flood_is_refused_whole_and_nothing_of_it_is_stored() -> Non
 
 
 def test_invented_diagnostics_sources_and_nodes_are_bounded() -> None:
-    from components.health.motors import MAX_SOURCES
+    from components.health_monitor.motors import MAX_SOURCES
 
     core = make()
     flood = diagnostics(*((f"x{i}/limb1_joint1", OK, "ok", {}) for i in range(1000)))

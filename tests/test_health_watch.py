@@ -163,7 +163,7 @@ def test_nothing_is_asked_while_the_live_graph_has_every_node(watched: Any, monk
 def test_the_shared_judgement_is_node_and_first_output_with_fake_time() -> None:
     """ComponentWatch, the part both transports share: outputs shared by a namespace's
     components, the age of the first output, a restart forgotten."""
-    from components.health.watch import ComponentWatch
+    from components.health_monitor.startup_watch import ComponentWatch
 
     posture = rear_operator("d2_posture")
 

@@ -13,10 +13,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from components.kinematics.core import KinematicsConfig, KinematicsCore
-from components.kinematics.ik import IkSettings, IkSolver
-from components.kinematics.model import ChainModel, ModelError, chain_model
-from components.kinematics.poses import apart
+from components.kinematics_manager.core import KinematicsConfig, KinematicsCore
+from components.kinematics_manager.ik import IkSettings, IkSolver
+from components.kinematics_manager.model import ChainModel, ModelError, chain_model
+from components.kinematics_manager.poses import apart
 from components.messages import (
     POSE_STAMPED,
     STALE,

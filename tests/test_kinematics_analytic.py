@@ -20,12 +20,12 @@ import pytest
 from components.assembly import LOCK_NAME, URDF_NAME, encode_lock, load_assembly
 from components.build import BuildError, build_component
 from components.executor import registry as extensions
-from components.kinematics.analytic import ShoulderElbowWrist, closed_form
-from components.kinematics.core import KinematicsCore
-from components.kinematics.ik import IkResult, IkSettings, IkSolver
-from components.kinematics.injections import analytic_guess
-from components.kinematics.model import ChainModel, chain_model
-from components.kinematics.poses import apart
+from components.kinematics_manager.analytic import ShoulderElbowWrist, closed_form
+from components.kinematics_manager.core import KinematicsCore
+from components.kinematics_manager.ik import IkResult, IkSettings, IkSolver
+from components.kinematics_manager.injections import analytic_guess
+from components.kinematics_manager.model import ChainModel, chain_model
+from components.kinematics_manager.poses import apart
 
 UNITS = {"G-line": "gl-limb-01", "H-line v1": "hlv1-limb-01", "H-line v2": "hlv2-limb-01"}
 _resolved: dict[str, object] = {}

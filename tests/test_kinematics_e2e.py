@@ -25,7 +25,7 @@ from components.build import BuiltComponent, build_component
 from components.comm.node import Node
 from components.comm.session import SessionSettings
 from components.executor.executor import Executor
-from components.kinematics.poses import pose_stamped
+from components.kinematics_manager.poses import pose_stamped
 from components.messages import POSE_STAMPED
 
 pytestmark = pytest.mark.e2e

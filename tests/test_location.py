@@ -11,8 +11,8 @@ from components.assembly import (
     ResolvedAssembly,
 )
 from components.build import BuiltComponent, build_component
-from components.kinematics.model import chain_model
-from components.location.core import LocationCore
+from components.kinematics_manager.model import chain_model
+from components.location_publisher.core import LocationCore
 from components.messages import JointSample, joint_state
 
 

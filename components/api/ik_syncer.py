@@ -8,7 +8,7 @@ Each tick, for every limb of the motion:
    slerp, the step bounded by a ball around the *measured* tip (``delta_position`` metres,
    ``delta_angle`` radians) and by the speeds; in ``lerp`` every limb covers the same
    fraction of its way, in ``asap`` each limb (and position and orientation) goes on its own;
-3. the waypoint is solved with the limb's own :class:`~components.kinematics.ik.IkSolver`,
+3. the waypoint is solved with the limb's own :class:`~components.kinematics_manager.ik.IkSolver`,
    warm-started from the last joint command;
 4. the joint solution goes through the joint syncer's planner (``lerp``), so the joint
    commands also stay inside the L-infinity ball of ``delta`` around the measured joints.
@@ -265,8 +265,8 @@ class IkSyncer(Commander):
         urdf_text: str,
         settings: IkSyncSettings | None = None,
     ) -> None:
-        from components.kinematics.ik import IkSettings, IkSolver
-        from components.kinematics.model import chain_model
+        from components.kinematics_manager.ik import IkSettings, IkSolver
+        from components.kinematics_manager.model import chain_model
 
         super().__init__([h for h, _ in chains])
         self.settings = settings or IkSyncSettings()

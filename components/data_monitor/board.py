@@ -75,7 +75,7 @@ from components.data_monitor.rows import (
     row_message,
     worst_of,
 )
-from components.health.motors import TEMPERATURE_KEYS, VOLTAGE_KEYS
+from components.health_monitor.motors import TEMPERATURE_KEYS, VOLTAGE_KEYS
 from components.messages import ERROR, OK, STALE, Level, worst
 
 #: Seconds without health after which a module is STALE.

@@ -1,6 +1,6 @@
 """Judging components healthy from the ROS graph, for ``msctl up`` on the rclpy transport.
 
-The same judgement (:class:`components.health.watch.ComponentWatch`) as
+The same judgement (:class:`components.health_monitor.startup_watch.ComponentWatch`) as
 :class:`msctl.launcher.watch.HealthWatch` makes on Zenoh: a component is healthy once its
 node is on the graph and its first output has arrived. Here both come
 from rclpy: the node list of :class:`~components.ros.graph.RclpyGraph`, and a subscription to
@@ -15,7 +15,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from components.comm.types import UnknownTypeError, normalize_type_name, registry
-from components.health.watch import ComponentWatch
+from components.health_monitor.startup_watch import ComponentWatch
 from components.ros.graph import RclpyGraph
 from components.ros.plane import RclpyPlane
 

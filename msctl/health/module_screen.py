@@ -241,7 +241,7 @@ class ModuleScreen(Screen[None], BoardView):
 
     @staticmethod
     def _motor_rows(row: Row, app: HealthApp) -> list[tuple[str, tuple[Any, ...]]]:
-        from components.health.motors import TEMPERATURE_KEYS, VOLTAGE_KEYS
+        from components.health_monitor.motors import TEMPERATURE_KEYS, VOLTAGE_KEYS
 
         rows = []
         for item in row.group("motors"):

@@ -1,5 +1,6 @@
 """Judging components healthy from Zenoh's data plane: their node's liveliness token is seen
-and their first output has arrived (:class:`components.health.watch.ComponentWatch`)."""
+and their first output has arrived
+(:class:`components.health_monitor.startup_watch.ComponentWatch`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from components.comm.graph import NODE_TOKENS, Graph, snapshot
-from components.health.watch import ComponentWatch
+from components.health_monitor.startup_watch import ComponentWatch
 from msctl.launcher.plan import ComponentRun
 
 #: Seconds a component may have published while its node is missing from the live graph

@@ -236,7 +236,7 @@ class Scene:
     ) -> None:
         import pinocchio as pin
 
-        from components.kinematics.model import ModelError, module_model
+        from components.kinematics_manager.model import ModelError, module_model
 
         try:
             robot = ET.fromstring(urdf_text)

@@ -3,7 +3,7 @@
 Damped least squares from an unrelated configuration wanders: it reaches some solution, often
 far from where the limb is, and finding the one nearest the current angles takes many
 restarts. A chain whose shape has a closed-form inverse instead lists its solutions directly,
-and the solver polishes the nearest one (:attr:`components.kinematics.ik.IkSolver.guess`).
+and the solver polishes the nearest one (:attr:`components.kinematics_manager.ik.IkSolver.guess`).
 
 Two shapes are known, read from the chain's Pinocchio model (never from the family's name):
 
@@ -33,7 +33,7 @@ from typing import Protocol
 import numpy as np
 import pinocchio as pin
 
-from components.kinematics.model import ChainModel
+from components.kinematics_manager.model import ChainModel
 
 
 class Guess(Protocol):

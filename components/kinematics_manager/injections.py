@@ -1,7 +1,7 @@
 """Injections for the Kinematics Manager: capabilities a limb is given by name from module data.
 
 ``analytic_guess``: the closed-form solutions of the chain's shape
-(:mod:`components.kinematics.analytic`) replace the solver's random restarts when the warm
+(:mod:`components.kinematics_manager.analytic`) replace the solver's random restarts when the warm
 start finds no solution within the jump bound, and the warm start itself for far targets. A
 far target (a new pose picked in a GUI, a script's first target) is then solved in about one
 short descent instead of five or more, and the solution is the nearest one the closed form
@@ -16,8 +16,8 @@ from __future__ import annotations
 from typing import Any
 
 from components.executor.registry import injection
-from components.kinematics.analytic import DEFAULT_SAMPLES, closed_form
-from components.kinematics.core import KinematicsCore
+from components.kinematics_manager.analytic import DEFAULT_SAMPLES, closed_form
+from components.kinematics_manager.core import KinematicsCore
 
 _PARAMS = {"samples"}
 

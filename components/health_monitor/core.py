@@ -37,10 +37,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from components.executor.core import Core
-from components.health.host_items import host_items
-from components.health.items import Item
-from components.health.motors import MAX_SOURCES, MotorWatch, SourceReport, motor_item
-from components.health.thresholds import HealthThresholds, TopicWatch
+from components.health_monitor.host_items import host_items
+from components.health_monitor.items import Item
+from components.health_monitor.motors import MAX_SOURCES, MotorWatch, SourceReport, motor_item
+from components.health_monitor.thresholds import HealthThresholds, TopicWatch
 from components.messages import (
     ERROR,
     OK,

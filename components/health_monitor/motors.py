@@ -9,8 +9,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-from components.health.items import Item
-from components.health.thresholds import HealthThresholds
+from components.health_monitor.items import Item
+from components.health_monitor.thresholds import HealthThresholds
 from components.messages import ERROR, STALE, WARN, Level
 
 #: Most diagnostics sources kept per motor (motor interface, joint manager, simulator... are

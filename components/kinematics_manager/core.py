@@ -17,9 +17,9 @@ import pinocchio as pin
 
 from components.config import require
 from components.executor.core import Core
-from components.kinematics.ik import IkResult, IkSettings, IkSolver
-from components.kinematics.model import ChainModel
-from components.kinematics.poses import apart, partial_target, pose_stamped
+from components.kinematics_manager.ik import IkResult, IkSettings, IkSolver
+from components.kinematics_manager.model import ChainModel
+from components.kinematics_manager.poses import apart, partial_target, pose_stamped
 from components.messages import (
     OK,
     STALE,
@@ -155,7 +155,7 @@ class KinematicsCore(Core):
 
         The target is a PoseStamped in the chain's base frame (``frame_id`` empty or the base
         link). NaN parts keep the current tip's value (see
-        :func:`~components.kinematics.poses.partial_target`).
+        :func:`~components.kinematics_manager.poses.partial_target`).
         """
         self.counters["targets"] += 1
         frame = message.header.frame_id

@@ -7,9 +7,9 @@ from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent
-from components.kinematics.core import KinematicsConfig, KinematicsCore
-from components.kinematics.interface import KINEMATICS_MANAGER
-from components.kinematics.model import ModelError, chain_model
+from components.kinematics_manager.core import KinematicsConfig, KinematicsCore
+from components.kinematics_manager.interface import KINEMATICS_MANAGER
+from components.kinematics_manager.model import ModelError, chain_model
 from components.roles import bind
 
 
@@ -19,7 +19,7 @@ def build(
     """A :class:`KinematicsCore` for the chain ``plan.params["chain"]`` of ``plan.module``.
 
     Plan params may also carry :class:`KinematicsConfig` and
-    :class:`~components.kinematics.ik.IkSettings` fields (``jump_bound``, ``budget``...).
+    :class:`~components.kinematics_manager.ik.IkSettings` fields (``jump_bound``, ``budget``...).
 
     Raises:
         BuildError: If the module, chain or URDF do not fit together, or a param is invalid.

@@ -7,9 +7,9 @@ from typing import Any
 
 from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent, node_name
-from components.kinematics.model import ModelError, module_model, mount_of
-from components.location.core import LocationConfig, LocationCore, StaticEdge
-from components.location.interface import location_interface
+from components.kinematics_manager.model import ModelError, module_model, mount_of
+from components.location_publisher.core import LocationConfig, LocationCore, StaticEdge
+from components.location_publisher.interface import location_interface
 
 
 def build(

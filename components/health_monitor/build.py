@@ -2,7 +2,7 @@
 
 The core is pure; what it needs from the outside world comes in two ways:
 
-* host metrics: a :class:`~components.health.host.HostMetricsReader` whose ``read`` the core
+* host metrics: a :class:`~components.health_monitor.host.HostMetricsReader` whose ``read`` the core
   calls from its timer;
 * graph changes: the graph lives on the executor's session, which exists only once the core
   is added to an executor, so the built component carries an ``on_bound`` hook
@@ -24,11 +24,11 @@ from components.assembly import ComponentPlan, ResolvedAssembly
 from components.build import BuildError, BuiltComponent, buildable
 from components.build import node_name as component_node_name
 from components.comm.liveliness import Entity, EntityKind
-from components.health.core import ExpectedComponent, HealthMonitorCore
-from components.health.host import HostMetricsReader
-from components.health.interface import HEALTH_MONITOR
-from components.health.motors import MotorWatch
-from components.health.thresholds import HealthThresholds
+from components.health_monitor.core import ExpectedComponent, HealthMonitorCore
+from components.health_monitor.host import HostMetricsReader
+from components.health_monitor.interface import HEALTH_MONITOR
+from components.health_monitor.motors import MotorWatch
+from components.health_monitor.thresholds import HealthThresholds
 
 if TYPE_CHECKING:
     from components.comm.graph import Graph

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from components.executor.interface import Every, InterfaceSpec, Publish, Subscribe
-from components.kinematics.poses import TF_MESSAGE
+from components.kinematics_manager.poses import TF_MESSAGE
 from components.messages import JOINT_STATE, POSE_STAMPED
 from components.roles import Role
 

@@ -1,13 +1,13 @@
 """The onboard computer's items: CPU, memory, disk and temperature against the module's
-thresholds (the metrics themselves are read by :mod:`components.health.host`). Pure."""
+thresholds (the metrics themselves are read by :mod:`components.health_monitor.host`). Pure."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from typing import Any
 
-from components.health.items import Item
-from components.health.thresholds import HealthThresholds
+from components.health_monitor.items import Item
+from components.health_monitor.thresholds import HealthThresholds
 from components.messages import ERROR, OK, STALE, WARN
 
 

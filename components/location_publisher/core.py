@@ -21,8 +21,8 @@ import numpy as np
 import pinocchio as pin
 
 from components.executor.core import Core
-from components.kinematics.model import KinematicModel
-from components.kinematics.poses import apart, pose_stamped, tf_message, transform_stamped
+from components.kinematics_manager.model import KinematicModel
+from components.kinematics_manager.poses import apart, pose_stamped, tf_message, transform_stamped
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ How one solve goes (:meth:`IkSolver.solve`):
    bound. An unreachable target therefore moves the limb toward it, never makes it jump.
 
 A chain of a known shape may be given a closed-form guess (:attr:`IkSolver.guess`, set by the
-``analytic_guess`` injection from module data; :mod:`components.kinematics.analytic`): it
+``analytic_guess`` injection from module data; :mod:`components.kinematics_manager.analytic`): it
 lists the target's solutions (sampling any redundant direction), those within the limits are
 unwrapped toward the current angles, and the nearest (smallest largest-joint jump) is polished
 by a descent (the next ones should it not converge). It replaces the random restarts of step 2
@@ -43,8 +43,8 @@ import numpy as np
 import pinocchio as pin
 
 from components.config import require
-from components.kinematics.analytic import Guess
-from components.kinematics.model import ChainModel
+from components.kinematics_manager.analytic import Guess
+from components.kinematics_manager.model import ChainModel
 
 _TWO_PI = 2.0 * math.pi
 #: Closed-form solutions polished, nearest first, before falling back to random restarts
@@ -165,7 +165,7 @@ class IkSolver:
         settings: Solver tuning.
         seed: Seed of the restart generator (restarts are reproducible).
         guess: Closed-form solutions of the chain's shape, tried instead of random restarts
-            (see :mod:`components.kinematics.analytic`); None: random restarts only.
+            (see :mod:`components.kinematics_manager.analytic`); None: random restarts only.
 
     Attributes:
         guess: As the argument; the ``analytic_guess`` injection sets it.
