@@ -51,10 +51,20 @@ X_SERIES_REGISTERS: dict[str, tuple[int, int]] = {
     "present_temperature": (146, 1),
 }
 
+#: The XL430-W250's: no current sensing, so no Current Limit and no Goal Current; Present Load
+#: (0.1 % of stall torque) sits where the others have Present Current and is read under that
+#: name (its model's ``effort_register`` says it is a load).
+XL430_REGISTERS: dict[str, tuple[int, int]] = {
+    name: item
+    for name, item in X_SERIES_REGISTERS.items()
+    if name not in ("current_limit", "goal_current")
+}
+
 #: Registers whose raw value is two's-complement signed.
 SIGNED_REGISTERS = frozenset(
     {
         "homing_offset",
+        "goal_pwm",
         "goal_current",
         "goal_velocity",
         "goal_position",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from components.motors.dynamixel.control_table import X_SERIES_REGISTERS
+from components.motors.dynamixel.control_table import X_SERIES_REGISTERS, XL430_REGISTERS
 
 
 @dataclass(frozen=True)
@@ -124,6 +124,7 @@ MODELS: dict[str, DynamixelModel] = {
             stall_torque=1.5,
             no_load_speed_rpm=57.0,
             temperature_limit=72,
+            registers=XL430_REGISTERS,
         ),
         DynamixelModel(
             "XL330-M288",

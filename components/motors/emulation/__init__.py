@@ -63,8 +63,7 @@ def dynamixel_chain(channel: str, motors: Sequence[Any]) -> EmulatedHardware:
     The serial reply timeout is sized for a slow adapter: the chain is a Python thread
     sharing the computer with the rest of the module.
     """
-    from components.motors.dynamixel.units import MODELS
-    from components.motors.emulation.dynamixel import EmulatedDynamixelChain
+    from components.motors.emulation.dynamixel import MODELS, EmulatedDynamixelChain
 
     models = {m.motor_id: m.model for m in motors if m.model in MODELS}
     chain = EmulatedDynamixelChain(ids=[m.motor_id for m in motors], models=models)
