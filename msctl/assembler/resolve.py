@@ -323,144 +323,24 @@ def _joint_plan(p: str, jd: data.JointDef, cal: data.JointCalibrationDef | None)
 
 
 def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
+    """The lock document and composed URDF of a template with a checked unit per slot."""
+    types = {s.name: template.module_types[units[s.name].module_type] for s in template.slots}
     modules: list[ModulePlan] = []
     components: list[ComponentPlan] = []
     parts: list[ModulePart] = []
-    types: dict[str, ModuleType] = {}
     for slot_def in template.slots:
         slot = slot_def.name
-        unit = units[slot]
-        module = template.module_types[unit.module_type]
-        types[slot] = module
-        p = slot + "_"
-        joints = tuple(
-            _joint_plan(p, jd, unit.joints.get(jd.name)) for jd in module.joints.values()
-        )
-        limits = {
-            j.raw_name: (j.spec.lower, j.spec.upper, j.max_effort, j.max_velocity) for j in joints
-        }
-        bus = data.merged_bus(module, unit)
-        injections = split_targets([*module.injections, *unit.injections])
-        overrides = split_targets([*module.overrides, *unit.overrides])
-        health = {**module.health, **unit.health}
-        actuated = [j.name for j in joints if j.actuated]
-        modules.append(
-            ModulePlan(
-                slot=slot,
-                namespace=f"/{slot}",
-                module_type=module.key,
-                family=module.family,
-                kind=module.kind,
-                revision=module.revision,
-                unit=unit.serial,
-                host=unit.host,
-                bus=bus,
-                joints=joints,
-                chains=tuple(
-                    ChainPlan(name, p + base, p + tip, tuple(p + j for j in js))
-                    for name, (base, tip, js) in module.chains.items()
-                ),
-                interesting_links=tuple(p + link for link in module.interesting_links),
-                health=health,
-                safety={**module.safety, **unit.safety},
-                root_link=p + module.urdf.root_link,
-                connectors={c: connector_link(slot, c) for c in module.connectors},
-                calibration_file=str(unit.path),
-            )
-        )
-        facts: dict[str, Any] = {
-            "joints": actuated,
-            "bus": bus.kind,
-            "channel": bus.channel,
-            "thresholds": health,
-        }
-        for c in module.components:
-            kind = kinds.get(c.kind)
-            params: dict[str, Any] = {fact: facts[fact] for fact in kind.module_facts}
-            if c.link is not None:
-                params["link"] = p + c.link
-            if c.chain is not None:
-                base, tip, js = module.chains[c.chain]
-                params.update(
-                    chain=c.chain, base_link=p + base, tip_link=p + tip, joints=[p + j for j in js]
-                )
-            params.update(_prefix_params(c.params, p))
-            for key, entries in (("injections", injections), ("overrides", overrides)):
-                if c.kind in entries:
-                    params[key] = [_prefix_params(e, p) for e in entries[c.kind]]
-            components.append(
-                ComponentPlan(
-                    name=f"{slot}/{c.name}",
-                    kind=c.kind,
-                    host=unit.host,
-                    module=slot,
-                    namespace=f"/{slot}",
-                    params=params,
-                )
-            )
-        parts.append(ModulePart(slot, module.urdf, limits, dict(module.connectors)))
+        module_plan, module_components, part = _place_module(slot, types[slot], units[slot])
+        modules.append(module_plan)
+        components += module_components
+        parts.append(part)
     # [recording] robots: each robot computer records its own modules' topics locally.
     hosts = [(m.slot, m.host) for m in modules]
     components += robot_archivers(template.robot_recording, hosts, components)
-
-    for station in template.stations:
-        for kind_name, component, params in station.components:
-            components.append(
-                ComponentPlan(
-                    name=f"{station.name}/{component}",
-                    kind=kind_name,
-                    host=station.host,
-                    module=None,
-                    namespace=f"/{station.name}",
-                    params=dict(params),
-                )
-            )
-
-    mounts: list[Mount] = []
-    connections: list[Connection] = []
-    for c in template.connections:
-        child = types[c.child]
-        link, xyz, rpy = child.connectors[c.child_connector]
-        in_root = tf.compose(child.urdf.fixed_transform(link), tf.from_xyz_rpy(xyz, rpy))  # type: ignore[arg-type]
-        pose = tf.compose(tf.mating(c.angle), tf.inverse(in_root))
-        mxyz, mrpy = tf.to_xyz_rpy(pose)
-        joint = f"{c.child}_mount"
-        mounts.append(
-            Mount(
-                joint,
-                connector_link(c.parent, c.parent_connector),
-                f"{c.child}_{child.urdf.root_link}",
-                mxyz,
-                mrpy,
-            )
-        )
-        connections.append(
-            Connection(
-                parent=f"{c.parent}.{c.parent_connector}",
-                child=f"{c.child}.{c.child_connector}",
-                joint=joint,
-                angle=c.angle,
-            )
-        )
-    roots = template.roots
-    robots = []
-    for root in roots:
-        slot_def = template.slot(root)
-        root_link = f"{root}_{types[root].urdf.root_link}"
-        robots.append(RobotPlacement(root, root_link, *slot_def.place))
-        if len(roots) > 1:  # several robots: hang each from a world link at its place
-            mounts.append(Mount(f"{root}_place", "world", root_link, *slot_def.place))
-
-    host_plans: dict[str, HostRole] = {}
-    for comp in components:
-        plan = host_plans.setdefault(comp.host, HostRole("ground"))
-        plan.components.append(comp.name)
-        if comp.module and comp.module not in plan.modules:
-            plan.modules.append(comp.module)
-    host_plans = {
-        host: HostRole("robot" if plan.modules else "ground", plan.modules, plan.components)
-        for host, plan in host_plans.items()
-    }
+    components += _station_components(template)
+    mounts, connections = _mounts(template, types)
+    robots = _robots(template, types, mounts)
+    host_plans = _host_plans(components)
     # A link class named for a computer of no module or station is a typo: say so here.
     radio.check_hosts(radio.Network.from_dict(template.network), host_plans, template.path)
     counts: dict[str, int] = {}
@@ -494,3 +374,165 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
     )
     urdf = compose(template.name, parts, mounts)
     return Resolution(template=template, units=dict(units), lock=lock, urdf=urdf)
+
+
+def _place_module(
+    slot: str, module: ModuleType, unit: Unit
+) -> tuple[ModulePlan, list[ComponentPlan], ModulePart]:
+    """One slot's module plan, its components, and its part of the URDF."""
+    p = slot + "_"
+    joints = tuple(_joint_plan(p, jd, unit.joints.get(jd.name)) for jd in module.joints.values())
+    limits = {
+        j.raw_name: (j.spec.lower, j.spec.upper, j.max_effort, j.max_velocity) for j in joints
+    }
+    bus = data.merged_bus(module, unit)
+    health = {**module.health, **unit.health}
+    plan = ModulePlan(
+        slot=slot,
+        namespace=f"/{slot}",
+        module_type=module.key,
+        family=module.family,
+        kind=module.kind,
+        revision=module.revision,
+        unit=unit.serial,
+        host=unit.host,
+        bus=bus,
+        joints=joints,
+        chains=tuple(
+            ChainPlan(name, p + base, p + tip, tuple(p + j for j in js))
+            for name, (base, tip, js) in module.chains.items()
+        ),
+        interesting_links=tuple(p + link for link in module.interesting_links),
+        health=health,
+        safety={**module.safety, **unit.safety},
+        root_link=p + module.urdf.root_link,
+        connectors={c: connector_link(slot, c) for c in module.connectors},
+        calibration_file=str(unit.path),
+    )
+    facts: dict[str, Any] = {
+        "joints": [j.name for j in joints if j.actuated],
+        "bus": bus.kind,
+        "channel": bus.channel,
+        "thresholds": health,
+    }
+    extensions = {
+        "injections": split_targets([*module.injections, *unit.injections]),
+        "overrides": split_targets([*module.overrides, *unit.overrides]),
+    }
+    components = [
+        _module_component(slot, module, c, facts, extensions, unit.host) for c in module.components
+    ]
+    return plan, components, ModulePart(slot, module.urdf, limits, dict(module.connectors))
+
+
+def _module_component(
+    slot: str,
+    module: ModuleType,
+    c: data.ComponentDef,
+    facts: Mapping[str, Any],
+    extensions: Mapping[str, dict[str, list[dict[str, Any]]]],
+    host: str,
+) -> ComponentPlan:
+    """A module's component: the module facts its kind reads, the link or chain it is
+    about, its params and the injections and overrides aimed at it, in assembly names."""
+    p = slot + "_"
+    params: dict[str, Any] = {fact: facts[fact] for fact in kinds.get(c.kind).module_facts}
+    if c.link is not None:
+        params["link"] = p + c.link
+    if c.chain is not None:
+        base, tip, js = module.chains[c.chain]
+        params.update(
+            chain=c.chain, base_link=p + base, tip_link=p + tip, joints=[p + j for j in js]
+        )
+    params.update(_prefix_params(c.params, p))
+    for key, entries in extensions.items():
+        if c.kind in entries:
+            params[key] = [_prefix_params(e, p) for e in entries[c.kind]]
+    return ComponentPlan(
+        name=f"{slot}/{c.name}",
+        kind=c.kind,
+        host=host,
+        module=slot,
+        namespace=f"/{slot}",
+        params=params,
+    )
+
+
+def _station_components(template: Template) -> list[ComponentPlan]:
+    """Every ground station's components, on the station's host."""
+    return [
+        ComponentPlan(
+            name=f"{station.name}/{component}",
+            kind=kind_name,
+            host=station.host,
+            module=None,
+            namespace=f"/{station.name}",
+            params=dict(params),
+        )
+        for station in template.stations
+        for kind_name, component, params in station.components
+    ]
+
+
+def _mounts(
+    template: Template, types: Mapping[str, ModuleType]
+) -> tuple[list[Mount], list[Connection]]:
+    """Each connection as a fixed URDF joint (the child's root hung from the parent's
+    connector, mated and turned by its angle) and as the lock records it."""
+    mounts: list[Mount] = []
+    connections: list[Connection] = []
+    for c in template.connections:
+        child = types[c.child]
+        link, xyz, rpy = child.connectors[c.child_connector]
+        in_root = tf.compose(child.urdf.fixed_transform(link), tf.from_xyz_rpy(xyz, rpy))  # type: ignore[arg-type]
+        pose = tf.compose(tf.mating(c.angle), tf.inverse(in_root))
+        mxyz, mrpy = tf.to_xyz_rpy(pose)
+        joint = f"{c.child}_mount"
+        mounts.append(
+            Mount(
+                joint,
+                connector_link(c.parent, c.parent_connector),
+                f"{c.child}_{child.urdf.root_link}",
+                mxyz,
+                mrpy,
+            )
+        )
+        connections.append(
+            Connection(
+                parent=f"{c.parent}.{c.parent_connector}",
+                child=f"{c.child}.{c.child_connector}",
+                joint=joint,
+                angle=c.angle,
+            )
+        )
+    return mounts, connections
+
+
+def _robots(
+    template: Template, types: Mapping[str, ModuleType], mounts: list[Mount]
+) -> list[RobotPlacement]:
+    """Each robot by its root slot and place; with several, each hangs from a world link
+    at its place (added to ``mounts``)."""
+    roots = template.roots
+    robots = []
+    for root in roots:
+        slot_def = template.slot(root)
+        root_link = f"{root}_{types[root].urdf.root_link}"
+        robots.append(RobotPlacement(root, root_link, *slot_def.place))
+        if len(roots) > 1:
+            mounts.append(Mount(f"{root}_place", "world", root_link, *slot_def.place))
+    return robots
+
+
+def _host_plans(components: Sequence[ComponentPlan]) -> dict[str, HostRole]:
+    """What each host does: a robot computer if it runs a module's components, else ground."""
+    host_plans: dict[str, HostRole] = {}
+    for comp in components:
+        plan = host_plans.setdefault(comp.host, HostRole("ground"))
+        plan.components.append(comp.name)
+        if comp.module and comp.module not in plan.modules:
+            plan.modules.append(comp.module)
+    return {
+        host: HostRole("robot" if plan.modules else "ground", plan.modules, plan.components)
+        for host, plan in host_plans.items()
+    }
