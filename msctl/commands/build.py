@@ -225,46 +225,23 @@ def _stopped_by_signals(builder: Any) -> Iterator[None]:
 
 
 def _report(result: Any, graph: Any, json_output: bool) -> None:
+    """The build's outcome: notes, the packages (a table, or JSON), then each failure, and
+    an error if the build was stopped or did not build everything."""
     from rich.markup import escape
-    from rich.table import Table
 
-    from msctl.console import err, out, print_json
+    from msctl.console import err, print_json
 
     for note in result.notes:
         err.print(f"[yellow]{escape(note)}[/]", highlight=False)
     if json_output:
         print_json(result.to_dict())
     elif result.nothing_done and result.packages:
-        err.print(
-            f"nothing to build: {len(result.packages)} packages up to date "
-            f"({result.seconds:.2f} s)",
-            highlight=False,
-        )
-        skipped = [p for p in result.packages if p.status == "skipped"]
-        for p in skipped:
-            err.print(f"[yellow]skipped {p.name}: {escape(p.message)}[/]", highlight=False)
+        _report_up_to_date(result)
     else:
-        table = Table()
-        for column in ("package", "type", "result", "time", "note"):
-            table.add_column(column, overflow="fold")
-        colour = {"built": "green", "failed": "red", "blocked": "red", "skipped": "yellow"}
-        rows = ([result.wheelhouse] if result.wheelhouse else []) + result.packages
-        for p in rows:
-            style = colour.get(p.status, "")
-            note = p.message.splitlines()[0] if p.message else ""
-            table.add_row(
-                escape(p.name),
-                p.type,
-                f"[{style}]{p.status}[/]" if style else p.status,
-                f"{p.seconds:.1f}s" if p.seconds else "",
-                escape(note),
-            )
-        out.print(table)
-        err.print(f"[dim]{result.seconds:.1f} s[/]", highlight=False)
+        _report_table(result)
     failed = [p for p in result.packages if p.status == "failed"]
     if result.wheelhouse is not None and result.wheelhouse.status == "failed":
         failed.insert(0, result.wheelhouse)
-    blocked = [p for p in result.packages if p.status == "blocked"]
     for p in failed:
         err.print(
             f"[red]{escape(p.name)}[/] failed at {escape(p.step)}: {escape(p.message)}",
@@ -272,6 +249,52 @@ def _report(result: Any, graph: Any, json_output: bool) -> None:
         )
     for message in result.errors:
         err.print(f"[red]doit:[/] {escape(message)}", highlight=False)
+    _raise_unless_built(result, failed)
+
+
+def _report_up_to_date(result: Any) -> None:
+    """Nothing was built: say so, and name what was skipped."""
+    from rich.markup import escape
+
+    from msctl.console import err
+
+    err.print(
+        f"nothing to build: {len(result.packages)} packages up to date ({result.seconds:.2f} s)",
+        highlight=False,
+    )
+    for p in result.packages:
+        if p.status == "skipped":
+            err.print(f"[yellow]skipped {p.name}: {escape(p.message)}[/]", highlight=False)
+
+
+def _report_table(result: Any) -> None:
+    """One row per package (the wheelhouse first): its result, time and first note line."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    from msctl.console import err, out
+
+    table = Table()
+    for column in ("package", "type", "result", "time", "note"):
+        table.add_column(column, overflow="fold")
+    colour = {"built": "green", "failed": "red", "blocked": "red", "skipped": "yellow"}
+    rows = ([result.wheelhouse] if result.wheelhouse else []) + result.packages
+    for p in rows:
+        style = colour.get(p.status, "")
+        note = p.message.splitlines()[0] if p.message else ""
+        table.add_row(
+            escape(p.name),
+            p.type,
+            f"[{style}]{p.status}[/]" if style else p.status,
+            f"{p.seconds:.1f}s" if p.seconds else "",
+            escape(note),
+        )
+    out.print(table)
+    err.print(f"[dim]{result.seconds:.1f} s[/]", highlight=False)
+
+
+def _raise_unless_built(result: Any, failed: list[Any]) -> None:
+    """An error naming what was stopped, failed or blocked (exit code of the signal, or 1)."""
     if result.stopped:
         name = result.stopped.rsplit(" ", 1)[-1]
         stopped = [p.name for p in result.packages if p.status == "failed"]
@@ -281,19 +304,21 @@ def _report(result: Any, graph: Any, json_output: bool) -> None:
             hint="build again to finish it (what was built stays built)",
             exit_code=_SIGNALS.get(name, 1),
         )
-    if not result.ok:
-        parts = []
-        if failed:
-            parts.append(f"failed: {', '.join(p.name for p in failed)}")
-        if blocked:
-            parts.append(f"not built (a dependency failed): {', '.join(p.name for p in blocked)}")
-        if result.errors:
-            parts.append("doit could not run the graph")
-        raise MsctlError(
-            "; ".join(parts) + " (the packages not depending on them were built)",
-            hint="each failure's log is under .msctl/build/logs in the workspace",
-            exit_code=1,
-        )
+    if result.ok:
+        return
+    blocked = [p for p in result.packages if p.status == "blocked"]
+    parts = []
+    if failed:
+        parts.append(f"failed: {', '.join(p.name for p in failed)}")
+    if blocked:
+        parts.append(f"not built (a dependency failed): {', '.join(p.name for p in blocked)}")
+    if result.errors:
+        parts.append("doit could not run the graph")
+    raise MsctlError(
+        "; ".join(parts) + " (the packages not depending on them were built)",
+        hint="each failure's log is under .msctl/build/logs in the workspace",
+        exit_code=1,
+    )
 
 
 def _list(graph: Any, keys: list[str], json_output: bool) -> None:
