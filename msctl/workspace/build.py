@@ -36,18 +36,25 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from msctl.workspace import state_dir
+from msctl.workspace.build_processes import (
+    end_group,
+    read_from,
+    set_aside_unreadable,
+    signal_group,
+    tail,
+)
+from msctl.workspace.build_reporter import Reporter, without_entry_point_plugins
+from msctl.workspace.build_results import BuildResult, PackageResult
+from msctl.workspace.build_steps import BuildOptions, Step, package_steps, pip_index
 from msctl.workspace.packages import Graph, Package, source_files
 from msctl.workspace.wheelhouse import (
     MANIFEST,
@@ -55,14 +62,9 @@ from msctl.workspace.wheelhouse import (
     installed,
     missing,
     pip,
-    target_python,
     write_manifest,
 )
 
-#: What a package's build ended as.
-STATUSES = ("built", "up to date", "failed", "blocked", "skipped", "not run")
-#: Lines of a failed step's log shown with the failure.
-LOG_TAIL = 15
 #: How to get colcon when a ROS package needs it.
 COLCON_HINT = (
     "colcon is not on PATH: source your ROS 2 setup (/opt/ros/jazzy/setup.bash) or "
@@ -70,152 +72,6 @@ COLCON_HINT = (
 )
 #: Called with (package name, status or step, detail) as the build goes on.
 Events = Callable[[str, str, str], None]
-#: Seconds a stopped step's processes have after SIGTERM before they get SIGKILL.
-STOP_GRACE_S = 5.0
-
-
-@dataclass(frozen=True)
-class BuildOptions:
-    """How to build.
-
-    Attributes:
-        jobs: Packages built at once.
-        offline: No network: pip uses only the wheelhouse (``--no-index``).
-        wheelhouse: A wheelhouse to fill (online) or install from (offline).
-        platform: Download wheels for this platform (e.g. ``manylinux2014_aarch64``):
-            download only, nothing is built here.
-        python_version: Download wheels for this Python (e.g. ``3.11``): download only.
-        editable: Install Python packages editable (``pip install -e``).
-        wheels: Build Python packages' wheels into this directory instead of installing.
-        force: Build every selected package, changed or not.
-        keep_going: Build the independent packages after a failure.
-        timeout: Seconds one package's build may take (``None``: no bound); a package
-            over it is stopped, with every process it started, and fails naming it.
-        python: The interpreter of the environment to install into.
-        colcon: The colcon program (``None``: not available).
-    """
-
-    jobs: int = field(default_factory=lambda: os.cpu_count() or 2)
-    offline: bool = False
-    wheelhouse: Path | None = None
-    platform: str | None = None
-    python_version: str | None = None
-    editable: bool = False
-    wheels: Path | None = None
-    force: bool = False
-    keep_going: bool = True
-    timeout: float | None = None
-    python: str = field(default_factory=target_python)
-    colcon: str | None = field(default_factory=lambda: shutil.which("colcon"))
-
-    @property
-    def download_only(self) -> bool:
-        """Filling a wheelhouse for another platform or Python: nothing to build here."""
-        return bool(self.wheelhouse and (self.platform or self.python_version))
-
-
-@dataclass
-class PackageResult:
-    """What became of one package.
-
-    Attributes:
-        name: The package.
-        type: ``python``, ``ros`` or ``command``.
-        status: One of :data:`STATUSES`.
-        step: The step that failed (or why it was skipped or blocked).
-        message: The failure's last log lines, or the reason.
-        log: Its build log.
-        seconds: How long its build took.
-    """
-
-    name: str
-    type: str
-    status: str = "not run"
-    step: str = ""
-    message: str = ""
-    log: str | None = None
-    seconds: float = 0.0
-
-    def to_dict(self) -> dict[str, Any]:
-        """The result as ``--json`` prints it."""
-        return asdict(self)
-
-
-@dataclass
-class BuildResult:
-    """The outcome of one ``msctl build``.
-
-    Attributes:
-        workspace: The workspace directory.
-        packages: Each selected package's result, in build order.
-        wheelhouse: The wheelhouse task's result, when there is one.
-        seconds: Wall time of the whole build.
-        errors: Errors of doit itself (not of a package).
-        notes: What the build did beyond building (its state rebuilt, say), one line each.
-        stopped: Why the build was stopped before its end (``""``: it was not).
-    """
-
-    workspace: Path
-    packages: list[PackageResult]
-    wheelhouse: PackageResult | None = None
-    seconds: float = 0.0
-    errors: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    stopped: str = ""
-
-    @property
-    def ok(self) -> bool:
-        """Whether nothing failed or was blocked."""
-        bad = {"failed", "blocked", "not run"}
-        return (
-            not self.errors
-            and not self.stopped
-            and all(p.status not in bad for p in self.packages)
-            and (self.wheelhouse is None or self.wheelhouse.status not in bad)
-        )
-
-    @property
-    def nothing_done(self) -> bool:
-        """Whether every package was up to date (and no download ran)."""
-        return all(p.status in ("up to date", "skipped") for p in self.packages) and (
-            self.wheelhouse is None or self.wheelhouse.status == "up to date"
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        """The result as ``--json`` prints it."""
-        return {
-            "workspace": str(self.workspace),
-            "ok": self.ok,
-            "nothing_done": self.nothing_done,
-            "seconds": round(self.seconds, 3),
-            "packages": [p.to_dict() for p in self.packages],
-            "wheelhouse": self.wheelhouse.to_dict() if self.wheelhouse else None,
-            "errors": self.errors,
-            "notes": self.notes,
-            "stopped": self.stopped,
-        }
-
-
-@dataclass(frozen=True)
-class Step:
-    """One command of a package's build.
-
-    Attributes:
-        label: What it is, in the messages (``dependencies``, ``install``, ``colcon`` ...).
-        argv: The command (no shell).
-        cwd: Where it runs.
-        serial: Run under the builder's lock (pip installing shared dependencies).
-        expect: Text its output must hold for a success (a tool that exits 0 having done
-            nothing, as colcon does for a package it did not find, has failed).
-        unmet: What to say when ``expect`` is missing.
-    """
-
-    label: str
-    argv: tuple[str, ...]
-    cwd: Path
-    serial: bool = False
-    expect: str = ""
-    unmet: str = ""
 
 
 class _Failed(Exception):
@@ -254,13 +110,14 @@ class Builder:
 
     def stop(self, why: str) -> None:
         """Stop the build: every running step's process group gets SIGTERM (SIGKILL after
-        :data:`STOP_GRACE_S`), and no further package starts. :meth:`run` returns once the
-        running steps are gone. Safe from a signal handler or another thread."""
+        :data:`~msctl.workspace.build_processes.STOP_GRACE_S`), and no further package
+        starts. :meth:`run` returns once the running steps are gone. Safe from a signal
+        handler or another thread."""
         self._stopped = self._stopped or why
         with self._running_lock:
             running = list(self._running)
         for process in running:
-            _signal_group(process, signal.SIGTERM)
+            signal_group(process, signal.SIGTERM)
 
     # ------------------------------------------------------------------ paths
     def stamp(self, key: str) -> Path:
@@ -322,6 +179,11 @@ class Builder:
             tasks.append(task)
         return tasks, skipped
 
+    def steps(self, package: Package) -> list[Step]:
+        """The commands building ``package`` (its external requirements' install aside,
+        which is decided when it runs)."""
+        return package_steps(package, self.graph, self.options)
+
     def _inputs(self, package: Package) -> list[Path]:
         if package.type == "python" and self.options.editable and not self.options.wheels:
             # Editable: the sources are used in place; only the metadata needs a reinstall.
@@ -331,84 +193,6 @@ class Builder:
                 if p.exists()
             ]
         return source_files(package)
-
-    def steps(self, package: Package) -> list[Step]:
-        """The commands building ``package`` (its external requirements' install aside,
-        which is decided when it runs)."""
-        return {
-            "python": self._python_steps,
-            "ros": self._ros_steps,
-            "command": self._command_steps,
-        }[package.type](package)
-
-    def _python_steps(self, package: Package) -> list[Step]:
-        options = self.options
-        if options.wheels is not None:
-            args = ["wheel", "--no-deps", *self._index(), "-w", str(options.wheels)]
-            argv = pip(options.python, *args, str(package.path))
-            return [Step("wheel", tuple(argv), package.path)]
-        args = ["install", "--no-deps", *self._index(), *self._isolation()]
-        args += ["-e", str(package.path)] if options.editable else [str(package.path)]
-        return [Step("install", tuple(pip(options.python, *args)), package.path)]
-
-    def _ros_steps(self, package: Package) -> list[Step]:
-        root = self.graph.root
-        # colcon builds a package in the environment of the installs of the dependencies it
-        # discovers: it must be shown their directories too (selecting only this one), or a
-        # dependent builds without them (an ament_cmake find_package fails).
-        base_paths = [str(package.path)]
-        base_paths += [str(self.graph.packages[k].path) for k in self._ros_dependencies(package)]
-        argv = (
-            self.options.colcon or "colcon",
-            "build",
-            "--base-paths",
-            *base_paths,
-            "--packages-select",
-            package.name,
-            "--build-base",
-            str(root / "build"),
-            "--install-base",
-            str(root / "install"),
-        )
-        unmet = (
-            f"colcon exited 0 without building {package.name}: it did not take "
-            f"{package.manifest} for a ROS package (see `colcon --log-level info list "
-            f"--base-paths {package.path}`: a malformed package.xml, e.g. a maintainer's "
-            "email, makes colcon ignore it)"
-        )
-        return [Step("colcon", argv, root, expect=f"Finished <<< {package.name}", unmet=unmet)]
-
-    def _ros_dependencies(self, package: Package) -> list[str]:
-        """Every ROS package ``package`` depends on, directly or not, in build order."""
-        wanted: set[str] = set()
-        stack = list(self.graph.edges[package.key])
-        while stack:
-            key = stack.pop()
-            if key not in wanted:
-                wanted.add(key)
-                stack.extend(self.graph.edges[key])
-        return [
-            k for k in self.graph.order() if k in wanted and self.graph.packages[k].type == "ros"
-        ]
-
-    @staticmethod
-    def _command_steps(package: Package) -> list[Step]:
-        return [
-            Step(f"command {i + 1} ({argv[0]})", tuple(argv), package.path)
-            for i, argv in enumerate(package.commands)
-        ]
-
-    def _index(self) -> list[str]:
-        options = self.options
-        links = ["--find-links", str(options.wheelhouse)] if options.wheelhouse else []
-        return (["--no-index"] if options.offline else []) + links
-
-    def _isolation(self) -> list[str]:
-        # Offline with no wheelhouse, an isolated build could not get its backend: use the
-        # environment's own (setuptools ...), as colcon does.
-        return (
-            ["--no-build-isolation"] if self.options.offline and not self.options.wheelhouse else []
-        )
 
     def _wheelhouse_task(self, keys: Sequence[str]) -> dict[str, Any] | None:
         options = self.options
@@ -530,7 +314,7 @@ class Builder:
         absent = missing(externals, None, self.environment())
         if absent:
             # One pip at a time installs shared dependencies: two would race on one file.
-            argv = pip(options.python, "install", *self._index(), *absent)
+            argv = pip(options.python, "install", *pip_index(self.options), *absent)
             before.append(Step("dependencies", tuple(argv), package.path, serial=True))
         return before + steps
 
@@ -599,9 +383,9 @@ class Builder:
             raise _Failed(step.label, f"stopped ({self._stopped}); its log: {log}")
         if code != 0:
             out.flush()
-            raise _Failed(step.label, f"exit status {code}; last lines of {log}:\n{_tail(log)}")
-        if step.expect and step.expect not in _read_from(log, start):
-            raise _Failed(step.label, f"{step.unmet}; last lines of {log}:\n{_tail(log)}")
+            raise _Failed(step.label, f"exit status {code}; last lines of {log}:\n{tail(log)}")
+        if step.expect and step.expect not in read_from(log, start):
+            raise _Failed(step.label, f"{step.unmet}; last lines of {log}:\n{tail(log)}")
         if step.serial:
             with self._environment_lock:
                 self._environment = None  # pip installed things: read the environment again
@@ -634,13 +418,13 @@ class Builder:
             try:
                 code = process.wait(remaining)
             except subprocess.TimeoutExpired:
-                _signal_group(process, signal.SIGTERM)
+                signal_group(process, signal.SIGTERM)
                 raise
             ended = not self._stopped
             return code
         finally:
             if not ended:
-                _end_group(process)
+                end_group(process)
             with self._running_lock:
                 self._running.discard(process)
 
@@ -652,7 +436,7 @@ class Builder:
 
         started = time.monotonic()
         tasks, _skipped = self.tasks(keys)
-        reporter = _Reporter(self)
+        reporter = Reporter(self)
 
         def task_msctl() -> Any:
             yield from tasks
@@ -665,7 +449,7 @@ class Builder:
         self.state.mkdir(parents=True, exist_ok=True)
         notes = []
         if names:
-            note = _set_aside_unreadable(self.state / "doit.json")
+            note = set_aside_unreadable(self.state / "doit.json")
             if note:
                 notes.append(note)
         if names:
@@ -683,7 +467,7 @@ class Builder:
                 *(["--always-execute"] if self.options.force else []),
                 *names,
             ]
-            with _without_entry_point_plugins():
+            with without_entry_point_plugins():
                 code = DoitMain(ModuleTaskLoader(namespace), config_filenames=()).run(argv)
             if code not in (0, 1) and not reporter.errors:
                 # 2 and 3: doit itself could not run the graph (it said why on stderr).
@@ -721,159 +505,7 @@ class Builder:
         self.events(result.name, status, result.message if status == "failed" else detail)
 
 
-@contextmanager
-def _without_entry_point_plugins() -> Iterator[None]:
-    """Run doit with its own commands, backends and reporters only.
-
-    doit adds plugins from every installed distribution's ``doit.*`` entry points, and a
-    plugin there takes precedence over doit's own of the same name (a ``json`` backend, a
-    reporter): what the environment happens to hold must not change how msctl builds. It
-    also reads every distribution's entry points three times per run, most of a no-op
-    build's time in a large environment.
-    """
-    import doit.plugin
-
-    original = doit.plugin.entry_points_impl
-    doit.plugin.entry_points_impl = lambda: lambda group: ()  # type: ignore[assignment]
-    try:
-        yield
-    finally:
-        doit.plugin.entry_points_impl = original
-
-
-def _signal_group(process: subprocess.Popen[bytes], number: int) -> None:
-    """Send ``number`` to the process group a step leads (it may be gone already)."""
-    try:
-        os.killpg(process.pid, number)
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
-def _end_group(process: subprocess.Popen[bytes]) -> None:
-    """Make sure a stopped step and every process of its group are gone: it gets
-    :data:`STOP_GRACE_S` after its SIGTERM, then SIGKILL; what its leader left behind (a
-    ``sleep`` in a script whose shell exited at the SIGTERM) goes with it."""
-    if process.poll() is None:
-        _signal_group(process, signal.SIGTERM)
-        try:
-            process.wait(STOP_GRACE_S)
-        except subprocess.TimeoutExpired:
-            _signal_group(process, signal.SIGKILL)
-            process.wait()
-    # The leader is reaped; what is left of its group (if anything) goes too.
-    _signal_group(process, signal.SIGKILL)
-
-
-def _set_aside_unreadable(db: Path) -> str:
-    """Set doit's state file aside when it cannot be read (doit rewrites it in place, so
-    a power cut can leave it truncated), and say so; ``""`` when it is fine or absent.
-
-    doit would stop every later build at it with a traceback; without it, doit knows
-    nothing built and builds every package again, which is the state rebuilt.
-    """
-    try:
-        text = db.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        return ""
-    except (OSError, UnicodeDecodeError) as exc:
-        why = str(exc)
-    else:
-        try:
-            if isinstance(json.loads(text), dict):
-                return ""
-            why = "not a JSON object"
-        except ValueError as exc:
-            why = f"not valid JSON ({exc})"
-    aside = db.with_name(db.name + ".unreadable")
-    os.replace(db, aside)
-    return (
-        f"build state {db} was unreadable ({why}): set aside as {aside.name}, and rebuilt "
-        "from the packages (every package is built again)"
-    )
-
-
 def _recipe(config: dict[str, Any]) -> Any:
     from doit.tools import config_changed
 
     return config_changed(config)
-
-
-def _read_from(log: Path, offset: int) -> str:
-    """What a step wrote to its package's log (from ``offset`` on)."""
-    try:
-        with log.open("rb") as handle:
-            handle.seek(offset)
-            return handle.read().decode("utf-8", errors="replace")
-    except OSError:
-        return ""
-
-
-def _tail(log: Path, lines: int = LOG_TAIL) -> str:
-    try:
-        text = log.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError:
-        return "(no log)"
-    return "\n".join(f"    {line}" for line in text[-lines:])
-
-
-class _Reporter:
-    """doit's reporter for msctl: turns doit's events into :meth:`Builder._event` calls.
-
-    doit calls it from its worker threads (``execute_task``) and its main loop (the rest).
-    """
-
-    desc = "msctl build events"
-
-    def __init__(self, builder: Builder):
-        self.builder = builder
-        self.errors: list[str] = []
-
-    def initialize(self, tasks: Any, selected_tasks: Any) -> None:
-        """Tasks are loaded."""
-
-    def get_status(self, task: Any) -> None:
-        """A task's up-to-date check starts."""
-
-    def execute_task(self, task: Any) -> None:
-        """A task starts running."""
-        self.builder._event(task.name, "building")
-
-    def add_success(self, task: Any) -> None:
-        """A task ran successfully."""
-        self.builder._event(task.name, "built")
-
-    def add_failure(self, task: Any, fail: Any) -> None:
-        """A task failed, or could not run because a dependency failed."""
-        from doit.exceptions import UnmetDependency
-
-        if isinstance(fail, UnmetDependency):
-            failed = [
-                n.split(":", 1)[1] if n.startswith("build:") else n
-                for n in str(fail.message).split()
-            ]
-            packages = self.builder.graph.packages
-            names = [packages[k].name if k in packages else k for k in failed]
-            self.builder._event(task.name, "blocked", f"not built: {', '.join(names)} failed")
-        else:
-            self.builder._event(task.name, "failed", fail.get_msg().strip().splitlines()[0])
-
-    def skip_uptodate(self, task: Any) -> None:
-        """A task was up to date."""
-        self.builder._event(task.name, "up to date")
-
-    def skip_ignore(self, task: Any) -> None:
-        """A task was ignored (never, here)."""
-
-    def cleanup_error(self, exception: Any) -> None:
-        """A teardown failed (there are none here)."""
-        self.errors.append(str(exception))
-
-    def runtime_error(self, msg: str) -> None:
-        """doit itself failed."""
-        self.errors.append(msg)
-
-    def teardown_task(self, task: Any) -> None:
-        """A teardown starts (there are none here)."""
-
-    def complete_run(self) -> None:
-        """Everything ran."""
