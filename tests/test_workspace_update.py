@@ -23,13 +23,8 @@ from msctl.errors import MsctlError
 from msctl.workspace import workspace_lock
 from msctl.workspace.git import Clone, _state_from_files
 from msctl.workspace.repos import load, merge, parse_repos
-from msctl.workspace.update import (
-    UpdateOptions,
-    lock_text,
-    status,
-    unlisted_clones,
-    update_workspace,
-)
+from msctl.workspace.status import status, unlisted_clones
+from msctl.workspace.update import UpdateOptions, lock_text, update_workspace
 
 pytestmark = pytest.mark.e2e  # every test runs git
 

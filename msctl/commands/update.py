@@ -259,7 +259,8 @@ def _show_status(
     from rich.table import Table
 
     from msctl.console import err, out, print_json
-    from msctl.workspace.update import lock_text, status, unlisted_clones, write_atomically
+    from msctl.workspace.status import status, unlisted_clones
+    from msctl.workspace.update import lock_text, write_atomically
 
     rows = status(repositories, ws)
     extra = unlisted_clones(ws, repositories)
