@@ -19,7 +19,8 @@ between computers, and a copy can lose its modes.
 
 Keys and certificates are made with the ``openssl`` command line rather than the
 ``cryptography`` package: every robot computer already has openssl, the venv does not carry
-``cryptography``, and a dependency with a compiled core is one more thing to fail offline.
+``cryptography``, and a dependency with a compiled core is one more thing to fail offline
+(those calls: :mod:`msctl.net.openssl`; the record of revocations: :mod:`msctl.net.revocation`).
 
 Layout::
 
@@ -31,15 +32,10 @@ Layout::
 
 from __future__ import annotations
 
-import base64
-import hashlib
-import json
 import os
 import re
 import secrets
 import shutil
-import stat
-import subprocess
 import tempfile
 import time
 from dataclasses import dataclass
@@ -48,6 +44,17 @@ from pathlib import Path
 from typing import Any
 
 from components.assembly import state_dir
+from msctl.net.openssl import (
+    KeyModeError,
+    PkiError,
+    check_key_mode,
+    expiry,
+    fingerprint,
+    subject_cn,
+)
+from msctl.net.openssl import need_openssl as _need_openssl
+from msctl.net.openssl import run as _openssl
+from msctl.net.revocation import read_record, record_certificate, write_record
 
 #: Prefix of an operator's common name (``operator:alice``).
 OPERATOR_PREFIX = "operator:"
@@ -63,16 +70,8 @@ TOKEN_HEX = 8
 CN_MAX = 64
 
 
-class PkiError(ValueError):
-    """A fleet certificate operation that cannot be done; the message says what to run."""
-
-
 class RevokedError(PkiError):
     """The name was revoked and the revocation was not lifted."""
-
-
-class KeyModeError(PkiError):
-    """A private key group or others may read; the message names the ``chmod`` that fixes it."""
 
 
 @dataclass(frozen=True)
@@ -457,41 +456,6 @@ def admitted(home: Path | None = None, every: bool = False) -> dict[str, str]:
     return names
 
 
-def expiry(cert: Path) -> datetime:
-    """When ``cert`` stops being valid (UTC)."""
-    text = _openssl("x509", "-in", str(cert), "-noout", "-enddate").strip()
-    stamp = text.split("=", 1)[1]
-    return datetime.strptime(stamp, "%b %d %H:%M:%S %Y %Z").replace(tzinfo=UTC)
-
-
-def subject_cn(cert: Path) -> str:
-    """The common name in ``cert``'s subject."""
-    text = _openssl("x509", "-in", str(cert), "-noout", "-subject", "-nameopt", "multiline")
-    for line in text.splitlines():
-        key, _, value = line.strip().partition("=")
-        if key.strip() == "commonName":
-            return value.strip()
-    raise PkiError(f"{cert} has no common name in its subject")
-
-
-def fingerprint(cert: Path) -> str | None:
-    """The SHA-256 fingerprint of a PEM certificate (of its DER bytes, as openssl prints
-    it), or ``None`` when the file holds none."""
-    try:
-        text = cert.read_text(errors="replace")
-    except OSError:
-        return None
-    match = re.search(r"-----BEGIN CERTIFICATE-----(.+?)-----END CERTIFICATE-----", text, re.S)
-    if not match:
-        return None
-    try:
-        der = base64.b64decode("".join(match.group(1).split()), validate=True)
-    except ValueError:
-        return None
-    digest = hashlib.sha256(der).hexdigest().upper()
-    return ":".join(digest[i : i + 2] for i in range(0, len(digest), 2))
-
-
 def verify(cert: Path, home: Path | None = None) -> str | None:
     """Why ``cert`` does not verify against the fleet CA, or ``None`` when it does."""
     try:
@@ -538,19 +502,6 @@ def verify_ca(home: Path | None = None) -> None:
         _openssl("x509", "-in", str(pem), "-noout", "-checkend", "0")
     except PkiError:
         raise PkiError(f"{pem} has expired: {start_over}") from None
-
-
-def check_key_mode(path: Path) -> None:
-    """Refuse a private key group or others may read (or write).
-
-    Raises:
-        KeyModeError: Naming the file, its mode and the ``chmod`` that fixes it.
-    """
-    mode = stat.S_IMODE(path.stat().st_mode)
-    if mode & 0o077:
-        raise KeyModeError(
-            f"private key {path} is open to others (mode {mode:04o}): run `chmod 600 {path}`"
-        )
 
 
 def loose_keys(home: Path | None = None) -> list[tuple[Path, str]]:
@@ -619,55 +570,17 @@ def _revoked_file(home: Path | None) -> Path:
 
 
 def _revoked(home: Path | None) -> dict[str, Any]:
-    """``{"names": {name: when}, "certificates": [{name, cn, serial, sha256, why, when}]}``;
-    the first form of the file (``{name: when}``) is read as its names."""
-    path = _revoked_file(home)
-    if not path.is_file():
-        return {"names": {}, "certificates": []}
-    fix = "fix it or restore it from a backup: it keeps revoked names from being issued again"
-    try:
-        document = json.loads(path.read_text())
-    except (ValueError, OSError) as exc:
-        raise PkiError(f"{path} is not JSON ({exc}): {fix}") from None
-    if isinstance(document, dict) and "names" in document:
-        names, certificates = document.get("names"), document.get("certificates", [])
-    else:
-        names, certificates = document, []
-    if (
-        not isinstance(names, dict)
-        or not all(isinstance(k, str) and isinstance(v, str) for k, v in names.items())
-        or not isinstance(certificates, list)
-        or not all(isinstance(c, dict) for c in certificates)
-    ):
-        raise PkiError(f"{path} is not a record of revoked names and certificates: {fix}")
-    return {"names": dict(names), "certificates": list(certificates)}
+    """The record of revocations (:func:`msctl.net.revocation.read_record`)."""
+    return read_record(_revoked_file(home))
 
 
 def _write_revoked(record: dict[str, Any], home: Path | None) -> None:
-    path = _revoked_file(home)
-    scratch = path.with_suffix(".json.tmp")
-    scratch.write_text(json.dumps(record, indent=2) + "\n")
-    scratch.replace(path)  # never half a record: it is what keeps a revocation
+    write_record(_revoked_file(home), record)
 
 
 def _record_certificate(common_name: str, folder: Path, why: str, home: Path | None) -> None:
-    cert = folder / "cert.pem"
-    try:
-        serial = _openssl("x509", "-in", str(cert), "-noout", "-serial").strip().split("=")[-1]
-    except PkiError:
-        serial = None
-    record = _revoked(home)
-    record["certificates"].append(
-        {
-            "name": common_name,
-            "cn": _cn_file(folder) or common_name,
-            "serial": serial,
-            "sha256": fingerprint(cert),
-            "why": why,
-            "when": datetime.now(UTC).isoformat(timespec="seconds"),
-        }
-    )
-    _write_revoked(record, home)
+    cn = _cn_file(folder) or common_name
+    record_certificate(_revoked_file(home), common_name, cn, folder / "cert.pem", why)
 
 
 def revoked_names(home: Path | None = None) -> set[str]:
@@ -684,22 +597,3 @@ def _lift(common_name: str, home: Path | None) -> None:
     record = _revoked(home)
     if record["names"].pop(common_name, None) is not None:
         _write_revoked(record, home)
-
-
-def _need_openssl() -> None:
-    if shutil.which("openssl") is None:
-        raise PkiError(
-            "the openssl command is not installed; install it (apt-get install openssl) and run "
-            "`msctl net init` again"
-        )
-
-
-def _openssl(*args: str) -> str:
-    # umask 077: a key is never readable by others, not even between write and chmod.
-    result = subprocess.run(
-        ["openssl", *args], capture_output=True, text=True, preexec_fn=lambda: os.umask(0o077)
-    )
-    if result.returncode != 0:
-        detail = (result.stderr or result.stdout).strip().splitlines()
-        raise PkiError(f"openssl {args[0]} failed: {detail[-1] if detail else result.returncode}")
-    return result.stdout
