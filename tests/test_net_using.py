@@ -14,7 +14,7 @@ import pytest
 from conftest import free_port, resolved_assembly, wait_until
 
 from components.comm.session import SessionConfigError, SessionSettings, open_session
-from msctl.launcher.run import router_argv
+from msctl.launcher.router import router_argv
 from msctl.net import config as netconfig
 from msctl.net import pki
 

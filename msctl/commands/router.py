@@ -3,7 +3,7 @@
 Its settings that cannot work (a port another process holds, an address that is not this
 computer's, an identity the fleet never made) fail before it opens, as an :class:`InputError`
 (exit code 2): whoever supervises it (``msctl up``, ``msctl agent``) then knows a restart
-would fail the same way (:data:`msctl.launcher.run.ROUTER_FINAL_EXITS`).
+would fail the same way (:data:`msctl.launcher.router.ROUTER_FINAL_EXITS`).
 """
 
 from __future__ import annotations

@@ -167,7 +167,7 @@ def _check_router(plan: Any) -> None:
 
     from components.comm.session import SessionSettings
     from msctl.console import err
-    from msctl.launcher.run import EmbeddedRouter, router_reachable
+    from msctl.launcher.router import EmbeddedRouter, router_reachable
 
     settings = SessionSettings.from_env()
     if not settings.connect:
@@ -212,7 +212,7 @@ def _refuse_if_agent_serves(host: str) -> None:
     """Two supervisors for one host would answer the same requests: refuse the second."""
     from components.comm.session import SessionSettings
     from msctl.launcher.control import host_namespace
-    from msctl.launcher.run import router_reachable
+    from msctl.launcher.router import router_reachable
 
     settings = SessionSettings.from_env()
     if not settings.connect or not router_reachable(settings.connect[0]):

@@ -46,36 +46,36 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 from components import kinds
 from components.assembly import (
     LOCK_NAME,
     ResolvedAssembly,
-    from_document,
     load_assembly,
     state_dir,
 )
 from components.comm.session import SessionSettings, open_session
 from components.supervision import protocol
 from components.supervision.contract import AGENT_SRV, RequestError, host_namespace
-from components.supervision.dispatch import OffLoop, Verbs
-from components.supervision.protocol import Checked, request_of
+from components.supervision.dispatch import OffLoop
 from msctl.errors import MsctlError
 from msctl.launcher import desired as desired_state
 from msctl.launcher import state
-from msctl.launcher.plan import SAFE_NAME, HostPlan, ProcessPlan, plan_host, this_host
-from msctl.launcher.run import (
+from msctl.launcher.desired import _Kept, _previous_run, _process_start, _why_back
+from msctl.launcher.part import _check_name, _same_resolution, check_assembly, plan_part
+from msctl.launcher.plan import HostPlan, this_host
+from msctl.launcher.requests import AgentRequests
+from msctl.launcher.router import (
     EmbeddedRouter,
-    Launch,
     RouterStartError,
     router_reachable,
     start_router,
     wait_for_router,
 )
+from msctl.launcher.run import Launch
 from msctl.launcher.state import RunLock
 from msctl.launcher.supervisor import Supervisor
-from msctl.recorder import shelf
 
 #: Seconds the loop rests between two turns when no request comes (one wakes it).
 LOOP_PAUSE = 0.05
@@ -96,125 +96,8 @@ def agent_assembly_dir() -> Path:
     return agent_dir() / "assembly"
 
 
-# --------------------------------------------------------------------------- validation
-def _check_name(value: Any, where: str, *, file_stem: bool = False) -> None:
-    """Refuse anything but a plain name (``file_stem``: also no ``/``, it names a data file)."""
-    if (
-        not isinstance(value, str)
-        or not SAFE_NAME.match(value)
-        or ".." in value
-        or "//" in value
-        or (file_stem and "/" in value)
-    ):
-        raise RequestError(
-            f"the assembly sent is refused: {where} {value!r} is not a plain name "
-            "(letters, digits, _ . - and / only, no '..')"
-        )
-
-
-def _check_names(assembly: ResolvedAssembly) -> None:
-    _check_name(assembly.template, "template", file_stem=True)
-    for slot, unit in assembly.units.items():
-        _check_name(slot, "slot", file_stem=True)
-        _check_name(unit, f"unit of slot {slot}", file_stem=True)
-    for host in assembly.hosts:
-        _check_name(host, "host")
-    for module in assembly.modules:
-        _check_name(module.slot, "module slot", file_stem=True)
-        _check_name(module.host, f"host of module {module.slot}")
-        _check_name(module.unit, f"unit of module {module.slot}", file_stem=True)
-        _check_name(module.module_type, f"module type of {module.slot}", file_stem=True)
-    for component in assembly.components:
-        _check_name(component.name, "component name")
-        _check_name(component.host, f"host of component {component.name}")
-        if component.kind not in kinds.registry():
-            raise RequestError(
-                f"the assembly sent is refused: component {component.name} has kind "
-                f"{component.kind!r}; known kinds: {', '.join(kinds.names())}"
-            )
-        if component.module is not None:
-            _check_name(component.module, f"module of component {component.name}")
-        if not (isinstance(component.namespace, str) and component.namespace.startswith("/")):
-            raise RequestError(
-                f"the assembly sent is refused: namespace of {component.name} must start with /"
-            )
-        _check_name(component.namespace[1:], f"namespace of component {component.name}")
-
-
-def check_assembly(document: Mapping[str, Any], host: str) -> ResolvedAssembly:
-    """Read an ``up`` request's assembly document, refusing anything that is not plain data.
-
-    Args:
-        document: The lock document as sent.
-        host: This computer.
-
-    Returns:
-        The assembly (not yet bound to a lock path).
-
-    Raises:
-        RequestError: If it does not read as a resolved assembly, holds a name that is not
-            plain, a component of unknown kind, or gives this computer nothing to run.
-    """
-    try:
-        assembly = from_document(document)
-    except Exception as exc:  # any shape of bad JSON object: a refusal, never a crash
-        raise RequestError(f"the assembly sent is not a resolved assembly: {exc}") from None
-    _check_names(assembly)
-    if not assembly.components_on(host):
-        raise RequestError(
-            f"{host} has no part in {assembly.template} (its computers: "
-            f"{', '.join(assembly.hosts)}); start this agent with MSCTL_HOST set to one of them"
-        )
-    return assembly
-
-
-def _same_resolution(sent: Mapping[str, Any], local: Mapping[str, Any]) -> list[str]:
-    """Top-level fields where the two documents differ (file paths are each computer's own)."""
-    local = json.loads(json.dumps(local))  # tuples -> lists, as the sent one went through JSON
-
-    def comparable(document: Mapping[str, Any]) -> dict[str, Any]:
-        out = {k: v for k, v in document.items() if k != "sources"}
-        if isinstance(out.get("modules"), list):
-            out["modules"] = [
-                {k: v for k, v in m.items() if k != "calibration_file"}
-                if isinstance(m, dict)
-                else m
-                for m in out["modules"]
-            ]
-        return out
-
-    sent, local = comparable(sent), comparable(local)
-    return sorted(k for k in {*sent, *local} if sent.get(k) != local.get(k))
-
-
-def plan_part(assembly: ResolvedAssembly, host: str, sim: bool | None) -> HostPlan:
-    """What ``host``'s agent runs: its own part of the assembly, never more.
-
-    A robot computer's part is :func:`~msctl.launcher.plan.plan_host`'s (one simulator for
-    the whole assembly, on the first module's computer). A ground-control station is not a
-    robot computer, where ``plan_host`` would run the whole assembly (right for a lone
-    ``msctl up`` on a laptop, wrong for one agent among several): its agent runs only the
-    station's own components, which have no motors to simulate.
-    """
-    if host in {m.host for m in assembly.modules}:
-        return plan_host(assembly, host, sim)
-    whole = plan_host(assembly, host, sim=False)
-    own = {c.name for c in assembly.components_on(host)}
-    processes = [
-        ProcessPlan(p.name, tuple(c for c in p.components if c.name in own))
-        for p in whole.processes
-    ]
-    return HostPlan(
-        host=host,
-        simulated=False,
-        off_robot=True,
-        processes=[p for p in processes if p.components],
-        not_built=[(n, k) for n, k in whole.not_built if n in own],
-    )
-
-
 # --------------------------------------------------------------------------- the agent
-class Agent:
+class Agent(AgentRequests):
     """One computer's agent: idle, or running one assembly's part.
 
     Args:
@@ -386,71 +269,6 @@ class Agent:
             self.session = None
         self.router.shutdown()
         self.log("stopped")
-
-    # ------------------------------------------------------------------ requests
-    def _answer(self, pending: Any) -> None:
-        """Answer one request (a slow read-only one from a thread of its own: the loop goes
-        on supervising); whatever it raises is an error reply, never the agent's end."""
-        if self._answerer is None:
-            self._answerer = OffLoop(self._handled, self.log, self.host)
-        self._answerer(pending)
-
-    def _handled(self, checked: Checked) -> tuple[str, Any]:
-        try:
-            payload, message = self._verbs.run(checked.request)
-        except RequestError as exc:
-            self.log(f"refused {checked.verb!r}: {exc}")
-            raise
-        return message, payload
-
-    def handle(self, verb: str, args: dict[str, Any]) -> tuple[Any, str]:
-        """Carry out a request given as its verb and arguments; returns ``(payload, message)``.
-
-        Raises:
-            RequestError: If the request is malformed, or cannot be carried out in the
-                agent's state.
-        """
-        return self._verbs.run(request_of(verb, args))
-
-    @property
-    def _verbs(self) -> Verbs:
-        """What an agent does, by request; each handler returns ``(payload, message)``."""
-        return Verbs(
-            "an agent",
-            {
-                protocol.Doctor: self._doctor,
-                protocol.Ps: lambda _: (self.document(), "ok"),
-                protocol.Up: self._up,
-                protocol.Down: lambda _: self._down(),
-                # This computer's own bags, idle or not (`msctl bag pull`).
-                protocol.Bags: self._shelf,
-                protocol.BagRead: self._shelf,
-                protocol.Logs: self._forward,
-                protocol.Restart: self._forward,
-                protocol.Stop: self._forward,
-                protocol.Start: self._forward,
-            },
-        )
-
-    def _doctor(self, _request: protocol.Doctor) -> tuple[Any, str]:
-        from msctl.launcher.run import doctor_payload
-
-        return doctor_payload(self.host, self.session, self.settings), "ok"
-
-    def _shelf(self, request: protocol.Bags | protocol.BagRead) -> tuple[Any, str]:
-        verb, args = protocol.wire_form(request)
-        return shelf.serve(verb, json.loads(args), self.host)
-
-    def _forward(self, request: protocol.Request) -> tuple[Any, str]:
-        """A verb on what runs, carried out by the run."""
-        if self.launch is None:
-            raise RequestError(
-                f"nothing runs on {self.host} (its agent is idle); start with `msctl up --all`"
-            )
-        verb, args = protocol.wire_form(request)
-        if verb != "logs":
-            self.log(f"{verb} {getattr(request, 'component', None)}")
-        return self.launch._do(verb, json.loads(args)), "ok"
 
     def document(self) -> dict[str, Any]:
         """What ``ps`` returns: the run's document, or an idle host with no components; with
@@ -718,49 +536,3 @@ class Agent:
         if self._lock is not None:
             self._lock.release()
             self._lock = None
-
-
-class _Kept(NamedTuple):
-    """Whether an ``up`` was kept on disk, and if not, why (said in its answer)."""
-
-    ok: bool
-    reason: str = ""
-
-    def __bool__(self) -> bool:
-        return self.ok
-
-
-def _process_start() -> float:
-    """When this process started (Unix seconds); now, if the system does not say."""
-    try:
-        import psutil
-
-        return float(psutil.Process().create_time())
-    except Exception:  # no /proc to read: the agent's own start is near enough
-        return time.time()
-
-
-def _previous_run() -> tuple[dict[str, Any] | None, bool]:
-    """This computer's last run as its state file keeps it, and whether it was written since
-    the computer booted (after a reboot its process ids mean nothing any more)."""
-    previous = state.read_state()
-    if previous is None:
-        return None, False
-    try:
-        import psutil
-
-        written = state.state_path().stat().st_mtime
-        return previous, written >= psutil.boot_time()
-    except Exception:  # cannot tell: treat it as this boot's (its processes are checked)
-        return previous, True
-
-
-def _why_back(previous: Mapping[str, Any] | None, this_boot: bool) -> str:
-    """What brought the agent back, as far as this computer can tell (for the operator)."""
-    if previous is not None and not this_boot:
-        return "rebooted"
-    if previous is not None and previous.get("state") == "stopped":
-        return "restarted its agent"  # its run was stopped in order: no power was lost
-    if previous is not None:
-        return "rebooted or lost power"  # its run ended with no down and nothing is left
-    return "restarted"

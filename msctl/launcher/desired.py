@@ -21,12 +21,14 @@ import hashlib
 import json
 import os
 import tempfile
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from msctl.errors import MsctlError
+from msctl.launcher import state
 
 #: The file's name in the agent's directory.
 FILE_NAME = "desired.json"
@@ -195,3 +197,49 @@ def _sync_directory(directory: Path) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+class _Kept(NamedTuple):
+    """Whether an ``up`` was kept on disk, and if not, why (said in its answer)."""
+
+    ok: bool
+    reason: str = ""
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+
+def _process_start() -> float:
+    """When this process started (Unix seconds); now, if the system does not say."""
+    try:
+        import psutil
+
+        return float(psutil.Process().create_time())
+    except Exception:  # no /proc to read: the agent's own start is near enough
+        return time.time()
+
+
+def _previous_run() -> tuple[dict[str, Any] | None, bool]:
+    """This computer's last run as its state file keeps it, and whether it was written since
+    the computer booted (after a reboot its process ids mean nothing any more)."""
+    previous = state.read_state()
+    if previous is None:
+        return None, False
+    try:
+        import psutil
+
+        written = state.state_path().stat().st_mtime
+        return previous, written >= psutil.boot_time()
+    except Exception:  # cannot tell: treat it as this boot's (its processes are checked)
+        return previous, True
+
+
+def _why_back(previous: Mapping[str, Any] | None, this_boot: bool) -> str:
+    """What brought the agent back, as far as this computer can tell (for the operator)."""
+    if previous is not None and not this_boot:
+        return "rebooted"
+    if previous is not None and previous.get("state") == "stopped":
+        return "restarted its agent"  # its run was stopped in order: no power was lost
+    if previous is not None:
+        return "rebooted or lost power"  # its run ended with no down and nothing is left
+    return "restarted"

@@ -122,7 +122,7 @@ def expected_hosts(plan: Plan | None, documents: Iterable[dict[str, Any]]) -> li
     Every one, unless one computer runs the whole assembly off-robot (``msctl up dragon`` on
     a laptop, MuJoCo for the motors): its document stands for every host of the plan, whose
     computers then take no part. An agent's run is never that, off-robot or not: a ground
-    station's agent runs the station's own part (``msctl.launcher.agent.plan_part``).
+    station's agent runs the station's own part (``msctl.launcher.part.plan_part``).
     """
     if plan is None:
         return []

@@ -300,7 +300,7 @@ def _run_holding(pid: int) -> str | None:
 
 def _zenoh_answers(port: int) -> bool:
     try:
-        from msctl.launcher.run import router_reachable
+        from msctl.launcher.router import router_reachable
 
         return router_reachable(f"tcp/127.0.0.1:{port}")
     except Exception:
