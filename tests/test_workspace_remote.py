@@ -24,15 +24,8 @@ from components.comm.session import open_session
 from msctl.app import app
 from msctl.errors import InputError, NotFoundError
 from msctl.launcher.control import host_namespace
-from msctl.workspace.remote import (
-    LEFT,
-    SILENT,
-    Refused,
-    Unanswered,
-    WorkspaceAgent,
-    check_request,
-    workspace_services,
-)
+from msctl.workspace.remote import LEFT, SILENT, Unanswered, workspace_services
+from msctl.workspace.service import Refused, WorkspaceAgent, check_request
 
 GOOD = "repositories:\n  src/limb:\n    type: git\n    url: file:///srv/limb.git\n"
 

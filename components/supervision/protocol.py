@@ -15,7 +15,7 @@ Adding a verb is one struct here and one handler in each supervisor's table
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple, Union
 
 import msgspec
 
@@ -35,28 +35,6 @@ class _Request(msgspec.Struct, frozen=True, forbid_unknown_fields=True, omit_def
 
 class Ps(_Request, tag="ps", tag_field="verb"):
     """What runs on the supervisor's computer (its run document)."""
-
-
-class Doctor(_Request, tag="doctor", tag_field="verb"):
-    """The supervisor's computer's preflight checks."""
-
-
-class Down(_Request, tag="down", tag_field="verb"):
-    """Stop everything the supervisor runs."""
-
-
-class Up(_Request, tag="up", tag_field="verb"):
-    """Start this computer's part of a resolved assembly (an agent's verb).
-
-    Attributes:
-        assembly: The resolved assembly document (its lock), checked by the agent.
-        sim: Simulate the motors (``None``: as the assembly says).
-        speed: Simulation speed.
-    """
-
-    assembly: dict[str, Any] | msgspec.UnsetType = msgspec.UNSET
-    sim: bool | None = None
-    speed: Speed = 1.0
 
 
 class Logs(_Request, tag="logs", tag_field="verb"):
@@ -85,6 +63,28 @@ class Start(_Request, tag="start", tag_field="verb"):
     component: Name | None = None
 
 
+class Down(_Request, tag="down", tag_field="verb"):
+    """Stop everything the supervisor runs."""
+
+
+class Up(_Request, tag="up", tag_field="verb"):
+    """Start this computer's part of a resolved assembly (an agent's verb).
+
+    Attributes:
+        assembly: The resolved assembly document (its lock), checked by the agent.
+        sim: Simulate the motors (``None``: as the assembly says).
+        speed: Simulation speed.
+    """
+
+    assembly: dict[str, Any] | msgspec.UnsetType = msgspec.UNSET
+    sim: bool | None = None
+    speed: Speed = 1.0
+
+
+class Doctor(_Request, tag="doctor", tag_field="verb"):
+    """The supervisor's computer's preflight checks."""
+
+
 class Bags(_Request, tag="bags", tag_field="verb"):
     """The bags on the agent's shelf."""
 
@@ -97,13 +97,14 @@ class BagRead(_Request, tag="bag_read", tag_field="verb"):
     size: Any = None
 
 
-#: Every request.
-Request = Ps | Doctor | Down | Up | Logs | Restart | Stop | Start | Bags | BagRead
-#: Each request's struct by its verb.
+#: Each request's struct by its verb: every struct above, in their order (a verb is added by
+#: adding its struct, and its handler to each supervisor's table).
 REQUESTS: dict[str, type[_Request]] = {
     cls.__struct_config__.tag: cls  # type: ignore[misc]
-    for cls in (Ps, Logs, Restart, Stop, Start, Down, Up, Doctor, Bags, BagRead)
+    for cls in _Request.__subclasses__()
 }
+#: Every request: a union tagged by verb.
+Request = Union[tuple(REQUESTS.values())]  # type: ignore[valid-type]  # noqa: UP007
 #: The verbs in the order they are told to a person.
 VERBS = tuple(REQUESTS)
 #: What a value that does not fit its field is told, by field.

@@ -86,7 +86,7 @@ def run(
         # SIGHUP (terminal or SSH link gone) stops the run as SIGTERM does: nothing orphaned.
         for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
-    from msctl.workspace.remote import WorkspaceAgent
+    from msctl.workspace.service import WorkspaceAgent
 
     # `msctl update --all` / `build --all`: its own service and thread, so a long git or pip
     # run never holds up the agent's loop.
