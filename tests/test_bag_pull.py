@@ -25,19 +25,21 @@ from components.recording.definitions import message_definition
 from components.recording.writer import BagWriter, TopicSpec
 from msctl.launcher.control import RequestError, encode_args, host_namespace
 from msctl.recorder import shelf
-from msctl.recorder.pull import (
+from msctl.recorder.pull_plan import (
     CONFLICT,
     FETCH,
     LEFT,
     SKIP,
-    ChunkWindow,
     PullError,
-    RateBudget,
-    RateMeter,
     RemoteFile,
-    ShortRead,
     decide,
     remote_files,
+)
+from msctl.recorder.pull_window import (
+    ChunkWindow,
+    RateBudget,
+    RateMeter,
+    ShortRead,
     request_timeout,
 )
 

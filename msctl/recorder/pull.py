@@ -14,8 +14,9 @@ this side decides what to fetch and keeps the bookkeeping that makes a cut cheap
   came for ``patience`` seconds; then the pull stops, naming the host, and a pull run later
   resumes.
 
-The pure parts (:func:`decide`, :class:`ChunkWindow`, :class:`RateBudget`) take plain values
-and are tested with plain calls; :class:`Puller` does the I/O.
+The pure parts (:func:`~msctl.recorder.pull_plan.decide`,
+:class:`~msctl.recorder.pull_window.ChunkWindow`, :class:`~msctl.recorder.pull_window.RateBudget`)
+take plain values and are tested with plain calls; :class:`Puller` does the I/O.
 """
 
 from __future__ import annotations
@@ -30,19 +31,31 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
-from msctl.errors import MsctlError
-from msctl.recorder.shelf import MAX_READ, is_plain, sha256_of
+from msctl.recorder.pull_plan import (
+    CONFLICT,
+    CUT_SHORT,
+    FETCH,
+    LEFT,
+    SKIP,
+    Action,
+    PullError,
+    RemoteFile,
+    decide,
+    remote_files,
+)
+from msctl.recorder.pull_window import (
+    CHUNK,
+    WINDOW,
+    ChunkWindow,
+    RateBudget,
+    RateMeter,
+    ShortRead,
+    request_timeout,
+)
+from msctl.recorder.shelf import MAX_READ, sha256_of
 
-#: Bytes asked per request. 64 KiB keeps each answer small: a cut throws away little, and
-#: halts (sent at a higher priority) pass between its fragments.
-CHUNK = 64 * 1024
-#: Requests in flight at most. The agent answers the requests queued at each turn of its
-#: loop, so more in flight is more per turn: on the rehearsal's wifi profile (two loaded
-#: cores) 64 KiB x 8 pulled 2.2-2.4 MB/s where x 4 pulled 1.0-1.3 and x 1 1.0 (16 KiB x 4:
-#: 0.6; 256 KiB x 4: 1.1-2.2). On a slow link :data:`IN_FLIGHT_SECONDS` bounds it lower.
-WINDOW = 8
 #: Seconds of the link (at the rate seen so far) that may be in flight: at 256 kbit/s
 #: (32 kB/s) 128 kB, one or two chunks, since more would only queue answers behind each
 #: other, to be asked again if they outlast their bound and thrown away at a cut.
@@ -59,341 +72,6 @@ RETRY_PAUSE = 0.25
 PART_SUFFIX = ".part"
 #: Beside a file pulled cut short (``.<name>.cut``): a later pull may replace it.
 CUT_MARK = ".{}.cut"
-#: The bag file rewritten while a bag is recorded; every other file is final once complete.
-METADATA = "metadata.yaml"
-
-
-class PullError(MsctlError):
-    """A pull that cannot go on: a listing that cannot be read, a directory not writable."""
-
-    exit_code = 3
-
-
-class RemoteFile(NamedTuple):
-    """One file of a bag on the other computer, as its agent listed it.
-
-    Attributes:
-        bag: The bag's directory name.
-        name: The file's name in it.
-        size: Bytes.
-        sha256: Its SHA-256 (hex) when complete, else ``None``.
-        complete: Whether it is finished (an MCAP file ends with its magic).
-        abandoned: Unfinished and no longer written (its recorder was killed): served as it
-            is, with its SHA-256; ``msctl bag recover`` completes the copy.
-    """
-
-    bag: str
-    name: str
-    size: int
-    sha256: str | None
-    complete: bool
-    abandoned: bool = False
-
-    @property
-    def path(self) -> str:
-        """``<bag>/<file>``, as the agent's ``bag_read`` takes it."""
-        return f"{self.bag}/{self.name}"
-
-
-def remote_files(listing: Any, host: str) -> list[RemoteFile]:
-    """The files of an agent's ``bags`` answer, each bag's ``metadata.yaml`` last.
-
-    Raises:
-        PullError: If the answer is not a listing, or names a bag or file that is not a plain
-            name (it would make a path outside the directory pulled into).
-    """
-
-    def bad(why: str) -> PullError:
-        return PullError(
-            f"{host}'s bag listing is refused: {why}",
-            hint=f"bring {host}'s msctl to the version of this computer's",
-        )
-
-    if not isinstance(listing, dict) or not isinstance(listing.get("bags"), list):
-        raise bad("it is not a listing of bags")
-    files: list[RemoteFile] = []
-    for bag in listing["bags"]:
-        name = bag.get("name") if isinstance(bag, dict) else None
-        if not isinstance(name, str) or not is_plain(name):
-            raise bad(f"bag name {name!r} is not a plain name")
-        entries = bag.get("files")
-        if not isinstance(entries, list):
-            raise bad(f"bag {name} has no list of files")
-        found = []
-        for entry in entries:
-            try:
-                remote = RemoteFile(
-                    name,
-                    entry["name"],
-                    int(entry["size"]),
-                    entry.get("sha256"),
-                    bool(entry["complete"]),
-                    bool(entry.get("abandoned", False)),
-                )
-            except (TypeError, KeyError, ValueError):
-                raise bad(f"a file of bag {name} is not described as one") from None
-            if not isinstance(remote.name, str) or not is_plain(remote.name):
-                raise bad(f"file name {remote.name!r} in bag {name} is not a plain name")
-            served = remote.complete or remote.abandoned
-            if remote.size < 0 or (served and not _is_sha256(remote.sha256)):
-                raise bad(f"{remote.path} has no valid size or SHA-256")
-            found.append(remote)
-        files += sorted(found, key=lambda f: (f.name == METADATA, f.name))
-    return files
-
-
-def _is_sha256(value: Any) -> bool:
-    return (
-        isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value)
-    )
-
-
-# ----------------------------------------------------------------------------- decisions
-#: What to do with a remote file (:attr:`Action.kind`).
-FETCH, SKIP, LEFT, CONFLICT = "fetch", "skip", "left", "conflict"
-
-
-class Action(NamedTuple):
-    """What a pull does with one remote file.
-
-    Attributes:
-        kind: :data:`FETCH` (from ``offset``), :data:`SKIP` (here and verified),
-            :data:`LEFT` (not finished there) or :data:`CONFLICT` (a different file of that
-            name is here).
-        file: The remote file.
-        offset: Where fetching starts (the ``.part``'s size when resuming).
-        why: For a person.
-    """
-
-    kind: str
-    file: RemoteFile
-    offset: int = 0
-    why: str = ""
-
-
-#: Why a file pulled as it was left unfinished (:attr:`RemoteFile.abandoned`) is pulled.
-CUT_SHORT = (
-    "cut short there (its recorder was stopped before finishing it): `msctl bag recover` the "
-    "bag here completes it"
-)
-
-
-def decide(
-    remote: RemoteFile, here_sha256: str | None, part_size: int | None, here_cut: bool = False
-) -> Action:
-    """What to do with ``remote``, given what this computer has of it.
-
-    Args:
-        remote: The file as listed.
-        here_sha256: The SHA-256 of the file of that name here (``None``: none).
-        part_size: The size of its ``.part`` here (``None``: none).
-        here_cut: The file here was pulled cut short (:data:`CUT_MARK` beside it): one
-            finished since may replace it.
-    """
-    if not (remote.complete or remote.abandoned):
-        return Action(LEFT, remote, why="still being recorded there")
-    why = CUT_SHORT if remote.abandoned else ""
-    if here_sha256 is not None:
-        if here_sha256 == remote.sha256:
-            return Action(SKIP, remote, why="already here, verified")
-        if remote.name != METADATA and not here_cut:
-            # A finished MCAP file never changes: two different ones of one name is a mix-up
-            # (another computer's bag, a damaged copy), never overwritten unasked.
-            return Action(CONFLICT, remote, why="a different file of that name is already here")
-        return Action(FETCH, remote, why=why or "changed there since it was pulled")
-    if part_size is not None and 0 < part_size <= remote.size:
-        resuming = f"resuming at byte {part_size:,}"
-        return Action(FETCH, remote, part_size, why=f"{resuming}; {why}" if why else resuming)
-    return Action(FETCH, remote, why=why)
-
-
-class ShortRead(ValueError):
-    """A chunk of another size than asked: the file changed there while it was pulled."""
-
-
-class ChunkWindow:
-    """The resume bookkeeping of one file: which chunks to ask, which are in flight, and which
-    bytes can be appended to the ``.part`` now (strictly in order).
-
-    Args:
-        size: The file's size.
-        start: Bytes already in the ``.part`` (fetching starts there).
-        chunk: Bytes per request.
-        window: Requests in flight at most.
-    """
-
-    def __init__(self, size: int, start: int, chunk: int = CHUNK, window: int = WINDOW) -> None:
-        if not 0 <= start <= size:
-            raise ValueError(f"start {start} is outside a file of {size} bytes")
-        if chunk <= 0 or window <= 0:
-            raise ValueError("chunk and window must be positive")
-        self.size = size
-        self.chunk = chunk
-        self.window = window
-        #: Bytes in order so far: what the ``.part`` holds, where a later pull resumes.
-        self.written = start
-        self._next = start
-        self._waiting: set[int] = set()
-        self._early: dict[int, bytes] = {}
-        self._again: list[int] = []
-
-    @property
-    def done(self) -> bool:
-        """Whether every byte is written."""
-        return self.written >= self.size
-
-    @property
-    def in_flight(self) -> int:
-        """Requests asked and not answered."""
-        return len(self._waiting)
-
-    def expected(self, offset: int) -> int:
-        """The bytes a request at ``offset`` returns."""
-        return min(self.chunk, self.size - offset)
-
-    @property
-    def bytes_in_flight(self) -> int:
-        """Bytes asked and not answered."""
-        return sum(self.expected(offset) for offset in self._waiting)
-
-    def asks(self, max_bytes: int = 0) -> list[tuple[int, int]]:
-        """``(offset, size)`` of the requests to send now: the window's free places, chunks
-        that failed first.
-
-        Args:
-            max_bytes: Bytes in flight at most (0: no bound); one request always may go.
-        """
-        asks = []
-        in_flight = self.bytes_in_flight
-        while len(self._waiting) < self.window:
-            if self._again:
-                offset = self._again[0]
-            elif self._next < self.size:
-                offset = self._next
-            else:
-                break
-            size = self.expected(offset)
-            if max_bytes and self._waiting and in_flight + size > max_bytes:
-                break
-            if self._again:
-                self._again.pop(0)
-            else:
-                self._next += size
-            self._waiting.add(offset)
-            in_flight += size
-            asks.append((offset, size))
-        return asks
-
-    def arrived(self, offset: int, data: bytes) -> bytes:
-        """Take the answer to the request at ``offset``; returns the bytes to append now
-        (empty while an earlier chunk is missing).
-
-        Raises:
-            ShortRead: If ``data`` is not as long as asked.
-            ValueError: If nothing was asked at ``offset``.
-        """
-        if offset not in self._waiting:
-            raise ValueError(f"no request at byte {offset} is waiting")
-        if len(data) != self.expected(offset):
-            raise ShortRead(
-                f"{len(data)} bytes came at byte {offset:,} where {self.expected(offset)} were "
-                "asked"
-            )
-        self._waiting.discard(offset)
-        self._early[offset] = data
-        ready = bytearray()
-        while self.written in self._early:
-            piece = self._early.pop(self.written)
-            ready += piece
-            self.written += len(piece)
-        return bytes(ready)
-
-    def failed(self, offset: int) -> None:
-        """The request at ``offset`` got no answer: ask it again (before any new one)."""
-        if offset in self._waiting:
-            self._waiting.discard(offset)
-            self._again.append(offset)
-            self._again.sort()
-
-
-class RateBudget:
-    """A token bucket over the bytes asked, so a pull leaves the radio room for the rest.
-
-    Args:
-        rate: Bytes per second at most (0: no limit).
-        burst: Bytes that may go at once (one chunk).
-        now: The time it starts (seconds, any clock).
-    """
-
-    def __init__(self, rate: float, burst: int, now: float) -> None:
-        self.rate = rate
-        self.burst = burst
-        self._tokens = float(burst)
-        self._then = now
-
-    def delay(self, size: int, now: float) -> float:
-        """Seconds to wait before asking for ``size`` more bytes (the bytes are taken)."""
-        if self.rate <= 0:
-            return 0.0
-        self._tokens = min(self.burst, self._tokens + (now - self._then) * self.rate)
-        self._then = now
-        self._tokens -= size
-        return 0.0 if self._tokens >= 0 else -self._tokens / self.rate
-
-
-def request_timeout(in_flight_bytes: int, rate: float, floor: float, ceiling: float) -> float:
-    """Seconds a chunk request may take before it is asked again.
-
-    On a slow link the answers of a window queue behind each other: at 256 kbit/s four
-    64 KiB chunks take 8 s to come through, and a fixed bound would ask the last ones again
-    while they are on their way, sending them twice. So the bound is three times what the
-    link, at the rate seen so far, needs for every byte in flight, never below ``floor``
-    (no rate known yet, or a fast link: a lost request is asked again soon) nor above
-    ``ceiling``.
-
-    Args:
-        in_flight_bytes: Bytes asked and not answered, this request's included.
-        rate: Bytes per second answered so far (0: not known yet).
-        floor: The least bound.
-        ceiling: The largest bound.
-    """
-    if rate <= 0:
-        return floor
-    return min(max(floor, 3.0 * in_flight_bytes / rate), max(ceiling, floor))
-
-
-class RateMeter:
-    """Bytes per second answered, from the first request on, over the whole pull (a radio's
-    rate changes slowly; a short window would chase every burst of loss).
-
-    Args:
-        now: When the first request left (seconds, any clock); ``None``: not yet, see
-            :meth:`asked`.
-    """
-
-    def __init__(self, now: float | None = None) -> None:
-        self._started = now
-        self._bytes = 0
-        self._seconds = 0.0
-
-    def asked(self, now: float) -> None:
-        """A request left at ``now``: the clock starts at the first."""
-        if self._started is None:
-            self._started = now
-
-    def answered(self, size: int, now: float) -> None:
-        """``size`` bytes came at ``now``."""
-        self.asked(now)
-        assert self._started is not None
-        self._bytes += size
-        self._seconds = now - self._started
-
-    @property
-    def rate(self) -> float:
-        """Bytes per second so far (0 until a second's worth is known)."""
-        return self._bytes / self._seconds if self._seconds >= 1.0 else 0.0
-
-
 # ----------------------------------------------------------------------------- the report
 #: Outcomes of a file (:attr:`FileOutcome.status`).
 PULLED, SKIPPED, NOT_READY, FAILED = "pulled", "skipped", "left", "failed"
