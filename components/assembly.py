@@ -29,6 +29,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
+from components.errors import ComponentError
 from components.joints import JointCalibration, JointSpec
 from components.motors.base import MotorSpec
 from components.paths import state_dir
@@ -45,7 +46,7 @@ NonNegative = Annotated[float, Meta(ge=0)]
 Direction = Literal[1, -1]
 
 
-class AssemblyError(Exception):
+class AssemblyError(ComponentError):
     """No resolved assembly, or one that cannot be read; the message says what to run."""
 
 

@@ -7,9 +7,12 @@ a kind has is its entry in :mod:`components.kinds`, never an ``if kind == ...``.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
+
+from components.errors import ConfigError
 
 if TYPE_CHECKING:
     from components.assembly import ComponentPlan, ResolvedAssembly
@@ -18,6 +21,7 @@ if TYPE_CHECKING:
     from components.executor.interface import InterfaceSpec
 
 T = TypeVar("T")
+_log = logging.getLogger(__name__)
 
 
 def node_name(component: str) -> str:
@@ -30,7 +34,7 @@ def node_name(component: str) -> str:
     return component.rsplit("/", 1)[-1].replace("-", "_")
 
 
-class BuildError(ValueError):
+class BuildError(ConfigError):
     """A component that cannot be built from the assembly; the message says which and why."""
 
 
@@ -86,8 +90,8 @@ class BuiltComponent:
         for resource in reversed(self.resources):
             try:
                 resource.close()
-            except Exception:
-                pass
+            except Exception as exc:  # the others are closed still; say which one failed
+                _log.warning("closing %r failed: %s", resource, exc, exc_info=True)
 
 
 Builder = Callable[["ComponentPlan", "ResolvedAssembly", Mapping[str, Any]], BuiltComponent]

@@ -25,10 +25,10 @@ API summary::
     claim.release()             # idempotent; also done by claims.close()
     claims.close()              # releases this object's claims, stops watching
 
-Enforcement (robot side): an interface's ``Subscribe`` carrying a :class:`ClaimRule` (set on
-every input whose declared role is a command by the builder's
-:func:`components.roles.bind`, with :func:`components.roles.command_rule`) is kept by the
-executor's :class:`ClaimGuard` on the module's holder; other senders are refused, counted
+Enforcement (robot side, :mod:`components.claim_guard`): an interface's ``Subscribe``
+carrying a ``ClaimRule`` (set on every input whose declared role is a command by the
+builder's :func:`components.roles.bind`, with :func:`components.roles.command_rule`) is kept
+by the executor's ``ClaimGuard`` on the module's holder; other senders are refused, counted
 under ``not_holder`` (or ``unclaimed`` when the template says ``claims = "required"``), and
 warned about once naming the holder.
 
@@ -47,12 +47,13 @@ Token key (ours, beside rmw_zenoh's ``@ros2_lv`` graph, which ROS tools would no
 from __future__ import annotations
 
 import getpass
+import logging
 import os
 import re
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -60,6 +61,10 @@ from urllib.parse import quote, unquote
 
 from components.comm.liveliness import ask_tokens, follow_tokens
 from components.comm.names import mangle, unmangle
+from components.errors import ConfigError
+
+_log = logging.getLogger(__name__)
+
 
 #: The first chunks of every claim token (a verbatim ``@`` chunk: wildcards never match it,
 #: so only claim watchers see these tokens).
@@ -80,7 +85,7 @@ _MODULE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _NS = 1_000_000_000
 
 
-class ClaimError(ValueError):
+class ClaimError(ConfigError):
     """A claim that cannot be made; the message says why and what to do."""
 
 
@@ -190,121 +195,6 @@ def holder_of(claims: Iterable[ClaimInfo]) -> ClaimInfo | None:
     return max(claims, key=ClaimInfo.order, default=None)
 
 
-#: Drop reasons of a command refused by a claim (counted per topic in ``drops``).
-NOT_HOLDER = "not_holder"
-UNCLAIMED = "unclaimed"
-
-
-@dataclass(frozen=True)
-class ClaimRule:
-    """A command subscription's rule: samples only from the holder of ``module``'s claim.
-
-    Set on an interface's ``Subscribe`` (its ``claim``) by the component's builder; the
-    executor keeps the subscription's senders on the holder (:class:`ClaimGuard`).
-
-    Attributes:
-        module: The module whose claim decides.
-        relays: Nodes always taken: components that take commands only from holders
-            themselves and forward them (the module's kinematics manager; the steering
-            operator), so what they forward is the holder's command.
-        required: The assembly says ``claims = "required"``: while nobody holds the module,
-            no one but the relays may command it. Otherwise an unclaimed module takes
-            commands from anyone (scripts that never claim keep working).
-        also: More modules the same commands move (a Twist on ``cmd_vel`` steers every
-            wheel and limb): the sender must then hold each of them that is claimed, so
-            while two operators hold two of them, neither is taken.
-    """
-
-    module: str
-    relays: tuple[str, ...] = ()
-    required: bool = False
-    also: tuple[str, ...] = ()
-
-    @property
-    def modules(self) -> tuple[str, ...]:
-        """Every module the rule watches."""
-        return (self.module, *self.also)
-
-    def senders(
-        self, holders: Mapping[str, ClaimInfo | None]
-    ) -> tuple[frozenset[str] | None, str, str]:
-        """Who may command while ``holders`` (module -> its holder, absent or ``None`` when
-        free) hold the modules: the senders for :meth:`Subscription.allow
-        <components.comm.topics.Subscription.allow>`, what a refusal says, and the drop
-        reason it is counted under."""
-        held = {m: h for m in self.modules if (h := holders.get(m)) is not None}
-        free = [m for m in self.modules if m not in held]
-        operators = {(h.node, h.zid) for h in held.values()}
-        if len(operators) > 1:
-            named = "; ".join(f"{m} by {h.holder} (node {h.node})" for m, h in sorted(held.items()))
-            return (
-                frozenset(self.relays),
-                f"its modules are claimed by different operators ({named}): one operator "
-                "must hold them all",
-                NOT_HOLDER,
-            )
-        if self.required and free:
-            return (
-                frozenset(self.relays),
-                f"{', '.join(free)} take{'s' if len(free) == 1 else ''} commands only from "
-                'the holder of a claim (the assembly says claims = "required") and nobody '
-                "holds it: claim it first (msctl teleop, or a script under msctl run)",
-                UNCLAIMED,
-            )
-        if held:
-            module, holder = next(iter(held.items()))
-            return (
-                frozenset({f"{holder.node}@{holder.zid}", *self.relays}),
-                f"{', '.join(held) if len(held) > 1 else module} is claimed by {holder.holder} "
-                f"(node {holder.node}) since {holder.since_text()}; only the holder may "
-                "command it (msctl claims)",
-                NOT_HOLDER,
-            )
-        return None, "", NOT_HOLDER
-
-
-class ClaimGuard:
-    """Keeps guarded subscriptions' senders on their modules' claim holders.
-
-    Args:
-        claims: The watcher whose holders decide (its ``on_change`` drives this guard).
-    """
-
-    def __init__(self, claims: Claims) -> None:
-        self.claims = claims
-        self._lock = threading.Lock()
-        self._guarded: dict[str, list[tuple[Any, ClaimRule]]] = {}
-        claims.on_change(self._on_change)
-
-    def add(self, subscription: Any, rule: ClaimRule) -> None:
-        """Guard ``subscription`` (made ``guarded``) by ``rule``, from now on.
-
-        Until the watcher has heard of a claim, the module is taken as free: for a moment
-        after a (re)start, an open assembly's module takes anyone's commands, a required
-        one's no one's.
-        """
-        with self._lock:
-            for module in rule.modules:
-                self._guarded.setdefault(module, []).append((subscription, rule))
-        self._apply(subscription, rule)
-
-    def discard(self, subscription: Any) -> None:
-        """Stop guarding ``subscription`` (its component was removed)."""
-        with self._lock:
-            for entries in self._guarded.values():
-                entries[:] = [e for e in entries if e[0] is not subscription]
-
-    def _apply(self, subscription: Any, rule: ClaimRule) -> None:
-        holders = self.claims.holders()
-        subscription.allow(*rule.senders({m: holders.get(m) for m in rule.modules}))
-
-    def _on_change(self, module: str, holder: ClaimInfo | None) -> None:
-        with self._lock:
-            entries = list(self._guarded.get(module, ()))
-        for subscription, rule in entries:
-            self._apply(subscription, rule)
-
-
 class Claim:
     """A claim this process holds. Made by :meth:`Claims.claim`.
 
@@ -371,8 +261,8 @@ class Claim:
         self._owner._forget(self)
         try:
             self._token.undeclare()
-        except Exception:  # the session may be closed already: the token went with it
-            pass
+        except Exception as exc:  # the session may be closed already: the token went with it
+            _log.debug("claim of %s: token not undeclared: %s", self.info.module, exc)
 
     def __enter__(self) -> Claim:
         return self
@@ -617,8 +507,8 @@ class Claims:
             self._callbacks.clear()
         try:
             self._subscriber.undeclare()
-        except Exception:
-            pass
+        except Exception as exc:  # the session may be closed already
+            _log.debug("claims watcher: subscriber not undeclared: %s", exc)
 
     def __enter__(self) -> Claims:
         return self

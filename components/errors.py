@@ -21,9 +21,11 @@ class ComponentError(Exception):
         hint: What to do about it, appended to the message when printed.
     """
 
-    def __init__(self, message: str = "", *args: object, hint: str | None = None) -> None:
-        super().__init__(message, *args)
-        self.message = str(message)
+    def __init__(self, *args: object, hint: str | None = None) -> None:
+        # The arguments as Exception keeps them (``args``, ``repr`` and pickling unchanged
+        # for the classes re-rooted here), the first one being the message.
+        super().__init__(*args)
+        self.message = str(args[0]) if args else ""
         self.hint = hint
 
     def __str__(self) -> str:
@@ -52,3 +54,14 @@ class DeadlineError(ComponentError, TimeoutError):
 
 class HardwareError(ComponentError, OSError):
     """A device, a port or a disk failed (what was written stays readable)."""
+
+
+def swallowed(what: str, exc: BaseException, *, level: int = 10) -> None:
+    """Log an error a close path goes on past (``level``: logging's, DEBUG by default).
+
+    Closing undeclares tokens and subscribers whose session may be closed already: such an
+    error changes nothing, but it is said, with what failed, for whoever reads the log.
+    """
+    import logging
+
+    logging.getLogger("components.close").log(level, "%s: %s: %s", what, type(exc).__name__, exc)

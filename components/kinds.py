@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
+from components.errors import NotFound
+
 #: The kinds that ship with msctl: modules each holding one ``KIND``.
 BUILTIN: tuple[str, ...] = (
     "components.motor_interface.kind",
@@ -56,7 +58,7 @@ class Placement(Enum):
     ASSEMBLY = "assembly"  #: one for the whole assembly, added by the launcher (the simulator)
 
 
-class KindError(LookupError):
+class KindError(NotFound):
     """An unknown kind, or parameters a kind does not accept; the message names both."""
 
 

@@ -33,8 +33,10 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING, Any
 
+from components.errors import ConfigError
+
 if TYPE_CHECKING:
-    from components.claims import ClaimRule
+    from components.claim_guard import ClaimRule
     from components.executor.interface import InterfaceSpec
 
 
@@ -118,7 +120,7 @@ RULES: dict[Role, RoleRule] = {
 }
 
 
-class RoleError(ValueError):
+class RoleError(ConfigError):
     """An input declared without a role (or with something that is not a :class:`Role`)."""
 
 
@@ -349,7 +351,7 @@ def command_rule(assembly: Any, slot: str, *more: str) -> ClaimRule:
     """
     from components import kinds
     from components.build import node_name
-    from components.claims import ClaimRule
+    from components.claim_guard import ClaimRule
 
     modules = (slot, *more)
     relays = []

@@ -23,12 +23,10 @@ from typing import Any
 import pytest
 from conftest import quick_peer_settings, quick_router, resolved_assembly, wait_until
 
+from components.claim_guard import NOT_HOLDER, UNCLAIMED, ClaimRule
 from components.claims import (
-    NOT_HOLDER,
-    UNCLAIMED,
     ClaimInfo,
     ClaimRefused,
-    ClaimRule,
     Claims,
     UnknownModuleError,
     claim_key,

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from components.errors import ComponentError
 
-class ApiError(Exception):
+
+class ApiError(ComponentError):
     """Something the API cannot do; the message names the joint, module or topic at fault."""
 
 

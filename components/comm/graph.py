@@ -21,6 +21,7 @@ from components.comm.liveliness import (
     follow_tokens,
 )
 from components.comm.stats import drops
+from components.errors import swallowed
 
 # The records of the graph layer (here, and the QoS, entities, attachments and session
 # settings beside it) are plain classes and named tuples, not dataclasses: importing
@@ -265,8 +266,8 @@ class Graph(GraphView):
         if sub is not None:
             try:
                 sub.undeclare()
-            except Exception:
-                pass
+            except Exception as exc:
+                swallowed("graph: liveliness subscriber not undeclared", exc)
 
     def __enter__(self) -> Graph:
         return self

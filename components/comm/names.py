@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import re
 
+from components.errors import ConfigError
+
 _COMPONENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-class NameError_(ValueError):
+class NameError_(ConfigError):
     """A topic, service, node or namespace name that ROS 2 would refuse."""
 
 

@@ -16,6 +16,7 @@ from components.comm.liveliness import Entity, EntityKind
 from components.comm.names import check_node_name, normalize_namespace, qualify
 from components.comm.qos import QoS
 from components.comm.services import ServiceClient, ServiceServer
+from components.errors import swallowed
 
 if TYPE_CHECKING:  # imported where used: a CLI node that only calls a service needs neither
     from components.comm.topics import Publisher, Subscription
@@ -172,8 +173,8 @@ class Node:
         self._owned.clear()
         try:
             self._token.undeclare()
-        except Exception:
-            pass
+        except Exception as exc:
+            swallowed(f"node {self.fqn}: token not undeclared", exc)
 
     def __enter__(self) -> Node:
         return self

@@ -21,6 +21,7 @@ from components.comm.liveliness import (
     EntityKind,
     follow_tokens,
 )
+from components.errors import swallowed
 
 #: ``(session zid, domain)`` -> its followed tokens, while a subscription of it listens.
 _FOLLOWED: dict[tuple[str, int], PublisherTokens] = {}
@@ -84,8 +85,8 @@ class PublisherTokens:
         """Undeclare the liveliness subscriber (the session may be closed already)."""
         try:
             self._subscriber.undeclare()
-        except Exception:
-            pass
+        except Exception as exc:
+            swallowed("publishers: liveliness subscriber not undeclared", exc)
 
 
 class Listening:

@@ -23,6 +23,7 @@ from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
 from components.comm.types import dds_type_name, normalize_type_name, registry
+from components.errors import ComponentError, DeadlineError
 
 if TYPE_CHECKING:
     from components.comm.node import Node
@@ -48,11 +49,11 @@ def current_caller() -> str | None:
     return None if pending is None else pending.caller
 
 
-class ServiceError(RuntimeError):
+class ServiceError(ComponentError, RuntimeError):
     """A service call that got no usable answer; the message names the service and why."""
 
 
-class ServiceTimeout(ServiceError, TimeoutError):
+class ServiceTimeout(ServiceError, DeadlineError):
     """No server answered within the timeout."""
 
 

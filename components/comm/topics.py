@@ -28,6 +28,7 @@ from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
 from components.comm.types import dds_type_name, normalize_type_name, registry
+from components.errors import swallowed
 
 if TYPE_CHECKING:
     from components.comm.node import Node
@@ -139,8 +140,8 @@ class Publisher:
         for thing in (self._token, self._zpub):
             try:
                 thing.undeclare()
-            except Exception:  # the session may already be closed
-                pass
+            except Exception as exc:  # the session may already be closed
+                swallowed(f"publisher {self.key}: not undeclared", exc)
 
 
 class Subscription:
@@ -476,5 +477,5 @@ class Subscription:
         for thing in (self._token, self._zsub, self._publishers):
             try:
                 thing.undeclare()
-            except Exception:
-                pass
+            except Exception as exc:  # the session may already be closed
+                swallowed(f"subscription {self.key}: not undeclared", exc)

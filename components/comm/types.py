@@ -26,6 +26,8 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from components.errors import NotFound
+
 if TYPE_CHECKING:
     from components.comm.codec import Codec
 
@@ -63,7 +65,7 @@ _BOUNDED_STRING = {"string": 21, "wstring": 22}
 _ARRAY, _BOUNDED_SEQUENCE, _UNBOUNDED_SEQUENCE = 48, 96, 144
 
 
-class UnknownTypeError(LookupError):
+class UnknownTypeError(NotFound):
     """A message or service type that no definition is registered for."""
 
 

@@ -24,7 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from components.claims import ClaimGuard, Claims
+from components.claim_guard import ClaimGuard
+from components.claims import Claims
 from components.comm.node import Node
 from components.comm.services import PendingRequest
 from components.comm.session import SessionSettings, open_session

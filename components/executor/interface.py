@@ -19,7 +19,7 @@ from components.comm.qos import QoS
 from components.roles import Role
 
 if TYPE_CHECKING:
-    from components.claims import ClaimRule
+    from components.claim_guard import ClaimRule
 
 
 @dataclass(frozen=True)

@@ -25,10 +25,12 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from components.errors import NotFound
+
 Applier = Callable[[Any, dict[str, Any]], None]
 
 
-class RegistryError(LookupError):
+class RegistryError(NotFound):
     """An injection or override named in data does not exist for that core kind."""
 
 

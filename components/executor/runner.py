@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from components.comm.session import SessionSettings, open_session
+from components.errors import ComponentError
 from components.executor.executor import Component, Executor
 from components.executor.heartbeat import Heartbeat
 from components.executor.orders import Orders
@@ -30,11 +31,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("msctl.worker")
 
 
-class RebuildFailed(RuntimeError):
+class RebuildFailed(ComponentError, RuntimeError):
     """A component could not be rebuilt in place: its process must restart whole."""
 
 
-class ComponentFailed(RuntimeError):
+class ComponentFailed(ComponentError, RuntimeError):
     """A component could not go on (its ``failed``, an operator's script raised) and
     stopped its executor: its process must restart."""
 

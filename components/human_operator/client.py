@@ -22,6 +22,7 @@ from typing import Any
 
 from components.build import node_name
 from components.claims import ClaimInfo, parse_claim
+from components.errors import ComponentError
 from components.human_operator.desk import ATTACH, DETACH, REQUEST_SRV
 
 #: The kind whose components a screen attaches to.
@@ -30,7 +31,7 @@ KIND = "human_operator"
 ATTACH_TIMEOUT = 10.0
 
 
-class AttachRefused(RuntimeError):
+class AttachRefused(ComponentError, RuntimeError):
     """The human operator refused (a module is held by another operator).
 
     Attributes:

@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from components.errors import ConfigError
 from components.human_operator.routes import Route
 from components.messages import msg
 
@@ -45,7 +46,7 @@ ATTACH, DETACH = "attach", "detach"
 STOP_WAIT = 1.0
 
 
-class RequestError(ValueError):
+class RequestError(ConfigError):
     """A request the desk refuses; the message says why."""
 
 

@@ -25,13 +25,15 @@ from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 
+from components.errors import ConfigError
+
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
 # A table or array-of-tables header line; a header contains no comma, unlike an array row.
 _HEADER = re.compile(r"^\s*\[\[?[^\],]*\]\]?\s*(?:#.*)?$")
 _ZERO_OFFSET = re.compile(r"^(\s*zero_offset\s*=\s*)([^#]*?)(\s*(?:#.*)?)$")
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(ConfigError):
     """The calibration file cannot be updated; the message names the file and the fix."""
 
 

@@ -25,6 +25,7 @@ the flood was recorded at half the rate a bare subscriber received it).
 
 from __future__ import annotations
 
+import logging
 import os
 import struct
 import threading
@@ -46,6 +47,9 @@ from components.recording.definitions import message_definition, qos_profiles
 from components.recording.errors import BagWriteError
 from components.recording.keys import TopicKey, parse_key, read_attachment
 from components.recording.writer import BagWriter, TopicSpec
+
+_log = logging.getLogger(__name__)
+
 
 #: Messages the queue holds before it drops (about 2 s of 50 kHz).
 DEFAULT_QUEUE_MESSAGES = 100_000
@@ -225,8 +229,8 @@ class Recorder:
             for subscriber in self._subscribers:
                 try:
                     subscriber.undeclare()
-                except Exception:
-                    pass
+                except Exception as exc:  # the session may be closed already
+                    _log.debug("recorder: subscriber not undeclared: %s", exc)
             self._subscribers.clear()
             if self._thread is not None:
                 self._queue.append((_CONTROL, None, None, None))
@@ -236,8 +240,8 @@ class Recorder:
             for token in self._tokens:
                 try:
                     token.undeclare()
-                except Exception:
-                    pass
+                except Exception as exc:  # the session may be closed already
+                    _log.debug("recorder: token not undeclared: %s", exc)
             self._tokens.clear()
             if self._graph is not None:
                 self._graph.close()
@@ -581,8 +585,8 @@ class Recorder:
         if self._on_stop is not None:
             try:
                 self._on_stop(message)
-            except Exception:
-                pass
+            except Exception:  # the recording has stopped either way
+                _log.warning("recorder: on_stop callback failed", exc_info=True)
 
 
 def _who(node: Any, name: str, namespace: str) -> dict[str, str]:

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from components.errors import ComponentError
+
 #: What to do when rclpy is missing (the ``ros`` extra, or a sourced ROS 2 install).
 INSTALL_HINT = (
     "install the ROS 2 wheels with `pip install 'msctl[ros]'` (or source "
@@ -24,7 +26,7 @@ INSTALL_HINT = (
 )
 
 
-class RclpyUnavailable(RuntimeError):
+class RclpyUnavailable(ComponentError, RuntimeError):
     """rclpy (a ROS 2 install) is not importable here."""
 
 

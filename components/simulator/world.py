@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import mujoco
 import numpy as np
 
+from components.errors import ComponentError
 from components.joints import JointCalibration
 
 if TYPE_CHECKING:
@@ -47,7 +48,7 @@ MODE_NAMES = {POSITION: "position", VELOCITY: "velocity", EFFORT: "effort"}
 TIME_CONSTANT = 0.1
 
 
-class SimulationError(Exception):
+class SimulationError(ComponentError):
     """The model cannot be simulated as the assembly describes it (names the file and joint)."""
 
 
