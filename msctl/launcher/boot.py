@@ -65,7 +65,7 @@ def main() -> None:
 
 def run(module: str, args: list[str]) -> None:
     """Run ``module`` as ``__main__`` with ``args``, SIGINT ending it at once until it sets its
-    own handling (also what a worker forked by :mod:`msctl.launcher.forkserver` does)."""
+    own handling (also what a worker forked by :mod:`msctl.launcher.forkserver_process` does)."""
     _default_sigint()
     # As `python -m MODULE ARG ...` would see it (runpy sets argv[0] to the module's file).
     sys.argv = [sys.argv[0], *args]
