@@ -297,15 +297,32 @@ def fleet_state(timeout: float = 3.0, every_host: bool = False) -> FleetState:
         every_host: Also ask each host of the plan the graph does not show (``ps --all``);
             without it, those are named as not asked.
     """
-    from msctl.errors import NetworkError
-    from msctl.plane import connected
-
     plan = read_plan()
     documents: dict[str, dict[str, Any]] = {}
     silent: dict[str, Silence] = {}  # by host
     notes: list[str] = []
-    unreached = ""  # why the network could not be asked, if it could not
     local = state.read_state()
+    # Why the network could not be asked, if it could not.
+    unreached = _ask_network(plan, every_host, timeout, documents, silent, notes)
+    if local and local.get("host") not in documents:
+        _add_local(local, documents, silent, notes)
+    silent = _owed_silences(plan, documents, silent, unreached, every_host)
+    return FleetState(list(documents.values()), list(silent.values()), notes, plan)
+
+
+def _ask_network(
+    plan: Plan | None,
+    every_host: bool,
+    timeout: float,
+    documents: dict[str, dict[str, Any]],
+    silent: dict[str, Silence],
+    notes: list[str],
+) -> str:
+    """Ask every supervisor on the network for its run document, into ``documents`` (by
+    host) and ``silent``; why the network could not be asked ("" when it could)."""
+    from msctl.errors import NetworkError
+    from msctl.plane import connected
+
     try:
         with connected("ps") as node:
             asked = ask_hosts(node, "ps", plan.hosts if plan and every_host else (), None, timeout)
@@ -318,28 +335,46 @@ def fleet_state(timeout: float = 3.0, every_host: bool = False) -> FleetState:
             host = named.get(namespace, silence.host)
             silent[host] = silence._replace(host=host)
     except NetworkError as exc:
-        unreached = exc.message
         notes.append(f"network: {exc} (showing this computer's state file only)")
-    if local and local.get("host") not in documents:
-        if not state.supervisor_alive(local) and local.get("state") != "stopped":
-            local = _supervisor_gone(local)
-            left = state.groups_left(local)
-            if left:
-                notes.append(
-                    f"the supervisor of {local.get('template')} on {local['host']} (pid "
-                    f"{local.get('supervisor_pid')}) is gone; processes left running: "
-                    f"{', '.join(left)} — stop them with `msctl down`"
-                )
-        elif local["host"] in silent:
-            # Alive, yet its answer did not come: its state file (rewritten twice a second)
-            # answers for it.
+        return exc.message
+    return ""
+
+
+def _add_local(
+    local: dict[str, Any],
+    documents: dict[str, dict[str, Any]],
+    silent: dict[str, Silence],
+    notes: list[str],
+) -> None:
+    """This computer's state file stands for its supervisor, which the network did not
+    bring: gone (its components judged by their process groups) or silent."""
+    if not state.supervisor_alive(local) and local.get("state") != "stopped":
+        local = _supervisor_gone(local)
+        left = state.groups_left(local)
+        if left:
             notes.append(
-                f"{local['host']}: {silent[local['host']].detail}; shown from its state file"
+                f"the supervisor of {local.get('template')} on {local['host']} (pid "
+                f"{local.get('supervisor_pid')}) is gone; processes left running: "
+                f"{', '.join(left)} — stop them with `msctl down`"
             )
-        silent.pop(local["host"], None)
-        documents[local["host"]] = local
-    # A plan host with no supervisor is owed an answer only if no computer runs the whole
-    # assembly in its stead; one that has a supervisor and stayed silent always is.
+    elif local["host"] in silent:
+        # Alive, yet its answer did not come: its state file (rewritten twice a second)
+        # answers for it.
+        notes.append(f"{local['host']}: {silent[local['host']].detail}; shown from its state file")
+    silent.pop(local["host"], None)
+    documents[local["host"]] = local
+
+
+def _owed_silences(
+    plan: Plan | None,
+    documents: dict[str, dict[str, Any]],
+    silent: dict[str, Silence],
+    unreached: str,
+    every_host: bool,
+) -> dict[str, Silence]:
+    """The silences that count, by host: a plan host with no supervisor is owed an answer
+    only if no computer runs the whole assembly in its stead; one that has a supervisor and
+    stayed silent always is."""
     owed = set(expected_hosts(plan, documents.values()))
     covered = set(plan.hosts) - owed if plan else set()
     silent = {
@@ -353,7 +388,7 @@ def fleet_state(timeout: float = 3.0, every_host: bool = False) -> FleetState:
                 silent[host] = Silence(host, NO_NETWORK, unreached, asked=every_host)
             else:
                 silent[host] = Silence(host, NO_SUPERVISOR, NOT_ASKED, asked=False)
-    return FleetState(list(documents.values()), list(silent.values()), notes, plan)
+    return silent
 
 
 def _supervisor_gone(document: dict[str, Any]) -> dict[str, Any]:
