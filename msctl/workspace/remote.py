@@ -381,39 +381,7 @@ def _summarise(
     names: dict[str, str],
 ) -> dict[str, Any]:
     """One document of every host's outcome (``names``: host of each namespace known)."""
-    hosts = []
-    for namespace, state in sorted(final.items()):
-        job = state.get("job") or {}
-        result = job.get("result")
-        done: list[str] = []
-        not_done: list[str] = []
-        if verb == "update" and isinstance(result, list):
-            for outcome in result:
-                (done if outcome.get("ok") else not_done).append(outcome["path"])
-        elif verb == "build" and isinstance(result, dict):
-            for package in result.get("packages", []):
-                ok = package.get("status") in ("built", "up to date", "skipped")
-                (done if ok else not_done).append(package["name"])
-        note = job.get("error", "")
-        if not note and verb == "update" and isinstance(result, list):
-            note = "; ".join(f"{o['path']}: {o['reason']}" for o in result if not o.get("ok"))
-        if not note and verb == "build" and isinstance(result, dict):
-            note = "; ".join(
-                f"{p['name']}: {p['step']}: {p['message'].splitlines()[0]}"
-                for p in result.get("packages", [])
-                if p.get("status") in ("failed", "blocked") and p.get("message")
-            )
-        hosts.append(
-            {
-                "host": state.get("host", namespace),
-                "workspace": state.get("workspace"),
-                "ok": bool(job.get("ok")),
-                "done": done,
-                "not_done": not_done,
-                "note": note,
-                "result": result,
-            }
-        )
+    hosts = [_host_outcome(verb, namespace, state) for namespace, state in sorted(final.items())]
     for namespace, problem in sorted(problems.items()):
         host = names.get(namespace, namespace.rsplit("/", 1)[-1])
         hosts.append(
@@ -428,3 +396,47 @@ def _summarise(
             }
         )
     return {"verb": verb, "ok": all(h["ok"] for h in hosts), "hosts": hosts}
+
+
+def _host_outcome(verb: str, namespace: str, state: dict[str, Any]) -> dict[str, Any]:
+    """One host's outcome from its agent's last job state."""
+    job = state.get("job") or {}
+    result = job.get("result")
+    done, not_done = _done_and_not(verb, result)
+    return {
+        "host": state.get("host", namespace),
+        "workspace": state.get("workspace"),
+        "ok": bool(job.get("ok")),
+        "done": done,
+        "not_done": not_done,
+        "note": _failure_note(verb, job, result),
+        "result": result,
+    }
+
+
+def _done_and_not(verb: str, result: Any) -> tuple[list[str], list[str]]:
+    """The repositories (``update``) or packages (``build``) a job did and did not do."""
+    done: list[str] = []
+    not_done: list[str] = []
+    if verb == "update" and isinstance(result, list):
+        for outcome in result:
+            (done if outcome.get("ok") else not_done).append(outcome["path"])
+    elif verb == "build" and isinstance(result, dict):
+        for package in result.get("packages", []):
+            ok = package.get("status") in ("built", "up to date", "skipped")
+            (done if ok else not_done).append(package["name"])
+    return done, not_done
+
+
+def _failure_note(verb: str, job: dict[str, Any], result: Any) -> str:
+    """Why a job failed: its error, else what each failed repository or package said."""
+    note = job.get("error", "")
+    if not note and verb == "update" and isinstance(result, list):
+        note = "; ".join(f"{o['path']}: {o['reason']}" for o in result if not o.get("ok"))
+    if not note and verb == "build" and isinstance(result, dict):
+        note = "; ".join(
+            f"{p['name']}: {p['step']}: {p['message'].splitlines()[0]}"
+            for p in result.get("packages", [])
+            if p.get("status") in ("failed", "blocked") and p.get("message")
+        )
+    return note
