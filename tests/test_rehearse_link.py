@@ -15,12 +15,11 @@ from pathlib import Path
 import pytest
 
 from msctl.errors import InputError, NotFoundError
-from msctl.rehearse.link import (
+from msctl.rehearse.link import Link, LinkDirection
+from msctl.rehearse.link_profile import (
     DEFAULT_QUEUE_MS,
     DirectionProfile,
     GilbertElliott,
-    Link,
-    LinkDirection,
     LinkProfile,
     ProfileError,
 )

@@ -70,7 +70,8 @@ from msctl.errors import (
     OperationTimeout,
     did_you_mean,
 )
-from msctl.rehearse.link import Link, LinkProfile
+from msctl.rehearse.link import Link
+from msctl.rehearse.link_profile import LinkProfile
 from msctl.rehearse.profiles import find_profile, load_profiles
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """Link profiles as data: the built-in ``profiles.toml`` and a user's file over it.
 
-A profile is a TOML table of :class:`~msctl.rehearse.link.DirectionProfile` fields, given
+A profile is a TOML table of :class:`~msctl.rehearse.link_profile.DirectionProfile` fields, given
 once for both directions or in ``up`` / ``down`` tables (which win), plus ``description``
 and ``base`` (start from another profile). The file beside this module documents every
 field. :func:`load_profiles` reads the built-ins, then the user's file (its profiles add to
@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from msctl.errors import InputError, NotFoundError, did_you_mean
-from msctl.rehearse.link import DirectionProfile, GilbertElliott, LinkProfile, ProfileError
+from msctl.rehearse.link_profile import DirectionProfile, GilbertElliott, LinkProfile, ProfileError
 
 #: The built-in profiles.
 BUILTIN_PROFILES = Path(__file__).with_name("profiles.toml")
