@@ -812,7 +812,7 @@ class Stage:
 
     def link(self, request: dict[str, Any]) -> dict[str, Any]:
         """Ask the link emulator (what ``msctl rehearse link`` and ``status`` do)."""
-        from msctl.rehearse.rehearsal import link_request
+        from msctl.rehearse.running import link_request
 
         return link_request(self.rehearsal, request)
 

@@ -30,7 +30,9 @@ import pytest
 from conftest import wait_until
 
 from msctl.errors import InputError, NetworkError
-from msctl.rehearse.emulator import Spec, control, run_in_netns
+from msctl.rehearse.emulator_control import control
+from msctl.rehearse.emulator_spec import Spec
+from msctl.rehearse.netns import run_in_netns
 
 pytestmark = pytest.mark.e2e
 

@@ -34,7 +34,8 @@ from conftest import wait_until
 import components
 import msctl
 from msctl.rehearse.computers import namespaces
-from msctl.rehearse.privileges import KEEPER_MODULE, TUN
+from msctl.rehearse.privilege_choice import TUN
+from msctl.rehearse.privileges import KEEPER_MODULE
 from msctl.rehearse.rehearsal import namespace_prefix
 
 pytestmark = [pytest.mark.e2e, pytest.mark.timeout(600)]

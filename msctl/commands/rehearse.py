@@ -167,7 +167,8 @@ def link(
 ) -> None:
     """Change a computer's radio link while the rehearsal runs."""
     from msctl.console import err
-    from msctl.rehearse.rehearsal import Rehearsal, link_request
+    from msctl.rehearse.rehearsal import Rehearsal
+    from msctl.rehearse.running import link_request
 
     chosen = [x for x in (profile is not None, down_for is not None, up_again) if x]
     if len(chosen) != 1:

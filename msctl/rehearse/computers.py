@@ -34,7 +34,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from msctl.rehearse.privileges import ROOT, Privileges, RehearseError, choose, probe
+from msctl.rehearse.privilege_choice import choose, probe
+from msctl.rehearse.privileges import ROOT, Privileges, RehearseError
 
 #: The radio interface inside each computer (the emulator's TUN device).
 RADIO_DEVICE = "rh0"

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -42,11 +41,8 @@ from components.paths import state_dir
 from msctl.rehearse.computers import (
     Computer,
     RehearseError,
-    describe_processes,
     environment,
     kill_all,
-    make_namespace,
-    make_python_environment,
     namespaces,
     need_privileges,
     remove_namespace,
@@ -55,17 +51,17 @@ from msctl.rehearse.computers import (
 from msctl.rehearse.privileges import ROOT, Privileges, find_keepers
 from msctl.rehearse.privileges import from_json as privileges_from_json
 
-#: The radio subnet every rehearsal uses (each computer's namespace has its own stack, so
-#: two rehearsals never meet).
-SUBNET = "10.77.0.0/24"
+# The CLI and the tests reach these as `rehearsal.reboot` and `rehearsal.status`.
+from msctl.rehearse.running import reboot as reboot
+from msctl.rehearse.running import status as status
+from msctl.rehearse.start import make_computers, up_all
+
 #: Robot computers from .11 up, ground stations from .201 up.
 FIRST_ROBOT, FIRST_STATION = 11, 201
 #: The state file's name under ``$MSCTL_HOME/rehearse``.
 STATE_FILE = "rehearsal.json"
 #: The ports the field uses: each computer has its own network stack, as a real one does.
 LOCAL_PORT, TLS_PORT = 7447, 7448
-#: Seconds a computer's agent has to answer on the fleet after it starts.
-AGENTS_WITHIN = 120.0
 
 
 def rehearsal_dir() -> Path:
@@ -408,169 +404,15 @@ def up(
         # Its keeper, without root, is found by its command line if a crash comes first.
         rehearsal.use(mode.start(root))
         rehearsal.save()  # before anything is made: `down` finds it all after a crash
-        _make(rehearsal, progress, timeout)
+        make_computers(rehearsal, progress, timeout)
         if bring_up:
             progress.step(f"{rehearsal.ground.name}: msctl up --all")
-            _bring_up(rehearsal, timeout)
+            up_all(rehearsal, timeout)
     except BaseException:
         progress.say("[red]rehearsal failed; taking down what was made[/]")
         down(root)
         raise
     return rehearsal
-
-
-def _make(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
-    computers = rehearsal.computers
-    progress.step(f"{len(computers)} computers: network namespaces")
-    for computer in computers:
-        make_namespace(computer, computers)
-        computer.home.mkdir(parents=True, exist_ok=True)
-        make_python_environment(computer)
-    progress.step("radio links (link emulator)")
-    rehearsal.emulator_pid = _start_emulator(rehearsal)
-    rehearsal.save()
-    progress.step(f"msctl assemble {rehearsal.template} on every computer")
-    uses = [a for slot, unit in rehearsal.uses.items() for a in ("--use", f"{slot}={unit}")]
-    _on_every(rehearsal, ["msctl", "assemble", rehearsal.template, *uses], timeout)
-    if rehearsal.secure:
-        ground = rehearsal.ground
-        progress.step(f"{ground.name}: msctl net init; its net/ copied to every computer")
-        from components.claims import default_holder
-
-        # As the README says it: on the ground station, `msctl net init` makes you (user@ground1).
-        done = rehearsal.run(ground, ["msctl", "net", "init"], timeout)
-        _check(done, ground, "msctl net init")
-        rehearsal.operator = default_holder().split("@")[0] + "@" + ground.name
-        rehearsal.save()
-        # All but the CA's key, which stays on the ground station (README, "In the field").
-        keep_key = shutil.ignore_patterns("ca.key")
-        for computer in computers:
-            if computer is not ground:
-                shutil.copytree(
-                    ground.home / "net", computer.home / "net", ignore=keep_key, dirs_exist_ok=True
-                )
-    progress.step("msctl agent on every computer")
-    for computer in computers:
-        rehearsal.start_agent(computer)
-    progress.step("waiting for every agent to answer from the ground station")
-    _wait_for_agents(rehearsal, min(timeout, AGENTS_WITHIN))
-
-
-def _on_every(rehearsal: Rehearsal, argv: list[str], timeout: float) -> None:
-    """Run ``argv`` on every computer at once; the first failure raises, naming its host."""
-    from msctl.launcher.fanout import at_once
-
-    results = at_once(lambda c: (c, rehearsal.run(c, argv, timeout)), rehearsal.computers)
-    for computer, done in results:
-        _check(done, computer, " ".join(argv))
-
-
-def _check(done: subprocess.CompletedProcess[str], computer: Computer, what: str) -> None:
-    if done.returncode != 0:
-        lines = (done.stderr or done.stdout).strip().splitlines()
-        raise RehearseError(
-            f"`{what}` failed on {computer.name} ({done.returncode}): "
-            f"{lines[-1] if lines else 'no output'}"
-        )
-
-
-def _start_emulator(rehearsal: Rehearsal) -> int:
-    """The access point: one emulator process for every computer's link; waits until ready."""
-    spec = {
-        "control": str(rehearsal.control_socket),
-        "ready": str(rehearsal.root / "links.ready"),
-        "seed": rehearsal.seed,
-        "profiles_file": os.environ.get("MSCTL_LINK_PROFILES") or None,
-        "subnet": SUBNET,
-        "hosts": [
-            {
-                "name": c.name,
-                "netns": c.netns,
-                "address": c.address,
-                "profile": c.profile,
-                "device": "rh0",
-            }
-            for c in rehearsal.computers
-        ],
-    }
-    spec_file = rehearsal.root / "links.json"
-    spec_file.write_text(json.dumps(spec, indent=2))
-    ready = Path(spec["ready"])
-    ready.unlink(missing_ok=True)
-    rehearsal.logs.mkdir(parents=True, exist_ok=True)
-    argv = [sys.executable, "-m", "msctl.rehearse.emulator", str(spec_file)]
-    with open(rehearsal.logs / "links.log", "ab") as log:
-        # Where the namespaces are: it enters each one to make its TUN device there.
-        process = subprocess.Popen(
-            rehearsal.privileges.command(argv),
-            stdin=subprocess.DEVNULL,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-    deadline = time.monotonic() + 30.0
-    while not ready.exists():
-        if process.poll() is not None:
-            tail = (rehearsal.logs / "links.log").read_text().strip().splitlines()[-1:]
-            raise RehearseError(
-                f"the link emulator exited ({process.returncode}): {tail[0] if tail else ''}",
-                hint=f"see {rehearsal.logs / 'links.log'}",
-            )
-        if time.monotonic() > deadline:
-            process.kill()
-            raise RehearseError("the link emulator was not ready within 30 s")
-        time.sleep(0.05)
-    return process.pid
-
-
-def _wait_for_agents(rehearsal: Rehearsal, timeout: float) -> None:
-    """Until the ground station sees every computer's agent (its request service)."""
-    from msctl.errors import OperationTimeout
-    from msctl.launcher.control import host_namespace
-
-    ground = rehearsal.ground
-
-    wanted = {f"{host_namespace(c.name)}/request" for c in rehearsal.computers}
-    deadline = time.monotonic() + timeout
-    missing = wanted
-    while True:
-        try:
-            done = rehearsal.run(ground, ["msctl", "service", "list", "--json"], timeout=30.0)
-        except OperationTimeout:
-            # A machine this loaded (five computers starting at once) is slow to answer, not
-            # broken: asked again until the deadline, which says what is missing.
-            done = subprocess.CompletedProcess([], 1, "", "")
-        if done.returncode == 0:
-            try:
-                listed = json.loads(done.stdout)
-            except ValueError:
-                listed = []
-            names = {s["name"] if isinstance(s, dict) else s for s in listed}
-            missing = wanted - names
-            if not missing:
-                return
-        for computer in rehearsal.computers:
-            if not describe_processes(computer.netns, computer.privileges):
-                raise RehearseError(
-                    f"the agent of {computer.name} exited",
-                    hint=f"see {rehearsal.logs / (computer.name + '.log')}",
-                )
-        if time.monotonic() > deadline:
-            raise RehearseError(
-                f"{ground.name} does not see the agents of "
-                f"{', '.join(sorted(m.split('/')[2] for m in missing))} after {timeout:g} s",
-                hint=f"see the logs in {rehearsal.logs}",
-            )
-        time.sleep(0.5)
-
-
-def _bring_up(rehearsal: Rehearsal, timeout: float) -> None:
-    ground = rehearsal.ground
-    argv = ["msctl", "up", "--all", "--timeout", f"{timeout:g}"]
-    if not rehearsal.secure:
-        argv.append("--insecure")
-    done = rehearsal.run(ground, argv, timeout=timeout + 30.0)
-    _check(done, ground, " ".join(argv))
 
 
 # --------------------------------------------------------------------------- down
@@ -666,68 +508,3 @@ def _stop_pid(pid: int, marker: str) -> None:
         process.kill()
     except (psutil.NoSuchProcess, psutil.AccessDenied):
         pass
-
-
-# --------------------------------------------------------------------------- while it runs
-def link_request(rehearsal: Rehearsal, request: dict[str, Any]) -> dict[str, Any]:
-    """Ask the link emulator; its answer.
-
-    Raises:
-        RehearseError: If it is not running, or refused the request.
-    """
-    from msctl.rehearse.emulator import control
-
-    try:
-        answer = control(rehearsal.control_socket, request)
-    except Exception as exc:
-        raise RehearseError(
-            f"the link emulator does not answer: {exc}",
-            hint="`msctl rehearse down`, then up again",
-        ) from exc
-    if not answer.get("ok", True):
-        raise RehearseError(str(answer.get("error", answer)))
-    return answer
-
-
-def reboot(rehearsal: Rehearsal, name: str, after: float = 0.0) -> int:
-    """Kill every process of computer ``name`` at once (a power cut), then, ``after``
-    seconds later, start its agent again as systemd would at boot. Returns how many
-    processes it killed."""
-    computer = rehearsal.computer(name)
-    killed = kill_all(computer.netns, grace=0.0, privileges=computer.privileges)
-    if after > 0:
-        time.sleep(after)
-    rehearsal.start_agent(computer)
-    return killed
-
-
-def status(rehearsal: Rehearsal) -> dict[str, Any]:
-    """Computers, addresses, processes and each link's profile and counters."""
-    try:
-        links = link_request(rehearsal, {"op": "status"}).get("hosts", {})
-        emulator = "running"
-    except RehearseError as exc:
-        links, emulator = {}, f"not answering: {exc}"
-    computers = []
-    for computer in rehearsal.computers:
-        computers.append(
-            {
-                "name": computer.name,
-                "role": computer.role,
-                "netns": computer.netns,
-                "address": computer.address,
-                "home": str(computer.home),
-                "processes": describe_processes(computer.netns, computer.privileges),
-                "link": links.get(computer.name),
-            }
-        )
-    return {
-        "template": rehearsal.template,
-        "secure": rehearsal.secure,
-        "operator": rehearsal.operator,
-        "root": str(rehearsal.root),
-        "seed": rehearsal.seed,
-        "privileges": rehearsal.privileges.to_json(),
-        "emulator": emulator,
-        "computers": computers,
-    }
