@@ -18,7 +18,7 @@ from running import Up
 
 from msctl.launcher.state import process_group_alive
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.timeout(600)]
 
 
 def test_down_after_the_supervisor_died_kills_what_it_left_and_says_so(home: Home) -> None:  # noqa: F811
