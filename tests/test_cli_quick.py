@@ -515,7 +515,7 @@ def test_print_table_cuts_a_long_last_cell_to_the_terminal_and_keeps_cells_on_on
     assert piped[1].endswith(error) and piped[2].endswith("line one line two")
     monkeypatch.setattr(sys.stdout, "isatty", lambda: True)
     monkeypatch.setenv("NO_COLOR", "1")
-    monkeypatch.setattr("shutil.get_terminal_size", lambda *a: os.terminal_size((60, 24)))
+    monkeypatch.setattr("shutil.get_terminal_size", lambda *a, **k: os.terminal_size((60, 24)))
     print_table(("component", "state", "last error"), rows)
     shown = capsys.readouterr().out.splitlines()
     assert len(shown) == 3 and all(len(line) <= 60 for line in shown), shown
