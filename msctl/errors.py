@@ -42,6 +42,19 @@ def exit_code_of(exc: BaseException) -> int:
     return next((code for category, code in EXIT_CODES if isinstance(exc, category)), GENERAL)
 
 
+class _ExitCode:
+    """``exit_code`` of an error (:func:`exit_code_of`), and of its class: ``InputError.exit_code``
+    is 2 as ``InputError("...").exit_code`` is (tests compare a process's exit with it)."""
+
+    def __get__(self, error: BaseException | None, kind: type) -> int:
+        if error is not None:
+            return exit_code_of(error)
+        own = next((vars(k)["exit_code"] for k in kind.__mro__ if _owns_code(k)), None)
+        if own is not None:
+            return int(own)
+        return next((code for category, code in EXIT_CODES if issubclass(kind, category)), GENERAL)
+
+
 def _owns_code(cls: type) -> bool:
     # A class statement saying ``exit_code = N`` (not MsctlError's own property).
     return isinstance(vars(cls).get("exit_code"), int)
@@ -65,10 +78,7 @@ class MsctlError(ComponentError):
         if exit_code is not None:
             self.__dict__["exit_code"] = exit_code
 
-    @property
-    def exit_code(self) -> int:
-        """The exit code ``msctl`` ends with for this error."""
-        return exit_code_of(self)
+    exit_code = _ExitCode()
 
 
 class InputError(MsctlError, ConfigError):
