@@ -176,7 +176,10 @@ def free_port() -> int:
 
 
 def wait_until(
-    predicate: Callable[[], Any], timeout: float = 30.0, what: str = "", interval: float = 0.02
+    predicate: Callable[[], Any],
+    timeout: float = 30.0,
+    what: str | Callable[[], str] = "",
+    interval: float = 0.02,
 ) -> Any:
     """Poll ``predicate`` until it returns something truthy; fail the test on timeout.
 
@@ -184,7 +187,8 @@ def wait_until(
         predicate: What to poll.
         timeout: Seconds before failing: generous by default, as a loaded CI machine needs
             (a wait ends as soon as its condition holds; 5 s failed a loaded full run).
-        what: Said in the failure (what was awaited).
+        what: Said in the failure (what was awaited); a callable is asked only then, so it
+            can tell the state the wait ended in.
         interval: Seconds between polls.
     """
     deadline = time.monotonic() + timeout
@@ -193,7 +197,8 @@ def wait_until(
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout} s: {what or 'condition'}")
+            said = what() if callable(what) else what
+            raise AssertionError(f"not within {timeout} s: {said or 'condition'}")
         time.sleep(interval)
 
 

@@ -221,7 +221,14 @@ def test_commands_to_unknown_joints_are_ignored(rig: MotorRig, backend: MotorBac
     for joint, position in before.items():
         assert rig.true_position(joint) == pytest.approx(position, abs=rig.position_tolerance)
     assert sorted(backend.read()) == sorted(rig.joints)
-    assert all(level == OK for level in levels(backend).values())
+    # Nothing is said about the unknown joints, and every known one is (or, after a bus cycle
+    # late on a loaded machine, soon is again) OK.
+    assert not any("limb9" in d.joint or "limb9" in d.message for d in backend.diagnostics())
+    wait_until(
+        lambda: all(level == OK for level in levels(backend).values()),
+        FAULT_S,
+        f"every joint OK: {[(d.joint, d.level, d.message) for d in backend.diagnostics()]}",
+    )
     # In a batch with a known joint, the known one is carried out as usual.
     backend.write([MotorCommand("limb9_joint1", position=1.0), MotorCommand(J1, position=0.3)])
     wait_until(settled(rig, backend, {J1: 0.3}), MOVE_S, f"{J1} at its goal")

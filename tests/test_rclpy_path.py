@@ -317,7 +317,19 @@ def test_msctl_up_dragon_on_rclpy_is_healthy_from_the_ros_graph(
             wait_until(lambda: expected <= peer.nodes(), 30.0)
             read = peer.collect(JointState, "/limb1/joint_read")
             health = peer.collect(DiagnosticArray, "/limb1/health")
-            wait_until(lambda: read, 30.0)
+
+            def graph() -> str:
+                # What the DDS graph showed when no sample came: publishers or not, and how
+                # the run saw itself (a loaded machine, a component not started ...).
+                topics = sorted(name for name, _ in peer.node.get_topic_names_and_types())
+                publishers = peer.node.count_publishers("/limb1/joint_read")
+                ps = up.msctl("ps").stdout[-1500:]
+                return (
+                    f"no /limb1/joint_read sample; {publishers} publisher(s); topics {topics}; "
+                    f"ps {ps}"
+                )
+
+            wait_until(lambda: read, 60.0, graph)
             assert any(name.startswith("limb1_") for name in read[-1].name)
 
             # The health monitor follows the ROS graph: it sees limb1's components running.

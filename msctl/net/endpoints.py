@@ -239,11 +239,17 @@ def _listening_pid(port: int) -> int | None:
         if not proc.name.isdigit():
             continue
         try:
-            for fd in (proc / "fd").iterdir():
-                if os.readlink(fd) in inodes:
-                    return int(proc.name)
+            fds = list((proc / "fd").iterdir())
         except OSError:
             continue  # gone, or another user's
+        for fd in fds:
+            try:
+                if os.readlink(fd) in inodes:
+                    return int(proc.name)
+            except OSError:
+                # This descriptor closed while we looked; the process's others still count
+                # (a busy process, the holder itself, opens and closes them all the time).
+                continue
     return None
 
 
