@@ -124,9 +124,15 @@ def _wait_rebuilt(
     )
 
 
-#: Seconds ``up --all`` keeps asking a host whose route has lapsed (on field Wi-Fi a link
-#: flaps for a second or two) before naming it unreachable.
+#: Least seconds ``up --all`` keeps asking a host whose route has lapsed (on field Wi-Fi a
+#: link flaps for a second or two) before naming it unreachable.
 UP_GRACE = 3.0
+#: A host not on the graph may be one whose link is being opened again: noticed dead after
+#: its lease, then reopened (TLS and Zenoh's handshake, a few round trips). It is asked for
+#: this many of the longer lease of its link and this computer's before it is named
+#: unreachable (on ``degraded``, every link 256 kbit/s losing a fifth of its packets, robots
+#: whose agents were off the graph for more than 3 s were named while their routes came back).
+UP_GRACE_LEASES = 2.0
 #: Seconds ``up --all`` waits for one answer before asking again: a radio link that closed
 #: while the request or its answer was on it lost it for good (seen on the ``degraded``
 #: profile: parts started, and ``up --all`` named their hosts unreachable). The agent takes
@@ -168,7 +174,8 @@ def up_all(assembly: Any, sim: bool | None, speed: float, timeout: float) -> Non
         # One budget for the whole start: the answers, then the wait for healthy (it was
         # two: a slow link took twice the --timeout the user gave).
         deadline = time.monotonic() + timeout
-        replies = _start_each(node, hosts, request, timeout)
+        graces = _graces(assembly, hosts, timeout)
+        replies = _start_each(node, hosts, request, timeout, graces)
         status = _wait_healthy(node, replies.answers, deadline)
     _show_hosts(assembly.template, replies, status)
     _fail_unless_healthy(replies, status, timeout)
@@ -187,7 +194,30 @@ def _refuse_oversized(assembly: Any, request: dict[str, Any]) -> None:
         )
 
 
-def _start_each(node: Any, hosts: list[str], request: dict[str, Any], timeout: float) -> Any:
+def _graces(assembly: Any, hosts: list[str], timeout: float) -> dict[str, float]:
+    """Seconds to keep asking each host that is not on the graph: :data:`UP_GRACE_LEASES`
+    of the longer lease of its link class and this computer's, at least :data:`UP_GRACE`,
+    at most the whole start's ``timeout``."""
+    from components.links import Network
+    from components.supervision.contract import this_host
+
+    network = Network.from_dict(getattr(assembly, "network", None))
+    here = network.link_class(this_host()).lease_s
+    return {
+        host: min(
+            timeout, max(UP_GRACE, UP_GRACE_LEASES * max(here, network.link_class(host).lease_s))
+        )
+        for host in hosts
+    }
+
+
+def _start_each(
+    node: Any,
+    hosts: list[str],
+    request: dict[str, Any],
+    timeout: float,
+    graces: dict[str, float] | None = None,
+) -> Any:
     """Ask every host's agent to start its part, all at once (:func:`fanout.ask_each`).
 
     An agent the router's graph does not show is first asked a cheap `ps`: with no agent
@@ -216,8 +246,14 @@ def _start_each(node: Any, hosts: list[str], request: dict[str, Any], timeout: f
     def ask(host: str) -> Any:
         try:
             if host_namespace(host) not in present:
+                grace = (graces or {}).get(host, UP_GRACE)
                 call_supervisor(
-                    node, host, "ps", timeout=10.0, grace=UP_GRACE, attempt=UP_ATTEMPT / 2
+                    node,
+                    host,
+                    "ps",
+                    timeout=max(10.0, grace),
+                    grace=grace,
+                    attempt=UP_ATTEMPT / 2,
                 )
             # Its agent is there (on the graph, or it answered): a route that lapses now
             # is a radio link reopening, not an agent gone, so it is asked again for as
