@@ -88,10 +88,12 @@ class BuiltComponent:
     def close(self) -> None:
         """Release the resources (idempotent where they are)."""
         for resource in reversed(self.resources):
+            what = repr(resource)  # taken before closing: a closed file forgets its name
             try:
                 resource.close()
             except Exception as exc:  # the others are closed still; say which one failed
-                _log.warning("closing %r failed: %s", resource, exc, exc_info=True)
+                where = f"{self.namespace.rstrip('/')}/{self.node_name}"
+                _log.warning("%s: closing %s failed: %s", where, what, exc, exc_info=True)
 
 
 Builder = Callable[["ComponentPlan", "ResolvedAssembly", Mapping[str, Any]], BuiltComponent]

@@ -117,12 +117,12 @@ class TopicToRos:
         self._closed = True
         try:
             self._subscriber.undeclare()
-        except Exception:
-            pass
+        except Exception as exc:  # the session may be closed already
+            log.debug("relay %s: subscriber not undeclared: %s", self.status.name, exc)
         try:
             self._bridge.ros.ros.destroy_publisher(self._publisher)
-        except Exception:
-            pass
+        except Exception as exc:
+            log.debug("relay %s: ROS publisher not destroyed: %s", self.status.name, exc)
 
 
 class TopicToMsctl:
@@ -164,8 +164,8 @@ class TopicToMsctl:
         self._closed = True
         try:
             self._bridge.ros.ros.destroy_subscription(self._subscription)
-        except Exception:
-            pass
+        except Exception as exc:  # the ROS node may be destroyed already
+            log.debug("relay %s: ROS subscription not destroyed: %s", self.status.name, exc)
         self._bridge.own_gids.discard(self._publisher.gid)
         self._publisher.close()
 
@@ -199,8 +199,8 @@ class ServiceToRos:
     def close(self) -> None:
         try:
             self._bridge.ros.ros.destroy_service(self._server)
-        except Exception:
-            pass
+        except Exception as exc:  # the ROS node may be destroyed already
+            log.debug("relay %s: ROS server not destroyed: %s", self.status.name, exc)
         self._client.close()
 
 

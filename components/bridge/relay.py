@@ -367,8 +367,8 @@ class Bridge:
         for thing in reversed(self._owned):
             try:
                 thing.close()
-            except Exception:
-                pass
+            except Exception as exc:  # the others are closed still; say which one failed
+                log.warning("bridge: closing %r failed: %s: %s", thing, type(exc).__name__, exc)
         if self._owns_plane:
             self.plane.close()
 

@@ -23,7 +23,7 @@ from components.comm.names import key_name, mangle, qualify
 from components.comm.qos import QoS
 from components.comm.stats import drops, log
 from components.comm.types import dds_type_name, normalize_type_name, registry
-from components.errors import ComponentError, DeadlineError
+from components.errors import ComponentError, DeadlineError, swallowed
 
 if TYPE_CHECKING:
     from components.comm.node import Node
@@ -148,8 +148,8 @@ class PendingRequest:
         # Dropping the query finalizes it, which tells the client no more replies come.
         try:
             self._query.drop()
-        except Exception:
-            pass
+        except Exception as exc:  # finalized already (the session closing): nothing waits
+            swallowed("service request: query not dropped", exc)
         self._query = None
 
 
@@ -275,8 +275,8 @@ class ServiceServer:
         for thing in (self._token, self._zqueryable, self._clients):
             try:
                 thing.undeclare()
-            except Exception:
-                pass
+            except Exception as exc:  # the session may be closed already
+                swallowed(f"service {self.service}: not undeclared", exc)
 
 
 class ServiceClient:
@@ -450,8 +450,8 @@ class ServiceClient:
             return
         try:
             self._token.undeclare()
-        except Exception:
-            pass
+        except Exception as exc:  # the session may be closed already
+            swallowed(f"client of {self.service}: token not undeclared", exc)
 
 
 def _urgency(urgent: bool) -> dict[str, Any]:

@@ -7,6 +7,7 @@ board's lock, so the board itself stays single-threaded and pure.
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -15,6 +16,8 @@ from typing import Any
 from components.comm.graph import Graph, GraphView
 from components.comm.liveliness import Entity, EntityKind
 from components.comm.services import ServiceError
+
+_log = logging.getLogger(__name__)
 
 #: Seconds between two ``ps`` requests to every supervisor.
 POLL_PERIOD = 1.0
@@ -140,8 +143,8 @@ class SupervisorPoller:
         while not self._stop.is_set():
             try:
                 self.poll_once()
-            except Exception:  # a broken reply must not end the polling
-                pass
+            except Exception as exc:  # a broken reply must not end the polling
+                _log.debug("supervisor poll failed: %s: %s", type(exc).__name__, exc)
             self._wake.wait(self._next_wait())
             self._wake.clear()
 

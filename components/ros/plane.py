@@ -152,13 +152,13 @@ class RclpyPlane:
         self._thread.join(timeout=5.0)
         try:
             self.executor.shutdown(timeout_sec=2.0)
-        except Exception:
-            pass
+        except Exception as exc:  # the context goes down below all the same
+            log.debug("rclpy plane: executor not shut down: %s: %s", type(exc).__name__, exc)
         if self._graph_node is not None:
             try:
                 self._graph_node.destroy_node()
-            except Exception:
-                pass
+            except Exception as exc:
+                log.debug("rclpy plane: graph node not destroyed: %s: %s", type(exc).__name__, exc)
         self.context.try_shutdown()
 
     def __enter__(self) -> RclpyPlane:
@@ -266,12 +266,12 @@ class RclpyNode:
         self._owned.clear()
         try:
             self.plane.executor.remove_node(self.ros)
-        except Exception:
-            pass
+        except Exception as exc:  # the node is destroyed below all the same
+            log.debug("rclpy node %s: not removed from its executor: %s", self.name, exc)
         try:
             self.ros.destroy_node()
-        except Exception:
-            pass
+        except Exception as exc:
+            log.debug("rclpy node %s: not destroyed: %s: %s", self.name, type(exc).__name__, exc)
         self.plane.forget(self)
 
     def __enter__(self) -> RclpyNode:

@@ -171,8 +171,8 @@ class RclpyServer:
                 pending.fail(f"{self.service} is shutting down")
         try:
             self._node.ros.destroy_service(self._srv)
-        except Exception:
-            pass
+        except Exception as exc:  # its node may be destroyed already
+            log.debug("server %s: not destroyed: %s: %s", self.service, type(exc).__name__, exc)
 
 
 class RclpyClient:
@@ -249,5 +249,5 @@ class RclpyClient:
         self._closed = True
         try:
             self._node.ros.destroy_client(self._cli)
-        except Exception:
-            pass
+        except Exception as exc:  # its node may be destroyed already
+            log.debug("client %s: not destroyed: %s: %s", self.service, type(exc).__name__, exc)

@@ -104,8 +104,8 @@ class RclpyPublisher:
         self._closed = True
         try:
             self._node.ros.destroy_publisher(self._pub)
-        except Exception:
-            pass
+        except Exception as exc:  # its node may be destroyed already
+            log.debug("publisher %s: not destroyed: %s: %s", self.topic, type(exc).__name__, exc)
 
 
 class RclpySubscription:
@@ -243,5 +243,5 @@ class RclpySubscription:
         self._closed = True
         try:
             self._node.ros.destroy_subscription(self._sub)
-        except Exception:
-            pass
+        except Exception as exc:  # its node may be destroyed already
+            log.debug("subscription %s: not destroyed: %s: %s", self.topic, type(exc).__name__, exc)

@@ -15,6 +15,7 @@ this view opened.
 from __future__ import annotations
 
 import functools
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -30,6 +31,8 @@ from components.data_monitor.model import BoardSnapshot
 from components.data_monitor.plan import board_for
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, TRIGGER
 from msctl.health.source import ActionError, TopicRow
+
+_log = logging.getLogger(__name__)
 
 #: Most topics measured at once (the topics view of a large assembly).
 MAX_METERED = 400
@@ -88,8 +91,8 @@ class TopicMeters:
     def _undeclare(subscriber: Any) -> None:
         try:
             subscriber.undeclare()
-        except Exception:
-            pass
+        except Exception as exc:  # the session may be closed already
+            _log.debug("rate meter: subscriber not undeclared: %s", exc)
 
     def close(self) -> None:
         """Stop measuring (idempotent)."""

@@ -504,7 +504,7 @@ class Supervisor:
             if process.popen is not None:
                 # Whatever the leader left behind in its group goes too.
                 _signal_group(process.popen, signal.SIGKILL)
-                with contextlib.suppress(Exception):
+                with contextlib.suppress(subprocess.TimeoutExpired):
                     process.popen.wait(timeout=1.0)
             if process.pump is not None:
                 process.pump.join(timeout=1.0)

@@ -4,6 +4,7 @@ and their first output has arrived
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -12,6 +13,8 @@ from typing import Any
 from components.comm.graph import NODE_TOKENS, Graph, snapshot
 from components.health_monitor.startup_watch import ComponentWatch
 from msctl.launcher.plan import ComponentRun
+
+_log = logging.getLogger(__name__)
 
 #: Seconds a component may have published while its node is missing from the live graph
 #: before the router is asked for node tokens directly. Seen in loaded runs of 60
@@ -104,8 +107,8 @@ class HealthWatch(ComponentWatch):
                 return
             found = snapshot(self._session, self._domain, RECHECK_QUERY, NODE_TOKENS)
             seen = found.node_names() & missing
-        except Exception:  # no router now, or closing: the next turn asks again, or nobody
-            pass
+        except Exception as exc:  # no router now, or closing: the next turn asks again, or nobody
+            _log.debug("node tokens not asked: %s: %s", type(exc).__name__, exc)
         finally:
             with self._lock:
                 self._queried |= seen
@@ -116,8 +119,8 @@ class HealthWatch(ComponentWatch):
         for subscriber in self._subscribers:
             try:
                 subscriber.undeclare()
-            except Exception:
-                pass
+            except Exception as exc:  # the session may be closed already
+                _log.debug("start watch: subscriber not undeclared: %s", exc)
         self._subscribers.clear()
         self._graph.close()
         with self._lock:
