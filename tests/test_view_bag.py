@@ -147,9 +147,22 @@ def test_bag_view_refuses_what_it_cannot_do(home: Path, tmp_path: Path) -> None:
     assert "no such bag directory" in str(missing.exception)
     both = runner.invoke(app, ["bag", "view", str(tmp_path), "--rerun", "--foxglove"])
     assert isinstance(both.exception, MsctlError) and "cannot be combined" in str(both.exception)
-    foxglove = runner.invoke(app, ["bag", "view", str(tmp_path), "--foxglove"])
-    assert isinstance(foxglove.exception, MsctlError) and "not available yet" in str(
-        foxglove.exception
+    rrd = runner.invoke(
+        app, ["bag", "view", str(tmp_path), "--foxglove", "--save", str(tmp_path / "x.rrd")]
     )
+    assert isinstance(rrd.exception, MsctlError) and "not with --foxglove" in str(rrd.exception)
     nothing = runner.invoke(app, ["bag", "view", str(tmp_path), "--no-serve"])
     assert isinstance(nothing.exception, MsctlError) and "give --save" in str(nothing.exception)
+
+
+def test_bag_view_foxglove_serves_the_bag_and_says_where(home: Path, tmp_path: Path) -> None:
+    """The command: the bag read, its span said, the server's address on stdout, stopped
+    after --for; the protocol itself is tests/test_view_bag_foxglove.py's."""
+    pytest.importorskip("foxglove", reason="the view extra is not installed: pip install '.[view]'")
+    bag, _ = write_bag(tmp_path / "dragon_bag")
+    result = CliRunner().invoke(
+        app, ["bag", "view", str(bag), "--foxglove", "--port", "0", "--for", "0.5"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "messages on 5 topics over 4.0 s" in result.output
+    assert result.stdout.strip().startswith("ws://127.0.0.1:")

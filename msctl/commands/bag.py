@@ -181,18 +181,26 @@ def recover(
 def view(
     bag: Path = BAG_ARG,
     rerun: bool = typer.Option(False, "--rerun", help="rerun's web viewer (the default)."),
-    foxglove: bool = typer.Option(False, "--foxglove", help="A Foxglove server (not yet)."),
-    port: int = typer.Option(9090, "--port", help="Web viewer port (0: any free one)."),
+    foxglove: bool = typer.Option(
+        False, "--foxglove", help="A Foxglove server playing the bag (its playback bar seeks)."
+    ),
+    port: int | None = typer.Option(
+        None, "--port", help="Web viewer (9090) or Foxglove server (8765) port; 0: any free one."
+    ),
     grpc_port: int = typer.Option(9876, "--grpc-port", help="Data port (0: any free one)."),
     save: Path | None = typer.Option(None, "--save", help="Also write an .rrd file."),
     serve: bool = typer.Option(True, "--serve/--no-serve", help="--no-serve: only --save."),
     duration: float = typer.Option(0.0, "--for", help="Serve this many seconds (0: Ctrl-C)."),
 ) -> None:
-    """The robot of a bag in 3D, on rerun's timeline (scrub it): joints, health, tips."""
-    from msctl.commands.view import check_options, view_bag
+    """The robot of a bag in 3D, on rerun's timeline (scrub it) or played to Foxglove (its
+    playback bar): joints, health, tips."""
+    from msctl.commands.view import check_options, view_bag, view_bag_foxglove
 
     check_options(rerun, foxglove, save, bag=True)
-    view_bag(bag, save, port, grpc_port, serve, duration)
+    if foxglove:
+        view_bag_foxglove(bag, 8765 if port is None else port, duration)
+        return
+    view_bag(bag, save, 9090 if port is None else port, grpc_port, serve, duration)
 
 
 @app.command("play")

@@ -64,11 +64,6 @@ def check_options(rerun: bool, foxglove: bool, save: Path | None, bag: bool = Fa
     """
     if rerun and foxglove:
         raise InputError("--rerun and --foxglove cannot be combined: pick one")
-    if foxglove and bag:
-        raise InputError(
-            "msctl bag view --foxglove is not available yet",
-            hint="open the bag itself in Foxglove (its schemas are rosbag2's), or use --rerun",
-        )
     if foxglove and save is not None:
         raise InputError(
             "--save writes rerun's .rrd, not with --foxglove",
@@ -275,3 +270,61 @@ def view_bag(
         sink.close()
     if save is not None:
         err.print(f"saved {save}", highlight=False)
+
+
+def view_bag_foxglove(bag: Path, port: int, duration: float) -> None:
+    """``msctl bag view --foxglove``: a bag played to Foxglove over its time range
+    (:mod:`msctl.view.bag_foxglove`); Foxglove's playback bar plays, pauses, seeks and sets
+    the speed. Serves until Ctrl-C (or ``duration`` seconds)."""
+    if duration < 0:
+        raise InputError(f"--for must be 0 or more seconds, not {duration}")
+    if not 0 <= port <= 65535:
+        raise InputError(f"--port must be a TCP port (0-65535), not {port}")
+    require_foxglove()
+
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.console import err, out
+    from msctl.view.bag_foxglove import BagFoxglove, read_bag
+    from msctl.view.scene import SceneError, scene_of
+
+    try:
+        assembly = load_assembly()
+        scene = scene_of(assembly)
+    except (AssemblyError, SceneError) as exc:
+        raise NotFoundError(
+            f"{exc}", hint="a bag is drawn with this computer's resolved assembly"
+        ) from exc
+    with Progress(
+        TextColumn("reading {task.description}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        console=err,
+        transient=True,
+        disable=not err.is_terminal,
+    ) as progress:
+        task = progress.add_task(bag.name, total=1.0)
+        recorded = read_bag(bag, lambda done: progress.update(task, completed=done))
+    for topic in recorded.fixed:
+        err.print(
+            f"[yellow]{bag}: {topic}'s schema names its dependencies pkg/msg/Type: "
+            "sent in rosbag2's form (`msctl bag recover --fix-schemas` fixes the bag)[/]"
+        )
+    for topic in recorded.left_out:
+        err.print(f"[yellow]{bag}: its own {topic} is not sent: the view composes {topic}[/]")
+    seconds = (recorded.end - recorded.start) / 1e9
+    err.print(
+        f"{bag}: {len(recorded.messages):,} messages on {len(recorded.definitions)} topics "
+        f"over {seconds:.1f} s",
+        highlight=False,
+    )
+    stop = _stop_on_signals()
+    with BagFoxglove(recorded, assembly, scene, port=port) as player:
+        url = f"ws://127.0.0.1:{player.port}"
+        out.print(url, highlight=False, soft_wrap=True)
+        err.print(
+            f"playing {bag.name} to Foxglove: open a connection to {url}; its playback bar "
+            "plays, pauses, seeks (Ctrl-C to stop)"
+        )
+        player.run(_until(stop, duration))

@@ -46,6 +46,28 @@ def asset(uri: str) -> bytes | None:
     return path.read_bytes()
 
 
+def tf_message(encode: Callable[[Any], bytes], poses: dict[str, Pose], stamp: int) -> bytes:
+    """A ``tf2_msgs/TFMessage`` (CDR) placing each link of ``poses`` in :data:`WORLD`.
+
+    Args:
+        encode: The TFMessage serializer.
+        poses: Link -> its pose in the world.
+        stamp: The transforms' time (ns since the epoch).
+    """
+    from components.messages import msg
+
+    transforms = []
+    for link, (xyz, quaternion) in poses.items():
+        stamped = msg("geometry_msgs/msg/TransformStamped", child_frame_id=link)
+        stamped.header.frame_id = WORLD
+        stamped.header.stamp.sec, stamped.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        t, r = stamped.transform.translation, stamped.transform.rotation
+        t.x, t.y, t.z = xyz
+        r.x, r.y, r.z, r.w = quaternion
+        transforms.append(stamped)
+    return encode(msg(TF, transforms=transforms))
+
+
 class FoxgloveView:
     """Serves a running assembly to Foxglove clients.
 
@@ -179,19 +201,7 @@ class FoxgloveView:
         self.channels["/tf_static"].log(self._tf(poses), log_time=time.time_ns())
 
     def _tf(self, poses: dict[str, Pose]) -> bytes:
-        from components.messages import msg
-
-        now = time.time_ns()
-        transforms = []
-        for link, (xyz, quaternion) in poses.items():
-            stamped = msg("geometry_msgs/msg/TransformStamped", child_frame_id=link)
-            stamped.header.frame_id = WORLD
-            stamped.header.stamp.sec, stamped.header.stamp.nanosec = divmod(now, 1_000_000_000)
-            t, r = stamped.transform.translation, stamped.transform.rotation
-            t.x, t.y, t.z = xyz
-            r.x, r.y, r.z, r.w = quaternion
-            transforms.append(stamped)
-        return self._encode_tf(msg(TF, transforms=transforms))
+        return tf_message(self._encode_tf, poses, time.time_ns())
 
     def step(self) -> None:
         """Apply the latest joint states; send the links that moved on ``/tf``."""
