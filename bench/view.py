@@ -256,6 +256,12 @@ def main(argv: list[str] | None = None) -> int:
             if m.chains
             for t in ("tip_pose", "ik_target")
         }
+        # A wheel module's commanded twist is drawn from its joint_set.
+        shown |= {
+            f"/{m.slot}/joint_set"
+            for m in assembly.modules
+            if any(j.control == "velocity" for j in m.joints)
+        }
         stations = {c.namespace.strip("/") for c in assembly.components if c.module is None}
         shown |= {f"/{s}/diagnostics" for s in stations}
         not_shown = [t for t in subscribed if t not in shown]

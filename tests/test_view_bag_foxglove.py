@@ -217,9 +217,10 @@ def test_foxglove_plays_a_bag_over_its_range_and_seeks(played: tuple[Client, Any
     assert (status, current, seeked) == (1, seek, True), "paused at 3 s, after a seek"
 
     def at_three_seconds() -> bool:
-        return any(t == seek for t, _ in client.received(4))
+        seen = [client.received(4), client.received(3)]
+        return all(any(t == seek for t, _ in got) for got in seen)
 
-    wait_until(at_three_seconds, 30, "joint_read at 3 s")
+    wait_until(at_three_seconds, 30, "joint_read and /tf at 3 s")
     assert read_joints(client.received(4)[-1][1]).position[0] == pytest.approx(0.75)
     tf_time, tf = client.received(3)[-1]
     assert tf_time == seek and abs(palm_height(read_tf(tf)) - low) > 0.3, "the palm rose"

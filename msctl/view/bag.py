@@ -4,7 +4,8 @@ fed from the bag's messages at their recorded times, so rerun's timeline scrubs 
 What it reads, per module of the assembly: ``joint_read`` (forward kinematics at the
 viewer), ``tip_pose`` and ``ik_target`` (markers), ``health`` (its worst status is the
 module's level; a module whose health stops for :data:`STALE_AFTER` seconds of the bag's
-time turns STALE) and ``/cmd_vel`` (an arrow). The assembly is the resolved one of this
+time turns STALE), ``/cmd_vel`` (an arrow) and each wheel module's ``joint_set`` (its
+commanded twist, an arrow at the module). The assembly is the resolved one of this
 computer: bags do not carry the lock, so the view says which recorded modules it does not know.
 """
 
@@ -55,6 +56,8 @@ def wanted_topics(assembly: Any) -> dict[str, tuple[str, str]]:
         if module.chains:
             topics[f"/{slot}/tip_pose"] = ("marker", f"{slot}/tip")
             topics[f"/{slot}/ik_target"] = ("marker", f"{slot}/ik_target")
+        if any(j.control == "velocity" for j in module.joints):
+            topics[f"/{slot}/joint_set"] = ("wheels", slot)
     if assembly.mobile:
         topics["/cmd_vel"] = ("twist", "")
     return topics
@@ -131,6 +134,9 @@ def draw_bag(
             if level != before:
                 sink.at_ns(message.log_time)
                 sink.say(f"{key}: {before} -> {level} {text}".rstrip(), level)
+        elif what == "wheels":
+            velocities = {s.name: s.velocity for s in joint_samples(decoded)}
+            scene.set_wheel_command(key, velocities, now)
         elif what == "twist":
             sink.at_ns(message.log_time)
             root = scene.link_pose(assembly.root_links[0])
@@ -138,6 +144,7 @@ def draw_bag(
             sink.arrow(origin, (decoded.linear.x, decoded.linear.y, decoded.linear.z))
         if now >= next_draw:
             next_draw = now + DRAW_PERIOD
+            scene.expire_wheel_commands(now)
             for slot, seen in last_health.items():
                 state = scene.modules[slot]
                 if now - seen > STALE_AFTER and state.level != "STALE":

@@ -29,12 +29,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from msctl.view.foxglove_server import STRING, TF, asset, tf_message
+from msctl.view.foxglove_server import (
+    MARKERS,
+    STRING,
+    TF,
+    WHEEL_TWIST,
+    asset,
+    tf_message,
+    twist_markers,
+)
 from msctl.view.playback import ENDED, PLAYING, Playhead
 from msctl.view.scene import Scene
 
-#: What the view composes itself: a bag's own topics of these names are not forwarded.
-COMPOSED = ("/robot_description", "/tf_static", "/tf")
+#: What the view composes itself (topic -> type): a bag's own topics of these names are not
+#: forwarded.
+COMPOSED = {"/robot_description": STRING, "/tf_static": TF, "/tf": TF, WHEEL_TWIST: MARKERS}
 #: Nanoseconds per second.
 SECOND = 1_000_000_000
 
@@ -164,6 +173,7 @@ class BagFoxglove:
         self._cursor = 0  # the next message to send
         self._ended = False
         self._joint_topics = {f"/{m.slot}/joint_read": m.slot for m in assembly.modules}
+        self._wheel_topics = {f"/{slot}/joint_set": slot for slot in scene.wheel_commands.wheels}
         self._decoders: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ lifecycle
@@ -179,6 +189,7 @@ class BagFoxglove:
         types = registry()
         self._encode_string = types.serializer(STRING)
         self._encode_tf = types.serializer(TF)
+        self._encode_markers = types.serializer(MARKERS)
 
         def channel(topic: str, type_name: str, definition: str, encoding: str) -> None:
             schema = foxglove.Schema(name=type_name, encoding=encoding, data=definition.encode())
@@ -186,9 +197,7 @@ class BagFoxglove:
                 topic, schema=schema, message_encoding="cdr", context=self._context
             )
 
-        for topic, type_name in (
-            (t, STRING if t == "/robot_description" else TF) for t in COMPOSED
-        ):
+        for topic, type_name in COMPOSED.items():
             channel(topic, type_name, message_definition(type_name) or "", "ros2msg")
         for topic, definition in self.recorded.definitions.items():
             if topic not in COMPOSED:
@@ -273,25 +282,27 @@ class BagFoxglove:
         for topic in resend:
             self._send_present(topic, at)
         upto = self.recorded.after(at)
-        moved = False
         for message in self.recorded.messages[self._cursor : upto]:
             self.channels[message.topic].log(message.data, log_time=message.log_time)
-            moved = self._take(message) or moved
+            self._take(message)
         self.sent += max(0, upto - self._cursor)
         self._cursor = max(self._cursor, upto)
-        if moved:
-            self._send_tf(self.scene.changes().poses, at)
+        self.scene.expire_wheel_commands(at / SECOND)
+        changes = self.scene.changes()
+        self._send_tf(changes.poses, at)
+        self._send_twists(changes.twists, at)
         if self.server is not None:
             self.server.broadcast_time(at)
             if status == ENDED and not self._ended:
                 self._ended = True
                 self.server.broadcast_playback_state(self._state(now, False, None))
 
-    def _take(self, message: Any) -> bool:
-        """Feed the scene what moves the picture; whether a joint moved."""
+    def _take(self, message: Any) -> None:
+        """Feed the scene what moves the picture: joints, wheel commands."""
         slot = self._joint_topics.get(message.topic)
-        if slot is None:
-            return False
+        wheels = self._wheel_topics.get(message.topic)
+        if slot is None and wheels is None:
+            return
         from components.messages import joint_samples
 
         decode = self._decoders.get(message.type)
@@ -300,10 +311,16 @@ class BagFoxglove:
 
             decode = self._decoders[message.type] = registry().deserializer(message.type)
         samples = joint_samples(decode(message.data))
-        return self.scene.set_joints(slot, {s.name: s.position for s in samples})
+        if wheels is not None:
+            velocities = {s.name: s.velocity for s in samples}
+            self.scene.set_wheel_command(wheels, velocities, message.log_time / SECOND)
+        else:
+            self.scene.set_joints(slot, {s.name: s.position for s in samples})
 
     def _jump(self, at: int) -> None:
-        """The picture at bag time ``at``: every topic's latest message, the links placed."""
+        """The picture at bag time ``at``: every topic's latest message, the links placed,
+        the wheel modules' commands as they stood then."""
+        self.scene.reset_wheel_commands()
         for topic in self.recorded.definitions:
             if topic not in COMPOSED:
                 latest = self.recorded.latest(topic, at)
@@ -311,15 +328,20 @@ class BagFoxglove:
                     self.channels[topic].log(latest.data, log_time=latest.log_time)
                     self._take(latest)
         self._cursor = self.recorded.after(at)
+        self.scene.expire_wheel_commands(at / SECOND)
         self.scene.changes()
         self._send_description(at)
-        self._send_tf(self.scene.everything().poses, at)
+        everything = self.scene.everything()
+        self._send_tf(everything.poses, at)
+        self._send_twists(everything.twists, at)
 
     def _send_present(self, topic: str, at: int) -> None:
         if topic in ("/robot_description", "/tf_static"):
             self._send_description(at)
         elif topic == "/tf":
             self._send_tf(self.scene.everything().poses, at)
+        elif topic == WHEEL_TWIST:
+            self._send_twists(self.scene.everything().twists, at)
         elif topic in self.channels:
             latest = self.recorded.latest(topic, at)
             if latest is not None:
@@ -338,6 +360,11 @@ class BagFoxglove:
     def _send_tf(self, poses: dict[str, Any], at: int) -> None:
         if poses:
             self.channels["/tf"].log(tf_message(self._encode_tf, poses, at), log_time=at)
+
+    def _send_twists(self, twists: dict[str, Any], at: int) -> None:
+        if twists:
+            markers = twist_markers(self._encode_markers, twists, at)
+            self.channels[WHEEL_TWIST].log(markers, log_time=at)
 
     def run(self, until: Callable[[], bool]) -> None:
         """Step every :attr:`period` seconds until ``until()`` says stop."""

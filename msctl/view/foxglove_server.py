@@ -9,7 +9,11 @@ own clients only. Channels:
   (a late one gets it too, as a latched topic would give it);
 * ``/tf_static`` and ``/tf`` (tf2_msgs/TFMessage): ``world`` -> every drawn link, the static
   ones once (and again to each subscriber), the moving ones as they move;
-* each module's own topics it shows (``joint_read``, ``health``, ``tip_pose``, ``ik_target``),
+* ``/view/wheel_twist`` (visualization_msgs/MarkerArray): each wheel module's commanded twist
+  (from its ``joint_set``) as an arrow at the module, which Foxglove's 3D panel draws (namespace
+  ``wheel_twist/<slot>``; deleted while the module is commanded still);
+* each module's own topics it shows (``joint_read``, ``health``, ``tip_pose``, ``ik_target``,
+  a wheel module's ``joint_set``),
   as the raw CDR they arrived in, with ``ros2msg`` schemas written as rosbag2 writes them.
 
 Assets: ``package://msctl/<path>`` URIs are files of msctl's installed packages (module URDFs
@@ -25,9 +29,15 @@ from pathlib import Path
 from typing import Any
 
 from msctl.view.scene import Pose, Scene
+from msctl.view.wheels import TWIST_TOLERANCE, WheelTwist
 
 STRING = "std_msgs/msg/String"
 TF = "tf2_msgs/msg/TFMessage"
+MARKERS = "visualization_msgs/msg/MarkerArray"
+#: The wheel modules' commanded twists, as arrow markers.
+WHEEL_TWIST = "/view/wheel_twist"
+#: Arrow colour (RGBA, 0-1): the rerun view's.
+TWIST_RGBA = (60 / 255, 200 / 255, 230 / 255, 1.0)
 #: The frame every link is placed in.
 WORLD = "world"
 #: What ``package://msctl/`` resolves to: the directory above msctl's packages.
@@ -68,6 +78,40 @@ def tf_message(encode: Callable[[Any], bytes], poses: dict[str, Pose], stamp: in
     return encode(msg(TF, transforms=transforms))
 
 
+def twist_markers(
+    encode: Callable[[Any], bytes], twists: dict[str, WheelTwist], stamp: int
+) -> bytes:
+    """A ``visualization_msgs/MarkerArray`` (CDR): one arrow per wheel module's commanded
+    twist, from its wheels' centre along its velocity (1 m per m/s), in :data:`WORLD`; a
+    module commanded still has its arrow deleted.
+
+    Args:
+        encode: The MarkerArray serializer.
+        twists: Wheel module -> its commanded twist.
+        stamp: The markers' time (ns since the epoch).
+    """
+    from components.messages import msg
+
+    markers = []
+    for slot, twist in twists.items():
+        marker = msg("visualization_msgs/msg/Marker", ns=f"wheel_twist/{slot}", id=0, type=0)
+        marker.header.frame_id = WORLD
+        marker.header.stamp.sec, marker.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        marker.action = 0 if twist.speed > TWIST_TOLERANCE else 2  # ADD, or DELETE when still
+        start = msg("geometry_msgs/msg/Point", x=twist.origin[0], y=twist.origin[1])
+        start.z = twist.origin[2]
+        end = msg("geometry_msgs/msg/Point", x=start.x + twist.linear[0])
+        end.y, end.z = start.y + twist.linear[1], start.z + twist.linear[2]
+        marker.points = [start, end]
+        marker.pose.orientation.w = 1.0
+        # For an arrow given by points: shaft diameter, head diameter, head length (m).
+        marker.scale.x, marker.scale.y, marker.scale.z = 0.02, 0.05, 0.06
+        marker.color.r, marker.color.g, marker.color.b, marker.color.a = TWIST_RGBA
+        marker.text = twist.label(slot)
+        markers.append(marker)
+    return encode(msg(MARKERS, markers=markers))
+
+
 class FoxgloveView:
     """Serves a running assembly to Foxglove clients.
 
@@ -101,6 +145,7 @@ class FoxgloveView:
         self._subscriptions: list[Any] = []
         self._lock = threading.Lock()
         self._joints: dict[str, bytes] = {}
+        self._wheel_sets: dict[str, list[bytes]] = {}
         self._decode: Any = None
         self._static: list[str] = []
 
@@ -134,6 +179,9 @@ class FoxgloveView:
         channel("/robot_description", STRING)
         channel("/tf_static", TF)
         channel("/tf", TF)
+        channel(WHEEL_TWIST, MARKERS)
+        self._encode_markers = types.serializer(MARKERS)
+        wheels = self.scene.wheel_commands.wheels
         for module in self.assembly.modules:
             slot = module.slot
             shown = [(f"/{slot}/health", DIAGNOSTIC_ARRAY)]
@@ -144,10 +192,11 @@ class FoxgloveView:
                     (f"/{slot}/{t}", "geometry_msgs/msg/PoseStamped")
                     for t in ("tip_pose", "ik_target")
                 ]
+            if slot in wheels:
+                shown.append((f"/{slot}/joint_set", JOINT_STATE))
             for topic, type_name in shown:
                 out = channel(topic, type_name)
-                joints = slot if topic.endswith("/joint_read") else None
-                self._forward(topic, type_name, out, joints)
+                self._forward(topic, type_name, out, slot)
         self.server = foxglove.start_server(
             name=f"msctl view {self.assembly.template}",
             host=self.host,
@@ -162,13 +211,20 @@ class FoxgloveView:
         self._send_description()
         return self
 
-    def _forward(self, topic: str, type_name: str, out: Any, joints: str | None) -> None:
+    def _forward(self, topic: str, type_name: str, out: Any, slot: str) -> None:
+        leaf = topic.rsplit("/", 1)[-1]
+
         def arrived(payload: Any) -> None:
             data = bytes(payload)
             out.log(data, log_time=time.time_ns())
-            if joints is not None:
+            if leaf == "joint_read":
                 with self._lock:
-                    self._joints[joints] = data
+                    self._joints[slot] = data
+            elif leaf == "joint_set":
+                with self._lock:
+                    # Each may name some wheels only: keep the few of a step, in order.
+                    self._wheel_sets.setdefault(slot, []).append(data)
+                    del self._wheel_sets[slot][:-8]
 
         self.topics.append(topic)
         self._subscriptions.append(self.node.subscription(topic, type_name, arrived, raw=True))
@@ -209,12 +265,23 @@ class FoxgloveView:
 
         with self._lock:
             joints, self._joints = self._joints, {}
+            wheel_sets, self._wheel_sets = self._wheel_sets, {}
         for slot, payload in joints.items():
             samples = joint_samples(self._decode(payload))
             self.scene.set_joints(slot, {s.name: s.position for s in samples})
+        now = time.time()
+        for slot, payloads in wheel_sets.items():
+            for payload in payloads:
+                samples = joint_samples(self._decode(payload))
+                self.scene.set_wheel_command(slot, {s.name: s.velocity for s in samples}, now)
+        self.scene.expire_wheel_commands(now)
         changes = self.scene.changes()
         if changes.poses:
             self.channels["/tf"].log(self._tf(changes.poses), log_time=time.time_ns())
+        if changes.twists:
+            stamp = time.time_ns()
+            markers = twist_markers(self._encode_markers, changes.twists, stamp)
+            self.channels[WHEEL_TWIST].log(markers, log_time=stamp)
 
     def run(self, until: Callable[[], bool]) -> None:
         """Step every :attr:`period` seconds until ``until()`` says stop."""

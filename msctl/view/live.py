@@ -7,6 +7,9 @@ What it subscribes to is exactly what it shows, per module, nothing global:
   publishers and the kinematics manager do it; ``joint_states`` is the motors' raw feedback);
 * ``/<slot>/tip_pose`` and ``/<slot>/ik_target`` of every module with a kinematic chain;
 * ``/cmd_vel`` when the assembly is mobile (the commanded twist, as an arrow);
+* ``/<slot>/joint_set`` of every wheel module: the wheel velocities it is commanded, drawn as
+  its commanded twist (an arrow at the module; stopped after the joint manager's watchdog
+  time without a command, as the wheels are);
 * each module's ``/<slot>/health`` and the graph, through :class:`~msctl.health.live.LiveHealth`
   (levels, STALE, a module leaving the graph, the alarms), without asking the supervisors;
 * the claims' liveliness tokens (:class:`~components.claims.Claims`).
@@ -68,6 +71,7 @@ class LiveView:
         self._joints: dict[str, Any] = {}
         self._markers: dict[str, Any] = {}
         self._twist: Any = None
+        self._wheel_sets: dict[str, list[bytes]] = {}
         self._holders: dict[str, str] = {}
         self._holders_changed = False
         self._subscriptions: list[Any] = []
@@ -100,6 +104,8 @@ class LiveView:
                     self._subscribe(f"/{slot}/{name}", POSE_STAMPED, self._on_marker, marker)
         if self.assembly.mobile:
             self._subscribe("/cmd_vel", TWIST, self._on_twist, "")
+        for slot in self.scene.wheel_commands.wheels:
+            self._subscribe(f"/{slot}/joint_set", JOINT_STATE, self._on_wheel_set, slot, raw=True)
         self.health = LiveHealth(self.node, self.assembly, supervisors=False).start()
         self.claims = Claims(self.node.session, self.node.domain)
         self.claims.on_change(self._on_claim)
@@ -142,6 +148,12 @@ class LiveView:
         with self._lock:
             self._markers[name] = message
 
+    def _on_wheel_set(self, slot: str, payload: Any) -> None:
+        with self._lock:
+            # A few per step (commands come at ~40 Hz): each may name some wheels only.
+            self._wheel_sets.setdefault(slot, []).append(bytes(payload))
+            del self._wheel_sets[slot][:-8]
+
     def _on_twist(self, _key: str, message: Any) -> None:
         with self._lock:
             self._twist = message
@@ -165,6 +177,7 @@ class LiveView:
             joints, self._joints = self._joints, {}
             markers, self._markers = self._markers, {}
             twist, self._twist = self._twist, None
+            wheel_sets, self._wheel_sets = self._wheel_sets, {}
             holders = dict(self._holders) if self._holders_changed else {}
             self._holders_changed = False
         now = self.clock()
@@ -172,6 +185,7 @@ class LiveView:
         for slot, payload in joints.items():
             samples = joint_samples(self._decode(bytes(payload)))
             self.scene.set_joints(slot, {s.name: s.position for s in samples})
+        self._take_wheel_sets(wheel_sets, now)
         for name, message in markers.items():
             frame, pose = _pose_of(message)
             self.scene.set_marker(name, frame, pose)
@@ -193,6 +207,15 @@ class LiveView:
         if changes:
             self.sink.draw(self.scene, changes)
             self.drawn += 1
+
+    def _take_wheel_sets(self, wheel_sets: dict[str, list[bytes]], now: float) -> None:
+        from components.messages import joint_samples
+
+        for slot, payloads in wheel_sets.items():
+            for payload in payloads:
+                samples = joint_samples(self._decode(payload))
+                self.scene.set_wheel_command(slot, {s.name: s.velocity for s in samples}, now)
+        self.scene.expire_wheel_commands(now)
 
     def _take_health(self) -> None:
         snapshot = self.health.evaluate()

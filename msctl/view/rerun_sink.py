@@ -7,6 +7,8 @@ Entities:
   (``.../visual_<i>``: boxes, cylinders, spheres, meshes), tinted by the module's health level;
 * ``targets/<slot>/tip`` and ``targets/<slot>/ik_target``: a limb's tip and IK target;
 * ``cmd_vel``: the commanded twist of a mobile assembly, as an arrow at its root;
+* ``twist/<slot>``: each wheel module's commanded twist (from its ``joint_set``), as an arrow
+  at the module, labelled with its speed and turn rate;
 * ``status``: one line per module (level, on the graph, halted, who holds its claim);
 * ``alarms``: every level change, claim and module arriving or leaving, as a text log.
 
@@ -22,6 +24,7 @@ from typing import Any
 from urllib.parse import quote
 
 from msctl.view.scene import LEVEL_COLOURS, Changes, Pose, Scene, Shape
+from msctl.view.wheels import WheelTwist
 
 Vec = tuple[float, float, float]
 
@@ -49,7 +52,7 @@ def blueprint(eye: tuple[Vec, Vec] | None = None) -> Any:
             rrb.Spatial3DView(
                 name="robot",
                 origin="/",
-                contents=["+ /robot/**", "+ /targets/**", "+ /cmd_vel"],
+                contents=["+ /robot/**", "+ /targets/**", "+ /cmd_vel", "+ /twist/**"],
                 eye_controls=controls,
             ),
             rrb.Vertical(
@@ -172,6 +175,8 @@ class RerunSink:
             self._status.update(changes.status)
             text = "\n".join(f"- {line}" for _, line in sorted(self._status.items()))
             self._log("status", rr.TextDocument(text, media_type="text/markdown"))
+        for slot, twist in changes.twists.items():
+            self.twist(slot, twist)
         for name, pose in changes.markers.items():
             # A limb's tip green, an IK target (what it was asked to reach) magenta.
             colour = _MARKER_COLOURS.get(name.rsplit("/", 1)[-1], _TARGET_COLOUR)
@@ -179,6 +184,18 @@ class RerunSink:
                 f"targets/{name}",
                 rr.Points3D([pose[0]], radii=[0.02], colors=[colour], labels=[name]),
             )
+
+    def twist(self, slot: str, twist: WheelTwist) -> None:
+        """A wheel module's commanded twist: an arrow of its velocity (m/s) at its wheels."""
+        self._log(
+            f"twist/{slot}",
+            self.rr.Arrows3D(
+                origins=[twist.origin],
+                vectors=[twist.linear],
+                colors=[_TWIST_COLOUR],
+                labels=[twist.label(slot)],
+            ),
+        )
 
     def arrow(self, origin: tuple[float, float, float], vector: tuple[float, float, float]) -> None:
         """The commanded twist of the assembly (m/s) as an arrow at its root."""
@@ -258,3 +275,5 @@ _SHAPES: dict[str, Callable[[Any, Shape, Colour], Any]] = {
 #: A marker's last name chunk -> its colour; the rest are IK targets.
 _MARKER_COLOURS: dict[str, Colour] = {"tip": (60, 200, 90, 255)}
 _TARGET_COLOUR: Colour = (230, 120, 230, 255)
+#: A wheel module's commanded twist (the assembly's cmd_vel arrow is a darker blue).
+_TWIST_COLOUR: Colour = (60, 200, 230, 255)

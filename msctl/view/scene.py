@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from msctl.view.wheels import WheelCommands, WheelTwist, twist_of, wheel_joints
+
 if TYPE_CHECKING:
     from components.assembly import ResolvedAssembly
 
@@ -131,15 +133,17 @@ class Changes:
         looks: Module -> its colour key (:data:`LEVEL_COLOURS`).
         status: Module -> its status line.
         markers: Marker name (``limb1/tip``) -> its pose in the world.
+        twists: Wheel module -> its commanded twist (:mod:`msctl.view.wheels`).
     """
 
     poses: dict[str, Pose] = field(default_factory=dict)
     looks: dict[str, str] = field(default_factory=dict)
     status: dict[str, str] = field(default_factory=dict)
     markers: dict[str, Pose] = field(default_factory=dict)
+    twists: dict[str, WheelTwist] = field(default_factory=dict)
 
     def __bool__(self) -> bool:
-        return bool(self.poses or self.looks or self.status or self.markers)
+        return bool(self.poses or self.looks or self.status or self.markers or self.twists)
 
 
 def _floats(text: str | None, count: int, default: float = 0.0) -> tuple[float, ...]:
@@ -223,6 +227,8 @@ class Scene:
         urdf_text: The lock's composed URDF.
         modules: ``(slot, kind)`` of every module.
         robots: Where each robot stands (its root link and pose in the world).
+        wheels: Wheel module -> its velocity-controlled joints (those whose link has a
+            radius are its wheels; their commanded twist is drawn).
 
     Raises:
         SceneError: If the URDF cannot be read or a root link is missing.
@@ -233,6 +239,7 @@ class Scene:
         urdf_text: str,
         modules: Sequence[tuple[str, str]],
         robots: Sequence[Placement],
+        wheels: Mapping[str, Sequence[str]] | None = None,
     ) -> None:
         import pinocchio as pin
 
@@ -269,6 +276,10 @@ class Scene:
         self._drawn_status: dict[str, str] = {}
         self._markers: dict[str, tuple[str, Pose]] = {}
         self._world: dict[str, pin.SE3] = {}
+        self.wheel_commands = WheelCommands(
+            {slot: wheel_joints(robot, joints) for slot, joints in (wheels or {}).items()}
+        )
+        self._drawn_twists: dict[str, WheelTwist] = {}
 
     # ------------------------------------------------------------------ inputs
     def set_joints(self, slot: str, positions: Mapping[str, float]) -> bool:
@@ -307,6 +318,23 @@ class Scene:
         if state is not None:
             state.holder = holder
 
+    def set_wheel_command(
+        self, slot: str, velocities: Mapping[str, float | None], at: float
+    ) -> None:
+        """Take a wheel module's commanded wheel velocities (its ``joint_set``, rad/s) at
+        ``at`` (s, wall or bag time); other modules and joints are skipped."""
+        self.wheel_commands.command(slot, velocities, at)
+
+    def expire_wheel_commands(self, now: float) -> list[str]:
+        """Stop the wheels of modules commanded nothing lately, as their joint managers'
+        watchdogs do (:meth:`~msctl.view.wheels.WheelCommands.expire`); returns them."""
+        return self.wheel_commands.expire(now)
+
+    def reset_wheel_commands(self) -> None:
+        """Forget every wheel command and drawn twist (a bag's picture jumping in time)."""
+        self.wheel_commands.reset()
+        self._drawn_twists.clear()
+
     def set_marker(self, name: str, frame: str, pose: Pose) -> None:
         """Place a marker (a limb's tip, its IK target) given in a link's frame."""
         self._markers[name] = (frame, pose)
@@ -336,6 +364,7 @@ class Scene:
             poses=dict(self._drawn_poses),
             looks=dict(self._drawn_looks),
             status=dict(self._drawn_status),
+            twists=dict(self._drawn_twists),
         )
 
     def changes(self) -> Changes:
@@ -366,6 +395,11 @@ class Scene:
             )
             out.markers[name] = _pose(parent * local)
         self._markers.clear()
+        commands = self.wheel_commands
+        for slot in commands.commanded():
+            twist = twist_of(commands.wheels[slot], commands.velocities(slot), self._world)
+            if twist is not None and twist.differs(self._drawn_twists.get(slot)):
+                self._drawn_twists[slot] = out.twists[slot] = twist
         return out
 
 
@@ -405,7 +439,10 @@ def scene_of(assembly: ResolvedAssembly) -> Scene:
         Placement(root) for root in lock.root_links
     ]
     modules = [(m.slot, m.kind) for m in lock.modules]
+    wheels = {
+        m.slot: [j.name for j in m.joints if j.control == "velocity"] for m in assembly.modules
+    }
     try:
-        return Scene(text, modules, robots)
+        return Scene(text, modules, robots, {slot: j for slot, j in wheels.items() if j})
     except SceneError as exc:
         raise SceneError(f"{urdf_path}: {exc}") from None
