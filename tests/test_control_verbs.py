@@ -11,6 +11,7 @@ import os
 import signal
 from collections.abc import Iterator
 
+import msgspec
 import pytest
 from conftest import wait_until
 from home_rig import Home, home  # noqa: F401  (home: the fixture)
@@ -151,3 +152,23 @@ def test_stop_names_the_components_it_takes_with_the_process(minimal: Up) -> Non
     assert "--only limb1" not in said and "share the process" not in said, said
     assert "`msctl restart --only COMPONENT` restarts one of them alone" in said, said
     wait_until(lambda: _all_running(minimal), 90.0, "all running again", interval=0.5)
+
+
+def test_a_real_supervisors_ps_answer_is_its_typed_document(minimal: Up) -> None:
+    """Every field a running supervisor sends in its ``ps`` answer is a field of
+    :class:`~components.supervision.protocol.RunDocument` and its rows: decoded typed, or read
+    by the field names as ``msctl ps`` does, nothing of it is lost."""
+    from components.comm.node import Node
+    from components.comm.session import open_session
+    from components.supervision.contract import ps_document
+    from components.supervision.protocol import run_document
+    from components.supervision.wire import call_supervisor
+
+    wait_until(lambda: _all_running(minimal), 90.0, "all running", interval=0.5)
+    with open_session(minimal.settings()) as session, Node(session, "ps_reader") as node:
+        sent = call_supervisor(node, "test-laptop", "ps", timeout=10.0)
+    assert sent["components"] and sent["processes"]
+    typed = run_document(json.dumps(sent))
+    assert typed is not None
+    assert json.loads(json.dumps(ps_document(sent))) == sent
+    assert {k: v for k, v in msgspec.to_builtins(typed).items() if k in sent} == sent

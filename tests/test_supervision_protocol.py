@@ -193,3 +193,59 @@ def test_the_client_returns_the_typed_answer_and_names_the_host_in_a_refusal(
     assert "only" not in payload  # left out unless it is a rebuild alone
     with pytest.raises(RequestError, match=f"{HOST} refused restart: no component"):
         call_supervisor(node, HOST, "restart", {"component": "ghost"}, 10.0)
+
+
+# ---------------------------------------------------------------------------- ps answers
+@pytest.mark.parametrize(
+    ("names", "struct"),
+    [
+        ("RUN_FIELDS", protocol.RunDocument),
+        ("COMPONENT_FIELDS", protocol.ComponentRow),
+        ("PROCESS_FIELDS", protocol.ProcessRow),
+    ],
+)
+def test_the_quick_paths_field_names_are_the_typed_answers_fields(names: str, struct: Any) -> None:
+    """``msctl ps`` reads answers by these names without msgspec: they are the structs'."""
+    from components.supervision import contract
+
+    assert getattr(contract, names) == struct.__struct_fields__
+
+
+IDLE_AGENT = {  # what an agent with no run answers (an older agent: no rejoin, no faults)
+    "host": "hl-limb-01",
+    "agent": True,
+    "template": None,
+    "state": "idle",
+    "supervisor_pid": 4242,
+    "router": "tcp/127.0.0.1:7447",
+    "processes": [],
+    "components": [],
+    "not_built": [],
+}
+
+
+def test_a_ps_answer_reads_the_same_typed_and_by_field_names() -> None:
+    """Both readings keep exactly what was sent; a newer supervisor's extra field is left out
+    by both, and what is not a ps answer is none."""
+    from components.supervision.contract import ps_document
+
+    row = {
+        "name": "limb1/joint_manager",
+        "kind": "joint_manager",
+        "host": "hl-limb-01",
+        "process": "limb1",
+        "state": "running",
+        "pid": 77,
+        "uptime": 3.5,
+        "restarts": 1,
+        "last_error": "",
+    }
+    sent = {**IDLE_AGENT, "state": "running", "template": "dragon", "components": [row]}
+    typed = protocol.run_document(msgspec.json.encode({**sent, "newer": 1}))
+    assert typed is not None and typed.components[0].pid == 77
+    assert {k: v for k, v in msgspec.to_builtins(typed).items() if k in sent} == sent
+    assert ps_document({**sent, "newer": 1}) == sent
+    assert protocol.run_document(msgspec.json.encode(IDLE_AGENT)).components == []
+    for not_one in (b"[]", b"{}", b'{"host": 5}', b'{"host": "a", "components": [7]}', b"x"):
+        assert protocol.run_document(not_one) is None, not_one
+    assert ps_document([]) is None and ps_document({"host": 5}) is None

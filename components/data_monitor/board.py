@@ -77,6 +77,7 @@ from components.data_monitor.rows import (
 )
 from components.health_monitor.motors import TEMPERATURE_KEYS, VOLTAGE_KEYS
 from components.messages import ERROR, OK, STALE, Level, worst
+from components.supervision.protocol import Rejoin, RunDocument, run_document
 
 #: Seconds without health after which a module is STALE.
 STALE_AFTER = 2.5
@@ -243,36 +244,36 @@ class HealthBoard:
         self.version += 1
 
     def on_supervisors(
-        self, documents: Iterable[Any], now: float, unanswered: Iterable[str] = ()
+        self,
+        documents: Iterable[RunDocument | Mapping[str, Any] | bytes | str],
+        now: float,
+        unanswered: Iterable[str] = (),
     ) -> None:
         """The ``ps`` documents of the supervisors that answered just now.
 
-        Malformed entries (a document is data from the network) are skipped.
+        An answer that is not a :class:`~components.supervision.protocol.RunDocument` (data
+        from the network) is skipped whole.
 
         Args:
-            documents: ``{"host": ..., "components": [{"name", "state", "process", "pid",
-                "uptime", "restarts", "last_error"}, ...]}`` per supervisor.
+            documents: Each supervisor's answer: a :class:`RunDocument`, or its JSON payload
+                or that parsed (:func:`~components.supervision.protocol.run_document`).
             now: Monotonic seconds.
             unanswered: Supervisors (by host or namespace) that did not answer (informative).
         """
         self.start(now)
         del unanswered  # their entries simply stop being current
         changed = False
-        for document in documents:
-            if not isinstance(document, Mapping):
+        for answer in documents:
+            document = run_document(answer)
+            if document is None:  # not a ps answer: nothing of it is kept
                 continue
-            host = clip(document.get("host", ""), MAX_NAME)
+            host = clip(document.host, MAX_NAME)
             self._supervisors_at[host] = now
-            self._on_rejoin(host, document.get("rejoin"))
-            components = document.get("components", [])
-            if not isinstance(components, list):
-                continue
-            for entry in components:
-                if not isinstance(entry, Mapping) or not isinstance(entry.get("name"), str):
-                    continue
-                known = self._supervised.get(entry["name"])
+            self._on_rejoin(host, document.rejoin)
+            for entry in document.components:
+                known = self._supervised.get(entry.name)
                 supervised = Supervised.from_entry(entry, host, now)
-                self._supervised[entry["name"]] = supervised
+                self._supervised[entry.name] = supervised
                 # Rows are judged again when a process changed, not at every answer (its
                 # freshness is a deadline of the rows, its uptime is extrapolated).
                 if known is None or known.news(supervised):
@@ -281,22 +282,22 @@ class HealthBoard:
             self._all_dirty()
         self.version += 1
 
-    def _on_rejoin(self, host: str, report: Any) -> None:
-        """An agent's ``rejoin`` report (``{"outcome": "rejoined" | "refused", "at",
-        "message"}``), or its absence (cleared by the next ``up`` or ``down``).
+    def _on_rejoin(self, host: str, report: Rejoin | None) -> None:
+        """An agent's ``rejoin`` report (``rejoined`` or ``refused``), or its absence
+        (cleared by the next ``up`` or ``down``).
 
         A new report is an alarm of every row on ``host`` at once, stamped with the agent's
         time (each board that sees it records the same alarm, which merges as one).
         """
         known = self._rejoins.get(host)
-        at = finite(report.get("at")) if isinstance(report, Mapping) else None
+        at = finite(report.at) if report is not None else None
         if at is None:  # none, or malformed: nothing to show
             if known is not None:
                 del self._rejoins[host]
                 self._all_dirty()
             return
-        level = OK if report.get("outcome") == "rejoined" else ERROR
-        entry = (level, clip(report.get("message") or "", MAX_MESSAGE), at)
+        level = OK if report.outcome == "rejoined" else ERROR
+        entry = (level, clip(report.message, MAX_MESSAGE), at)
         if entry == known:
             return
         self._rejoins[host] = entry

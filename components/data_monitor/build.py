@@ -19,6 +19,7 @@ from components.data_monitor.plan import board_for
 
 if TYPE_CHECKING:
     from components.executor.executor import Component, Executor
+    from components.supervision.protocol import RunDocument
 
 
 class MonitorFeeds:
@@ -45,7 +46,7 @@ class MonitorFeeds:
         def on_node(node: str, count: int) -> None:
             executor.call_soon(component, "on_node_instances", node, count)
 
-        def on_supervisors(documents: list[dict[str, Any]], unanswered: list[str]) -> None:
+        def on_supervisors(documents: list[RunDocument], unanswered: list[str]) -> None:
             executor.call_soon(component, "on_supervisors", documents, unanswered)
 
         # Published as bytes the core encodes itself, where the publisher takes bytes.

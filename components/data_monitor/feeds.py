@@ -6,16 +6,18 @@ board's lock, so the board itself stays single-threaded and pure.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from components.comm.graph import Graph, GraphView
 from components.comm.liveliness import Entity, EntityKind
 from components.comm.services import ServiceError
+
+if TYPE_CHECKING:
+    from components.supervision.protocol import RunDocument
 
 _log = logging.getLogger(__name__)
 
@@ -94,7 +96,8 @@ class SupervisorPoller:
         node: The node to make clients on.
         graph: A live graph view (to find the supervisors).
         post: Called as ``post(documents, unanswered)`` after each round, from the poller's
-            thread: the ``ps`` documents that came back, and the services that did not answer.
+            thread: the ``ps`` answers that came back, typed, and the services that did not
+            answer.
         period: Seconds between rounds.
         timeout: Seconds each supervisor has to answer.
     """
@@ -103,7 +106,7 @@ class SupervisorPoller:
         self,
         node: Any,
         graph: GraphView,
-        post: Callable[[list[dict[str, Any]], list[str]], None],
+        post: Callable[[list[RunDocument], list[str]], None],
         period: float = POLL_PERIOD,
         timeout: float = POLL_TIMEOUT,
     ) -> None:
@@ -148,14 +151,16 @@ class SupervisorPoller:
             self._wake.wait(self._next_wait())
             self._wake.clear()
 
-    def poll_once(self) -> tuple[list[dict[str, Any]], list[str]]:
-        """One round: ask every supervisor, post and return what came back."""
+    def poll_once(self) -> tuple[list[RunDocument], list[str]]:
+        """One round: ask every supervisor, post and return what came back (an answer that
+        is not a :class:`~components.supervision.protocol.RunDocument` counts as none)."""
+        from components.supervision.protocol import run_document
         from components.supervision.wire import SupervisorClient
 
         services = supervisor_services(self.graph)
         for gone in set(self._clients) - set(services):
             self._clients.pop(gone).close()
-        documents: list[dict[str, Any]] = []
+        documents: list[RunDocument] = []
         unanswered: list[str] = []
         for service in services:
             if self._stop.is_set():
@@ -165,10 +170,10 @@ class SupervisorPoller:
                 client = self._clients[service] = SupervisorClient(self.node, service)
             try:
                 response = client.ask("ps", "{}", timeout=self.timeout)
-                document = json.loads(response.payload) if response.success else None
-            except (ServiceError, ValueError):
+                document = run_document(response.payload) if response.success else None
+            except ServiceError:
                 document = None
-            if isinstance(document, dict):
+            if document is not None:
                 documents.append(document)
             else:
                 unanswered.append(service)

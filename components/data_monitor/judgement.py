@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from components.data_monitor.model import (
     MAX_MESSAGE,
@@ -23,6 +23,9 @@ from components.data_monitor.model import (
     finite,
 )
 from components.messages import ERROR, OK, STALE, WARN, Level
+
+if TYPE_CHECKING:
+    from components.supervision.protocol import ComponentRow
 
 #: Seconds a supervisor's answer counts as current.
 SUPERVISOR_FRESH = 3.0
@@ -66,29 +69,24 @@ class Supervised:
     at: float
 
     @classmethod
-    def from_entry(cls, entry: Mapping[str, Any], host: str, now: float) -> Supervised:
-        """One component of a supervisor's ``ps`` document (data from the network, bounded:
-        a pid or restart count that is no integer is dropped).
+    def from_entry(cls, entry: ComponentRow, host: str, now: float) -> Supervised:
+        """One component of a supervisor's ``ps`` answer (data from the network: its types
+        checked when it was decoded, its lengths bounded here).
 
         Args:
-            entry: ``{"name", "state", "process", "pid", "uptime", "restarts",
-                "last_error"}``, its ``name`` a string.
+            entry: The component's row.
             host: The answering supervisor's host (the process's unless the entry says).
             now: Monotonic seconds of the answer.
         """
-        pid = entry.get("pid")
-        restarts = entry.get("restarts")
         return cls(
-            name=entry["name"],
-            host=clip(entry.get("host", host), MAX_NAME),
-            process=clip(entry.get("process", ""), MAX_NAME),
-            state=clip(entry.get("state", ""), 40),
-            pid=pid if isinstance(pid, int) and not isinstance(pid, bool) else None,
-            uptime=finite(entry.get("uptime")) or 0.0,
-            restarts=restarts
-            if isinstance(restarts, int) and not isinstance(restarts, bool)
-            else 0,
-            last_error=clip(entry.get("last_error") or "", MAX_MESSAGE),
+            name=entry.name,
+            host=clip(entry.host or host, MAX_NAME),
+            process=clip(entry.process, MAX_NAME),
+            state=clip(entry.state, 40),
+            pid=entry.pid,
+            uptime=finite(entry.uptime) or 0.0,
+            restarts=entry.restarts,
+            last_error=clip(entry.last_error or "", MAX_MESSAGE),
             at=now,
         )
 

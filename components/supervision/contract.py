@@ -91,3 +91,74 @@ def this_host() -> str:
     import socket
 
     return os.environ.get("MSCTL_HOST") or socket.gethostname()
+
+
+# --------------------------------------------------------------------------- ps answers
+# The field names of a ``ps`` answer (a run document), for the readers that must not load
+# msgspec (``msctl ps``'s quick path, :mod:`msctl.launcher.fleet`). The answer's types are
+# :class:`components.supervision.protocol.RunDocument` and its rows; a test checks these
+# names are exactly those structs' fields, so this is no second schema, only their names.
+#: :class:`~components.supervision.protocol.RunDocument`'s fields.
+RUN_FIELDS = (
+    "host",
+    "state",
+    "template",
+    "agent",
+    "supervisor_pid",
+    "router",
+    "simulated",
+    "off_robot",
+    "secure",
+    "started_router",
+    "started",
+    "processes",
+    "components",
+    "not_built",
+    "faults",
+    "rejoin",
+)
+#: :class:`~components.supervision.protocol.ComponentRow`'s fields.
+COMPONENT_FIELDS = (
+    "name",
+    "kind",
+    "host",
+    "process",
+    "state",
+    "pid",
+    "uptime",
+    "restarts",
+    "last_error",
+)
+#: :class:`~components.supervision.protocol.ProcessRow`'s fields.
+PROCESS_FIELDS = (
+    "name",
+    "state",
+    "pid",
+    "pgid",
+    "uptime",
+    "restarts",
+    "last_error",
+    "heartbeat_age",
+    "log",
+    "log_lines_lost",
+    "components",
+)
+
+
+def ps_document(answer: Any) -> dict[str, Any] | None:
+    """A ``ps`` answer (JSON already parsed) read by the field names above, or ``None`` if it
+    is not one (no object, or no host).
+
+    What a newer supervisor adds is left out, what an older one lacks is absent (a row's
+    missing field is ``None``), so what is printed is the fields of the typed answer.
+    """
+    if not isinstance(answer, dict) or not isinstance(answer.get("host"), str):
+        return None
+    document = {name: answer[name] for name in RUN_FIELDS if name in answer}
+    for key, names in (("components", COMPONENT_FIELDS), ("processes", PROCESS_FIELDS)):
+        rows = answer.get(key)
+        if isinstance(rows, list):
+            document[key] = [
+                {name: row.get(name) for name in names} for row in rows if isinstance(row, dict)
+            ]
+    return document

@@ -15,6 +15,7 @@ Adding a verb is one struct here and one handler in each supervisor's table
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from typing import Annotated, Any, Literal, NamedTuple, Union
 
 import msgspec
@@ -222,6 +223,131 @@ class DownAnswer(msgspec.Struct, frozen=True, omit_defaults=True):
 
 #: ``logs``: each process and its last lines.
 LogsAnswer = dict[str, list[str]]
+
+
+class ProcessRow(msgspec.Struct, frozen=True):
+    """One process of a run document (what its supervisor knows of it).
+
+    Attributes:
+        name: The process.
+        state: ``starting``, ``running``, ``restarting``, ``unresponsive``, ``failed``,
+            ``stopped``.
+        pid: Its pid (``None`` when it does not run), also its process group (``pgid``).
+        uptime: Seconds since it started.
+        restarts: How many times it was started again.
+        last_error: Why it last ended or failed.
+        heartbeat_age: Seconds since its last heartbeat (``None``: none, or none yet).
+        log: Its log file.
+        log_lines_lost: Lines its log could not keep (a full disk).
+        components: The components it runs.
+    """
+
+    name: str
+    state: str = ""
+    pid: int | None = None
+    pgid: int | None = None
+    uptime: float = 0.0
+    restarts: int = 0
+    last_error: str | None = None
+    heartbeat_age: float | None = None
+    log: str = ""
+    log_lines_lost: int = 0
+    components: list[str] = []
+
+
+class ComponentRow(msgspec.Struct, frozen=True):
+    """One component of a run document: a row of ``msctl ps``.
+
+    Attributes:
+        name: The component (``limb1/joint_manager``).
+        kind: Its kind.
+        host: The host it runs on.
+        process: The process it runs in.
+        state: Its state (its process's, ``starting`` until its node is seen publishing).
+        pid, uptime, restarts, last_error: Its process's (:class:`ProcessRow`).
+    """
+
+    name: str
+    kind: str = ""
+    host: str = ""
+    process: str = ""
+    state: str = ""
+    pid: int | None = None
+    uptime: float = 0.0
+    restarts: int = 0
+    last_error: str | None = None
+
+
+class NotBuilt(msgspec.Struct, frozen=True):
+    """A planned component no code builds here (its kind has no builder)."""
+
+    name: str
+    kind: str = ""
+
+
+class Rejoin(msgspec.Struct, frozen=True):
+    """What an agent did at its start with the run it was asked for before (``rejoined`` or
+    ``refused``), at ``at`` (Unix seconds), and why."""
+
+    outcome: str = ""
+    at: float | None = None
+    message: str = ""
+
+
+class RunDocument(msgspec.Struct, frozen=True):
+    """What ``ps`` answers (and a supervisor's state file holds): its host's run.
+
+    Read by ``msctl ps`` (by its field names, :data:`~.contract.RUN_FIELDS`), ``up --all``,
+    the health screen and the data monitor. Fields a newer supervisor adds are ignored and
+    those an older one lacks take their defaults, so an older agent still answers.
+
+    Attributes:
+        host: The supervisor's host.
+        state: ``running``, ``stopped`` or (an agent with no run) ``idle``.
+        template: The assembly's template (``None``: an idle agent).
+        agent: Whether an agent runs it (stopped by asking, never by a signal).
+        supervisor_pid: The supervisor's pid.
+        router: The router it connects to.
+        simulated, off_robot: Whether the motors are simulated; whether one computer runs
+            the whole assembly.
+        secure: Whether its router runs the generated (filtered) config.
+        started_router: Whether it started that router.
+        started: When the run started (Unix seconds).
+        processes, components, not_built: Its processes, its components, the planned
+            components no code builds here.
+        faults: What is wrong with the supervisor's own files (a full disk).
+        rejoin: An agent's rejoin report, until the next ``up`` or ``down``.
+    """
+
+    host: str
+    state: str = ""
+    template: str | None = None
+    agent: bool = False
+    supervisor_pid: int | None = None
+    router: str = ""
+    simulated: bool = False
+    off_robot: bool = False
+    secure: bool = False
+    started_router: bool = False
+    started: float | None = None
+    processes: list[ProcessRow] = []
+    components: list[ComponentRow] = []
+    not_built: list[NotBuilt] = []
+    faults: list[str] = []
+    rejoin: Rejoin | None = None
+
+
+def run_document(answer: bytes | str | Mapping[str, Any] | RunDocument) -> RunDocument | None:
+    """A ``ps`` answer as a :class:`RunDocument`: its JSON payload, the payload already
+    parsed, or the struct itself; ``None`` if it is not one (data from the network)."""
+    if isinstance(answer, RunDocument):
+        return answer
+    try:
+        if isinstance(answer, (bytes, str)):
+            return msgspec.json.decode(answer, type=RunDocument)
+        return msgspec.convert(answer, RunDocument)
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return None
 
 
 def error_payload(kind: str, message: str, verb: str) -> str:

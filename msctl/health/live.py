@@ -30,6 +30,7 @@ from components.data_monitor.measures import History, RateMeter
 from components.data_monitor.model import BoardSnapshot
 from components.data_monitor.plan import board_for
 from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE, TRIGGER
+from components.supervision.protocol import RunDocument
 from msctl.health.source import ActionError, TopicRow
 
 _log = logging.getLogger(__name__)
@@ -201,7 +202,7 @@ class LiveHealth:
             self.poller.poke()
         self._changed()
 
-    def _on_supervisors(self, documents: list[dict[str, Any]], unanswered: list[str]) -> None:
+    def _on_supervisors(self, documents: list[RunDocument], unanswered: list[str]) -> None:
         with self.lock:
             self.board.on_supervisors(documents, time.monotonic(), unanswered)
             self._arrived.notify_all()

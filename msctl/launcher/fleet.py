@@ -5,7 +5,9 @@ The hosts that should answer are those of this computer's resolved assembly (the
 ``msctl assemble`` wrote into MSCTL_HOME: every robot computer of its modules and every ground
 station), plus any other supervisor the graph shows. The lock is read here as plain JSON, not
 through :mod:`components.assembly`'s schema: ``msctl ps`` reads it on every run and must not
-pay for msgspec and the module specs (see :mod:`msctl.quick`).
+pay for msgspec and the module specs (see :mod:`msctl.quick`). For the same reason the ``ps``
+answers are read by their typed struct's field names
+(:func:`components.supervision.contract.ps_document`), not decoded by msgspec.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from components.paths import state_dir
-from components.supervision.contract import AGENT_SRV, encode_args, host_namespace
+from components.supervision.contract import AGENT_SRV, encode_args, host_namespace, ps_document
 from msctl.launcher import state
 from msctl.launcher.fanout import ask_each
 
@@ -301,7 +303,7 @@ def fleet_state(timeout: float = 3.0, every_host: bool = False) -> FleetState:
     documents: dict[str, dict[str, Any]] = {}
     silent: dict[str, Silence] = {}  # by host
     notes: list[str] = []
-    local = state.read_state()
+    local = ps_document(state.read_state())
     # Why the network could not be asked, if it could not.
     unreached = _ask_network(plan, every_host, timeout, documents, silent, notes)
     if local and local.get("host") not in documents:
@@ -327,8 +329,10 @@ def _ask_network(
         with connected("ps") as node:
             asked = ask_hosts(node, "ps", plan.hosts if plan and every_host else (), None, timeout)
         for answer in asked.answers.values():
-            if "host" in answer:
-                documents[answer["host"]] = answer
+            # Read by the typed answer's field names (RunDocument's, without msgspec).
+            document = ps_document(answer)
+            if document is not None:
+                documents[document["host"]] = document
         # A silent supervisor of a plan host is named as the plan names the host.
         named = {host_namespace(h): h for h in (plan.hosts if plan else ())}
         for namespace, silence in asked.silent.items():

@@ -2,29 +2,34 @@
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, Union
 
 from msctl.errors import InputError, MsctlError, NetworkError, NotFoundError
 from msctl.launcher.control import RequestError
 
+if TYPE_CHECKING:
+    from components.supervision.protocol import ComponentRow, RunDocument
+
 
 def host_of(component: str, node: Any) -> str:
+    from components.supervision.protocol import run_document
     from msctl.launcher import state
     from msctl.launcher.fleet import ask_all
 
     answered: set[str] = set()
     known: list[str] = []
-    for namespace, answer in ask_all(node, "ps").items():
-        for c in answer.get("components", []):
-            if component in (c["name"], c.get("process")):
-                return answer["host"]
-        for p in answer.get("processes", []):
-            if component == p["name"]:
-                return answer["host"]
-        if "host" in answer:
-            answered.add(answer["host"])
-            known += [c["name"] for c in answer.get("components", [])]
-        del namespace
+    for answer in ask_all(node, "ps").values():
+        document = run_document(answer)  # None: the host's error, or no ps answer
+        if document is None:
+            continue
+        for c in document.components:
+            if component in (c.name, c.process):
+                return document.host
+        for p in document.processes:
+            if component == p.name:
+                return document.host
+        answered.add(document.host)
+        known += [c.name for c in document.components]
     local = state.read_state()
     # This computer's supervisor, when its answer did not arrive: let it say for itself.
     if local and state.supervisor_alive(local) and local.get("host") not in answered:
@@ -93,6 +98,7 @@ def _wait_rebuilt(
     """Until ``component``, rebuilt alone, runs again (its siblings never stopped)."""
     import time
 
+    from components.supervision.protocol import run_document
     from msctl.console import err
     from msctl.errors import OperationTimeout
     from msctl.launcher.control import call_supervisor
@@ -100,14 +106,15 @@ def _wait_rebuilt(
     deadline = time.monotonic() + timeout
     with err.status(f"rebuilding {component} in process {process} on {host}..."):
         while True:
-            rows = call_supervisor(node, host, "ps", timeout=5.0).get("components", [])
-            row = next((r for r in rows if r["name"] == component), None)
-            if row is not None and row["state"] == "running":
+            document = run_document(call_supervisor(node, host, "ps", timeout=5.0))
+            rows = document.components if document is not None else []
+            row = next((r for r in rows if r.name == component), None)
+            if row is not None and row.state == "running":
                 break
-            if row is not None and row["state"] in ("failed", "restarting"):
+            if row is not None and row.state in ("failed", "restarting"):
                 raise MsctlError(
                     f"{component} could not be rebuilt alone; its process {process} is "
-                    f"{row['state']}: {row['last_error'] or 'see `msctl logs ' + component + '`'}"
+                    f"{row.state}: {row.last_error or 'see `msctl logs ' + component + '`'}"
                 )
             if time.monotonic() > deadline:
                 raise OperationTimeout(
@@ -115,10 +122,10 @@ def _wait_rebuilt(
                     hint=f"see `msctl logs {component}`",
                 )
             time.sleep(0.2)
-    siblings = [r["name"] for r in rows if r.get("process") == process and r["name"] != component]
+    siblings = [r.name for r in rows if r.process == process and r.name != component]
     err.print(
         f"[green]restart[/] {component} on {host}: rebuilt alone in process {process} "
-        f"(pid {row['pid']} unchanged)"
+        f"(pid {row.pid} unchanged)"
         + (f"; {', '.join(siblings)} ran on untouched" if siblings else ""),
         highlight=False,
     )
@@ -272,50 +279,56 @@ def _start_each(
     return ask_each(hosts, ask, lambda result: isinstance(result, Unstarted))
 
 
-def _healthy(document: dict[str, Any]) -> bool:
+#: A host's last ``ps`` while ``up --all`` waits: its typed answer, or why there was none.
+Looked = Union["RunDocument", str]
+
+
+def _components(looked: Looked | None) -> list[ComponentRow]:
+    return [] if looked is None or isinstance(looked, str) else looked.components
+
+
+def _healthy(looked: Looked) -> bool:
     # A host whose part is only kinds not built yet runs nothing, and is done at once.
-    return "error" not in document and all(
-        c["state"] == "running" for c in document.get("components", [])
-    )
+    return not isinstance(looked, str) and all(c.state == "running" for c in looked.components)
 
 
-def _not_running(status: dict[str, dict[str, Any]]) -> list[str]:
+def _not_running(status: dict[str, Looked]) -> list[str]:
     return [
-        f"{host}: {c['name']}"
+        f"{host}: {c.name}"
         for host, d in status.items()
-        for c in d.get("components", [])
-        if c["state"] != "running"
+        for c in _components(d)
+        if c.state != "running"
     ]
 
 
 def _wait_healthy(
     node: Any, started: dict[str, dict[str, Any]], deadline: float
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, Looked]:
     """Ask every started host what runs (all at once, :func:`fanout.rounds`) until every
     component is healthy or the deadline passes; each host's last ``ps`` (or its error)."""
     from components.comm.services import ServiceError
+    from components.supervision.protocol import run_document
     from msctl.launcher.control import call_supervisor
     from msctl.launcher.fanout import progress, rounds
 
-    status: dict[str, dict[str, Any]] = {}
+    status: dict[str, Looked] = {}
     total = sum(len(answer.get("components", [])) for answer in started.values())
 
-    def look(host: str) -> dict[str, Any]:
+    def look(host: str) -> Looked:
         # Each given a round trip to the Moon and back.
         try:
-            return call_supervisor(node, host, "ps", timeout=PS_BOUND, attempt=2.0)
+            answer = call_supervisor(node, host, "ps", timeout=PS_BOUND, attempt=2.0)
         except (ServiceError, RequestError) as exc:
-            return {"error": str(exc)}
+            return str(exc)
+        return run_document(answer) or f"{host} answered ps with no run document"
 
     with progress("{task.completed}/{task.total} healthy") as view:
         task = view.add_task("starting", total=total)
 
-        def settle(results: dict[str, dict[str, Any]]) -> Any:
+        def settle(results: dict[str, Looked]) -> Any:
             status.update(results)
             waiting = _not_running(status)
-            running = sum(
-                c["state"] == "running" for d in status.values() for c in d.get("components", [])
-            )
+            running = sum(c.state == "running" for d in status.values() for c in _components(d))
             described = "waiting for " + ", ".join(waiting[:3]) if waiting else "healthy"
             view.update(task, completed=running, description=described)
             return results if all(_healthy(d) for d in status.values()) else ()
@@ -324,7 +337,7 @@ def _wait_healthy(
     return status
 
 
-def _show_hosts(template: str, replies: Any, status: dict[str, dict[str, Any]]) -> None:
+def _show_hosts(template: str, replies: Any, status: dict[str, Looked]) -> None:
     """The table of every host: what it runs and how much is healthy, or why it did not."""
     from rich.markup import escape
     from rich.table import Table
@@ -335,15 +348,15 @@ def _show_hosts(template: str, replies: Any, status: dict[str, dict[str, Any]]) 
     for column in ("host", "components", "healthy", "note"):
         table.add_column(column)
     for host, answer in replies.answers.items():
-        d = status.get(host, {})
-        components = d.get("components", [])
-        note = d.get("error", "")
+        looked = status.get(host)
+        components = _components(looked)
+        note = looked if isinstance(looked, str) else ""
         if not components and not note:
             kinds = sorted({n["kind"] for n in answer.get("not_built", [])})
             note = "nothing to run" + (
                 f" (not implemented yet: {', '.join(kinds)})" if kinds else ""
             )
-        healthy_count = sum(c["state"] == "running" for c in components)
+        healthy_count = sum(c.state == "running" for c in components)
         table.add_row(host, str(len(components)), str(healthy_count), note)
     for outcome in ("unreachable", "refused"):
         for host, silence in replies.silent.items():
@@ -357,7 +370,7 @@ def _show_hosts(template: str, replies: Any, status: dict[str, dict[str, Any]]) 
     err.print(table)
 
 
-def _fail_unless_healthy(replies: Any, status: dict[str, dict[str, Any]], timeout: float) -> None:
+def _fail_unless_healthy(replies: Any, status: dict[str, Looked], timeout: float) -> None:
     """Raise for the hosts that did not start, else for the components not healthy."""
     from msctl.errors import OperationTimeout
 
@@ -374,7 +387,7 @@ def _fail_unless_healthy(replies: Any, status: dict[str, dict[str, Any]], timeou
         )
     if refused:
         raise MsctlError("; ".join(refused) + f" ({outcome})")
-    late = _not_running(status) + [f"{h}: {d['error']}" for h, d in status.items() if "error" in d]
+    late = _not_running(status) + [f"{h}: {d}" for h, d in status.items() if isinstance(d, str)]
     if late:
         raise OperationTimeout(
             f"not healthy after {timeout:g} s: {', '.join(late[:6])}",
