@@ -6,6 +6,12 @@ service's type hash as a constant: the type registry (rosbags, numpy and every b
 definition, about 0.2 s of CPU) is not needed to ask a supervisor, so ``msctl ps`` does
 not pay for it. Tests check both against the registry, so a change to ``AgentRequest.srv``
 cannot go unnoticed.
+
+Measured worth its copy (``bench/agent_wire.py``, both in one run): the first request of a
+fresh process costs 0.05 ms of CPU here against 207 ms through the registry's codec (4.2 s of
+wall clock on a loaded 2-core machine), which every ``msctl ps`` would pay. Call for call the
+copy is the slower one (0.1 to 0.3 ms against 0.04 ms for the generated codec), which no
+asker notices: a request is a network round trip, and the busiest asker polls once a second.
 """
 
 from __future__ import annotations
