@@ -52,6 +52,7 @@ class View:
                 "msctl",
                 "view",
                 "--rerun",
+                "--web",  # Chromium looks at the web viewer, whatever the display
                 "--port",
                 str(free_port()),
                 "--grpc-port",

@@ -190,6 +190,12 @@ def view(
     grpc_port: int = typer.Option(9876, "--grpc-port", help="Data port (0: any free one)."),
     save: Path | None = typer.Option(None, "--save", help="Also write an .rrd file."),
     serve: bool = typer.Option(True, "--serve/--no-serve", help="--no-serve: only --save."),
+    window: bool | None = typer.Option(
+        None,
+        "--window/--web",
+        help="rerun's desktop window or its web viewer (default: the window with a display).",
+        show_default=False,
+    ),
     duration: float = typer.Option(0.0, "--for", help="Serve this many seconds (0: Ctrl-C)."),
 ) -> None:
     """The robot of a bag in 3D, on rerun's timeline (scrub it) or played to Foxglove (its
@@ -200,7 +206,7 @@ def view(
     if foxglove:
         view_bag_foxglove(bag, 8765 if port is None else port, duration)
         return
-    view_bag(bag, save, 9090 if port is None else port, grpc_port, serve, duration)
+    view_bag(bag, save, 9090 if port is None else port, grpc_port, serve, duration, window)
 
 
 @app.command("play")

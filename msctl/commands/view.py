@@ -1,9 +1,12 @@
 """``msctl view``: the live robot in 3D, on any computer that reaches the assembly.
 
 The picture is composed here, from the lock's URDF and each module's own topics (forward
-kinematics at the viewer): nothing new is put on the radio. ``--rerun`` (the default) serves
-rerun's web viewer from the installed wheel on 127.0.0.1 (no internet, no account) and prints
-its address; ``--save FILE.rrd`` also writes everything to a file rerun opens later.
+kinematics at the viewer): nothing new is put on the radio. ``--rerun`` (the default) opens
+rerun's desktop window where there is a display (``DISPLAY`` or ``WAYLAND_DISPLAY``), else serves
+rerun's web viewer from the installed wheel (no internet, no account) and prints its address;
+``--window`` / ``--web`` force either, and a window that cannot open falls back to the web
+viewer (:mod:`msctl.view.window`). ``--save FILE.rrd`` also writes everything to a file rerun
+opens later.
 """
 
 from __future__ import annotations
@@ -105,6 +108,13 @@ def command(
     serve: bool = typer.Option(
         True, "--serve/--no-serve", help="--no-serve: only write --save's file, no viewer."
     ),
+    window: bool | None = typer.Option(
+        None,
+        "--window/--web",
+        help="rerun's desktop window, or its web viewer (default: the window when DISPLAY or "
+        "WAYLAND_DISPLAY is set; the web viewer if the window cannot open).",
+        show_default=False,
+    ),
     duration: float = typer.Option(0.0, "--for", help="Stop after this many seconds (0: Ctrl-C)."),
 ) -> None:
     """Show the running assembly in 3D: its composed URDF, every joint from its module's
@@ -126,11 +136,12 @@ def command(
     require_rerun()
 
     from components.assembly import AssemblyError, load_assembly
-    from msctl.console import err, out
+    from msctl.console import err
     from msctl.plane import connected
     from msctl.view.live import LiveView
     from msctl.view.rerun_sink import RerunSink
     from msctl.view.scene import SceneError, scene_of
+    from msctl.view.window import Showing
 
     try:
         assembly = load_assembly()
@@ -142,15 +153,16 @@ def command(
     stop = _stop_on_signals()
     with connected("view") as node:
         sink = RerunSink(save=save, serve=grpc, recording_name=assembly.template, eye=scene.eye())
+        shown = Showing(sink, window, port, assembly.template)
         try:
             if serve:
-                url = sink.serve_web_viewer(port or free_port())
-                out.print(url, highlight=False, soft_wrap=True)
-                err.print(f"viewing {assembly.template}: open {url} (Ctrl-C to stop)")
+                shown.open()
             with LiveView(node, assembly, scene, sink) as live:
                 err.print(f"following {len(live.topics)} topics, health and claims", style="dim")
-                live.run(_until(stop, duration))
+                until = _until(stop, duration)
+                live.run(lambda: shown.closed() or until())
         finally:
+            shown.close()
             sink.close()
     if save is not None:
         err.print(f"saved {save}", highlight=False)
@@ -201,7 +213,13 @@ def _until(stop, duration: float):
 
 
 def view_bag(
-    bag: Path, save: Path | None, port: int, grpc_port: int, serve: bool, duration: float
+    bag: Path,
+    save: Path | None,
+    port: int,
+    grpc_port: int,
+    serve: bool,
+    duration: float,
+    window: bool | None = None,
 ) -> None:
     """``msctl bag view``: a bag's picture on rerun's timeline (:mod:`msctl.view.bag`).
 
@@ -217,10 +235,11 @@ def view_bag(
     from rich.progress import BarColumn, Progress, TextColumn
 
     from components.assembly import AssemblyError, load_assembly
-    from msctl.console import err, out
+    from msctl.console import err
     from msctl.view.bag import draw_bag
     from msctl.view.rerun_sink import RerunSink
     from msctl.view.scene import SceneError, scene_of
+    from msctl.view.window import Showing
 
     try:
         assembly = load_assembly()
@@ -232,6 +251,7 @@ def view_bag(
     scene.changes()
     grpc = (grpc_port or free_port()) if serve else None
     sink = RerunSink(save=save, serve=grpc, recording_name=bag.name, eye=scene.eye())
+    shown = Showing(sink, window, port, bag.name)
     try:
         with Progress(
             TextColumn("reading {task.description}"),
@@ -257,16 +277,15 @@ def view_bag(
             highlight=False,
         )
         if serve:
-            url = sink.serve_web_viewer(port or free_port())
-            out.print(url, highlight=False, soft_wrap=True)
-            err.print(f"viewing {bag.name}: open {url} (Ctrl-C to stop)")
+            shown.open()
             stop = _stop_on_signals()
             import time
 
             until = _until(stop, duration)
-            while not until():
+            while not (shown.closed() or until()):
                 time.sleep(0.2)
     finally:
+        shown.close()
         sink.close()
     if save is not None:
         err.print(f"saved {save}", highlight=False)
