@@ -10,6 +10,8 @@ import tomllib
 from importlib.metadata import packages_distributions
 from pathlib import Path
 
+from components.pysource import parse_source
+
 REPO = Path(__file__).resolve().parents[1]
 OURS = {"msctl", "components", "assemblies", "calibration", "bench", "conftest", "examples"}
 #: ROS 2 packages: installed by the ``ros`` extra, each module ``x_y`` from distribution
@@ -35,7 +37,7 @@ def _imports(*folders: str) -> set[str]:
     found: set[str] = set()
     for folder in folders:
         for path in (REPO / folder).rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            for node in ast.walk(parse_source(path.read_text(encoding="utf-8"), str(path))):
                 if isinstance(node, ast.Import):
                     found |= {alias.name.split(".")[0] for alias in node.names}
                 elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:

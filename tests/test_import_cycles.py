@@ -6,6 +6,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+from components.pysource import parse_source
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -21,7 +23,7 @@ def _modules() -> dict[str, Path]:
 def _imported_at_import_time(path: Path, modules: dict[str, Path]) -> set[str]:
     """Modules of ours a module's top level imports (not under ``if TYPE_CHECKING``)."""
     out: set[str] = set()
-    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+    for node in parse_source(path.read_text(encoding="utf-8"), str(path)).body:
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             for alias in node.names:
                 full = f"{node.module}.{alias.name}"
@@ -66,7 +68,7 @@ LAZY_CYCLES_KEPT = [
 
 def _imported_when_run(path: Path, modules: dict[str, Path]) -> set[str]:
     """Modules of ours a module imports anywhere, inside functions too (not for typing)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = parse_source(path.read_text(encoding="utf-8"), str(path))
     for node in ast.walk(tree):
         if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
             node.body = []

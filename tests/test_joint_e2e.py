@@ -237,8 +237,16 @@ def test_states_rate_motor_services_and_sim_diagnostics_on_the_data_plane(system
         "/sim/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics.append
     )
     wait_until(lambda: len(diagnostics) >= 2, timeout=5)
-    values = diagnostic_values(diagnostics[-1].status[0])
-    assert float(values["real_time_factor"]) == pytest.approx(1.0, abs=0.1)
+    world = diagnostics[-1].status[0]
+    values = diagnostic_values(world)
+    # Real time at most (it paces itself), and said honestly: a busy machine that holds it
+    # back (0.5 was seen on a loaded run) is a warning naming it, never an OK at 1.0.
+    rtf = float(values["real_time_factor"])
+    assert 0.0 < rtf <= 1.1, values
+    if rtf < 0.9 * float(values["speed"]):
+        assert world.level == 1 and "falling behind" in world.message, (world, values)
+    else:
+        assert world.level == 0, (world, values)
     # joint_states at the real motor interface's rate, read from the messages' own stamps
     # (a busy machine delays their arrival, not their spacing; a dropped one is skipped).
     wait_until(lambda: len(stamps) >= 50, timeout=30)

@@ -27,6 +27,7 @@ from components.motors.options import (
     backend_names,
     parse_options,
 )
+from components.pysource import parse_source
 
 MODULES = Path(__file__).resolve().parents[1] / "assemblies" / "modules"
 
@@ -161,7 +162,7 @@ def test_every_shipped_bus_parses(path: Path) -> None:
 
 def test_the_module_imports_only_the_standard_library() -> None:
     # The assembler imports it at `msctl assemble` time: no python-can, canopen, SDK, numpy.
-    tree = ast.parse(Path(options_module.__file__).read_text())
+    tree = parse_source(Path(options_module.__file__).read_text())
     imported = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):

@@ -9,7 +9,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,10 +18,6 @@ from conftest import free_port
 from running import ROOT, Up
 
 from msctl.net import pki
-
-#: What a failing command may take, start-up included: generous for a loaded machine, and far
-#: below the 60 s of a supervisor's five restarts it replaces.
-FAST = 10.0
 
 
 class SecureUp(Up):
@@ -228,7 +223,6 @@ def test_a_port_held_by_this_homes_running_router_fails_at_once_naming_the_run(
     """An agent of the same MSCTL_HOME, its own router asked to listen where the run's secure
     router takes TLS: refused before any router starts, naming that run."""
     port = laptop.tls_port
-    started = time.monotonic()
     done = subprocess.run(
         [sys.executable, "-m", "msctl", "agent"],
         env={
@@ -241,12 +235,14 @@ def test_a_port_held_by_this_homes_running_router_fails_at_once_naming_the_run(
         timeout=60,
         cwd=ROOT,
     )
-    elapsed = time.monotonic() - started
     assert done.returncode == 2, done.stderr
     error = done.stderr.strip().splitlines()[-1]
     assert f"cannot listen on tcp/0.0.0.0:{port}" in error, error
     assert "the router of `msctl up dragon` running on test-laptop" in error, error
-    assert "msctl down" in error and elapsed < FAST, (elapsed, error)
+    assert "msctl down" in error, error
+    # At once, not after a supervisor's five restarts of a router that cannot listen (a
+    # wall-clock bound here failed on a loaded machine): no restart was ever tried.
+    assert "restart" not in done.stderr.lower(), done.stderr
 
 
 @pytest.mark.e2e
@@ -278,15 +274,15 @@ def test_a_missing_identity_fails_at_once_before_detaching(tmp_path: Path) -> No
 
     write_resolution(tmp_path / "assembly", resolve("dragon", {}))
     pki.init_fleet(["ground1"], [], home=tmp_path)  # `msctl net init --host ground1`
-    started = time.monotonic()
     done = msctl("up", "--sim", "--detach", "--secure")  # the resolved dragon
-    elapsed = time.monotonic() - started
     assert done.returncode == 2, done.stderr
     error = done.stderr.strip().splitlines()[-1]
     cert = tmp_path / "net" / "identities" / "hl-limb-01" / "cert.pem"
     assert f"identity 'hl-limb-01' has no cert.pem at {cert}" in error, error
-    assert "msctl net init --host hl-limb-01" in error and elapsed < FAST, (elapsed, error)
-    assert not (tmp_path / "run" / "logs" / "router.log").exists()  # never started
+    assert "msctl net init --host hl-limb-01" in error, error
+    # At once: no router was ever started (a wall-clock bound failed on a loaded machine, at
+    # 11 s for a check that takes well under one when the machine is idle).
+    assert not (tmp_path / "run" / "logs" / "router.log").exists()
 
 
 # --------------------------------------------------------------------------- configs

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from components.pysource import parse_source
+
 #: Where the shipped operators are, one file each.
 OPERATORS = Path(__file__).resolve().parent / "operators"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
@@ -91,7 +93,7 @@ def read_main(path: Path) -> MainSignature:
             no robot.
     """
     try:
-        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        tree = parse_source(path.read_text(encoding="utf-8"), str(path))
     except (OSError, SyntaxError, ValueError) as exc:
         raise ValueError(f"{path}: cannot read it: {exc}") from None
     found = [
