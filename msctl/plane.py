@@ -26,16 +26,12 @@ def connected(
             a frozen router, accepting TCP but answering nothing, takes in full).
 
     Raises:
-        InputError: If the session settings (environment) are unusable.
+        SessionConfigError: If the session settings (environment) are unusable (a
+            ConfigError: exit 2).
         NetworkError: If nothing is reachable and ``require_router`` is set.
     """
     from components.comm.node import Node
-    from components.comm.session import (
-        SessionConfigError,
-        SessionOpenError,
-        SessionSettings,
-        open_session,
-    )
+    from components.comm.session import SessionOpenError, SessionSettings, open_session
 
     try:
         # A short-lived command is a client of the router: its queries (graph, services)
@@ -61,8 +57,8 @@ def connected(
             hint="start one with `msctl router` (or `msctl up`), or point MSCTL_ZENOH_CONNECT "
             "at it",
         ) from exc
-    except SessionConfigError as exc:
-        raise InputError(str(exc)) from exc
+    # A SessionConfigError (bad settings) goes on as it is: a ConfigError, exit 2, its
+    # message the same (msctl.cli.main maps it, as every runtime error).
     node = None
     try:
         if require_router:

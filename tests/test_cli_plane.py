@@ -477,3 +477,25 @@ def test_service_call_with_no_server_says_what_really_happened(env: dict[str, st
         assert elapsed >= 3.0, line
     else:
         assert "ended after" in line and "no server of /cli/nope" in line
+
+
+def test_unusable_session_settings_are_one_input_error(tmp_path: Path) -> None:
+    """A runtime ConfigError from the session settings reaches the operator as msctl's own
+    would (exit 2, its message as the one line), through the one mapping in msctl.cli.main;
+    ``down --all`` still looks after this computer's run before it says so."""
+    missing = tmp_path / "zenoh.json5"
+    env = {
+        **os.environ,
+        "MSCTL_HOME": str(tmp_path / "home"),
+        "MSCTL_ZENOH_CONFIG": str(missing),
+        "MSCTL_ZENOH_MULTICAST": "0",
+    }
+    said = (
+        f"error: MSCTL_ZENOH_CONFIG names {missing}, which is not a file; fix the path or unset it"
+    )
+    listing = msctl("topic", "list", env=env)
+    assert listing.returncode == 2, listing.stderr
+    assert one_error_line(listing.stderr) == said
+    down = msctl("down", "--all", env=env)
+    assert down.returncode == 2, down.stderr
+    assert said in down.stderr.splitlines() and "internal error" not in down.stderr

@@ -10,6 +10,7 @@ from typing import Any
 
 import typer
 
+from components.errors import ComponentError
 from msctl.errors import MsctlError
 from msctl.launcher import state
 
@@ -33,16 +34,16 @@ def command(
 
     document = state.read_state()
     local_runs = bool(document) and state.supervisor_alive(document)
-    elsewhere: MsctlError | None = None
+    elsewhere: ComponentError | None = None
     if all_hosts:
         try:
             _down_every_host(local_runs, document)
-        except MsctlError as exc:
+        except ComponentError as exc:  # msctl's, or the runtime's (bad session settings)
             # This computer's run is stopped all the same; what did not stop is said last.
             elsewhere = exc
     try:
         _down_here(document, local_runs, all_hosts, timeout)
-    except MsctlError:
+    except ComponentError:
         if elsewhere is not None:
             err.print(f"[bold red]error:[/] {escape(str(elsewhere))}", highlight=False)
         raise
