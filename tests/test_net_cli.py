@@ -158,6 +158,35 @@ def test_a_template_network_secure_is_checked_and_carried_in_the_lock(
         assert f"{template}: {said}" in str(caught.value)
 
 
+def test_a_secure_template_refuses_a_host_too_long_for_a_certificate(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A host name a certificate's CN cannot carry (with its issuance token) is named with
+    the limit when the template is resolved, only when the network is secure."""
+    import shutil
+
+    from msctl.assembler import resolve
+    from msctl.errors import InputError
+
+    copy = tmp_path / "assemblies"
+    root = Path(__file__).resolve().parents[1]
+    shutil.copytree(root / "assemblies", copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setenv("MSCTL_ASSEMBLIES_DIR", str(copy))
+    template = copy / "dragon.toml"
+    long_host = "g" * 56
+    text = template.read_text().replace('host = "ground1"', f'host = "{long_host}"')
+    template.write_text(text)
+    assert long_host in resolve("dragon").lock.hosts  # not secure: no certificate to carry it
+    template.write_text(text + "\n[network]\nsecure = true\n")
+    with pytest.raises(InputError) as caught:
+        resolve("dragon")
+    said = str(caught.value)
+    assert f"{template}: field network.secure: host {long_host!r} is too long" in said, said
+    assert "56 characters, at most 55" in said, said
+    template.write_text(text.replace(long_host, long_host[:55]) + "\n[network]\nsecure = true\n")
+    assert resolve("dragon").lock.secure is True
+
+
 def test_an_off_robot_router_links_to_no_real_robot(home: Path) -> None:
     from components.assembly import load_assembly
     from msctl.net import config as netconfig

@@ -232,3 +232,48 @@ def test_up_secure_without_net_init_fails_at_once_saying_to_run_it(tmp_path: Pat
     line = " ".join(done.stderr.split())
     assert "msctl net init" in line and "Traceback" not in line, line
     assert not (tmp_path / "run" / "logs" / "router.log").exists()  # never started
+
+
+# ----------------------------------------------------------------------------- name lengths
+# A certificate's CN is the name, '#' and an 8-digit issuance token within X.509's 64
+# characters: 55 for a host or an enclave, 46 for an operator (its CN adds 'operator:').
+LONG_HOST = "h" * 56
+LONG_OPERATOR = "o" * 47
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (
+            ["init", "--host", LONG_HOST],
+            f"host {LONG_HOST!r} is too long: 56 characters, at most 55",
+        ),
+        (
+            ["init", "--host", ROBOT, "--operator", LONG_OPERATOR],
+            f"operator {LONG_OPERATOR!r} is too long: 47 characters, at most 46",
+        ),
+        (["add-operator", LONG_OPERATOR], "at most 46 for operator names"),
+        (
+            ["ros-enclave", "/" + "e" * 55, "--router", "ground1"],
+            "at most 55 for ros enclave names",
+        ),
+    ],
+)
+def test_a_name_too_long_for_a_certificate_is_named_with_its_limit(
+    home: Path, args: list[str], said: str
+) -> None:
+    """Refused in one line naming the name and the limit, before anything is written (was:
+    the operator's limit said as 55 'with its prefix', a long name passing the name check)."""
+    before = snapshot(home)
+    ran = msctl(home, "net", *args, env=ENV)
+    _failed_well(ran, 2, said, "choose a shorter name")
+    assert len(ran.said.strip().splitlines()) == 1, ran.said
+    assert snapshot(home) == before
+
+
+def test_the_longest_names_get_certificates(home: Path) -> None:
+    """At the limits, a certificate whose CN is 64 characters."""
+    ran = msctl(home, "net", "add-operator", "o" * 46, env=ENV)
+    assert ran.code == 0, ran.said
+    identity = pki.read_identity(pki.operator_cn("o" * 46), home)
+    assert len(identity.certificate_cn) == 64, identity.certificate_cn

@@ -273,6 +273,18 @@ def _check_hosts(template: Template, units: Mapping[str, Unit]) -> None:
             channels[channel] = slot
 
 
+def _check_secure_hosts(template: Template, hosts: Mapping[str, Any]) -> None:
+    """A secure network gives each computer a certificate whose CN carries its host name:
+    one too long for a CN is refused here, not at `msctl net init`."""
+    from msctl.net import pki
+
+    for host in hosts:
+        try:
+            pki.check_name(host, "host")
+        except pki.PkiError as exc:
+            raise InputError(f"{template.path}: field network.secure: {exc}") from None
+
+
 def _limit(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
@@ -343,6 +355,8 @@ def _plan(template: Template, units: Mapping[str, Unit]) -> Resolution:
     host_plans = _host_plans(components)
     # A link class named for a computer of no module or station is a typo: say so here.
     radio.check_hosts(radio.Network.from_dict(template.network), host_plans, template.path)
+    if template.secure:
+        _check_secure_hosts(template, host_plans)
     counts: dict[str, int] = {}
     for comp in components:
         counts[comp.kind] = counts.get(comp.kind, 0) + 1

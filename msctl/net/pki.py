@@ -61,12 +61,12 @@ OPERATOR_PREFIX = "operator:"
 CA_NAME = "msctl fleet CA"
 CA_DAYS = 3650
 IDENTITY_DAYS = 365
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,62}$")
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]*$")  # its length: _check_cn_length
 #: Separates an identity's name from its issuance token in a certificate's CN.
 ISSUANCE_MARK = "#"
 #: Hex digits of the issuance token (32 random bits: two issuances of a name never share one).
 TOKEN_HEX = 8
-#: X.509's bound on a common name (openssl refuses a longer one).
+#: X.509's bound on a common name, name and token (openssl refuses a longer one).
 CN_MAX = 64
 
 
@@ -135,12 +135,13 @@ def identity_dir(common_name: str, home: Path | None = None) -> Path:
 
 
 def check_name(name: str, what: str) -> str:
-    """Reject a host or operator name a certificate or a file name cannot carry."""
+    """Reject a host or operator name (``what``: ``operator``) a certificate cannot carry."""
     if not _NAME.match(name):
         raise PkiError(
-            f"{what} {name!r} is not a usable name: use letters, digits, '.', '_', '@' or '-' "
-            "(at most 63, starting with a letter or digit)"
+            f"{what} {name!r} is not a usable name: use letters, digits, '.', '_', '@' or '-', "
+            "starting with a letter or digit"
         )
+    _check_cn_length(operator_cn(name) if what == "operator" else name, what)
     return name
 
 
@@ -181,10 +182,8 @@ def init_fleet(
     _need_openssl()
     wanted = [check_name(h, "host") for h in hosts]
     wanted += [operator_cn(check_name(o, "operator")) for o in operators]
-    for name in wanted:
-        _check_cn_length(name)
-        if not lift:
-            refuse_revoked(name, home)
+    for name in [] if lift else wanted:  # the names' lengths: check_name
+        refuse_revoked(name, home)
     ca_dir = net_dir(home) / "ca"
     if (ca_dir / "ca.pem").exists() or (ca_dir / "ca.key").exists():
         verify_ca(home)
@@ -519,12 +518,14 @@ def loose_keys(home: Path | None = None) -> list[tuple[Path, str]]:
     return found
 
 
-def _check_cn_length(common_name: str) -> None:
-    longest = CN_MAX - len(ISSUANCE_MARK) - TOKEN_HEX
-    if len(common_name) > longest:
+def _check_cn_length(common_name: str, what: str = "") -> None:
+    prefix = len(OPERATOR_PREFIX) if common_name.startswith(OPERATOR_PREFIX) else 0
+    longest, name = CN_MAX - len(ISSUANCE_MARK) - TOKEN_HEX - prefix, common_name[prefix:]
+    if len(name) > longest:
         raise PkiError(
-            f"{common_name!r} is too long for a certificate: a name (with its 'operator:' "
-            f"prefix) has at most {longest} characters"
+            f"{what or role_of(common_name)} {name!r} is too long: {len(name)} characters, at "
+            f"most {longest} for {role_of(common_name)} names (a certificate's CN carries the "
+            "name and an issuance token): choose a shorter name"
         )
 
 
