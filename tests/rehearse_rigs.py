@@ -118,9 +118,13 @@ def rehearsed(stage: Stage, *more: str, timeout: float = 600.0) -> Iterator[Stag
     from msctl.rehearse.computers import namespaces
     from msctl.rehearse.rehearsal import namespace_prefix
 
+    # Its --timeout is one budget for every step: a loaded CI machine with two rehearsals at
+    # once needs minutes, so it gets nearly all of this wait.
+    budget = f"{timeout - 60:g}"
     up = stage.msctl(
-        "rehearse", "up", "dragon", "--link", "wifi", "--detach", *more, timeout=timeout
-    )
+        "rehearse", "up", "dragon", "--link", "wifi", "--detach", "--timeout", budget, *more,
+        timeout=timeout,
+    )  # fmt: skip
     try:
         assert up.returncode == 0, up.stderr
         yield stage

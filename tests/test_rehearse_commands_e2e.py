@@ -116,7 +116,9 @@ def field(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Field]:
     stage.env.update(
         PIP_CONFIG_FILE=os.devnull, PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1"
     )
-    up = stage.msctl("rehearse", "up", "dragon", "--link", "wifi", "--detach", timeout=600)
+    up = stage.msctl(
+        "rehearse", "up", "dragon", "--link", "wifi", "--detach", "--timeout", "540", timeout=600
+    )
     try:
         assert up.returncode == 0, up.stderr
         yield Field(stage, files, pinned, sand_field)

@@ -200,3 +200,19 @@ def test_an_unknown_computer_is_named_with_the_known_ones(dragon: object, tmp_pa
         rehearsal.computer("hl-limb-1")
     assert "ground1" in str(wrong.value)
     assert "hl-limb-01" in str(wrong.value.hint)
+
+
+def test_every_step_of_rehearse_up_takes_from_one_budget() -> None:
+    import time
+
+    from msctl.errors import OperationTimeout
+    from msctl.rehearse.start import left
+
+    deadline = time.monotonic() + 60.0
+    assert 0 < left(deadline, "msctl assemble dragon", 60.0) <= 60.0
+    # Spent by the earlier steps: the next one is not started, and the error names it.
+    with pytest.raises(OperationTimeout) as spent:
+        left(time.monotonic() - 1.0, "msctl up --all", 60.0)
+    said = str(spent.value)
+    assert "`msctl up --all` did not finish within 60 s" in said and "one budget" in said
+    assert spent.value.exit_code == 5

@@ -235,7 +235,7 @@ def before(nobody: Nobody) -> set[int]:
 
 @pytest.fixture(scope="module")
 def rehearsal(nobody: Nobody, before: set[int]) -> dict[str, Any]:
-    done = nobody.msctl("rehearse", "up", "minimal", "--detach", timeout=420)
+    done = nobody.msctl("rehearse", "up", "minimal", "--detach", "--timeout", "360", timeout=420)
     assert done.returncode == 0, done.stderr
     return nobody.status()
 

@@ -60,7 +60,9 @@ def up(
     ),
     seed: int = typer.Option(1, "--seed", help="The link emulator's seed (replays its losses)."),
     timeout: float = typer.Option(
-        240.0, "--timeout", help="Seconds for the agents, then the assembly, to come up."
+        240.0,
+        "--timeout",
+        help="Seconds for all of it (computers, agents, then the assembly) to come up.",
     ),
 ) -> None:
     """Stand the deployment up: a namespace per computer, its agent, then `msctl up --all`."""

@@ -404,10 +404,12 @@ def up(
         # Its keeper, without root, is found by its command line if a crash comes first.
         rehearsal.use(mode.start(root))
         rehearsal.save()  # before anything is made: `down` finds it all after a crash
-        make_computers(rehearsal, progress, timeout)
+        # One budget for every step, as --timeout says.
+        deadline = time.monotonic() + timeout
+        make_computers(rehearsal, progress, deadline, timeout)
         if bring_up:
             progress.step(f"{rehearsal.ground.name}: msctl up --all")
-            up_all(rehearsal, timeout)
+            up_all(rehearsal, deadline, timeout)
     except BaseException:
         progress.say("[red]rehearsal failed; taking down what was made[/]")
         down(root)

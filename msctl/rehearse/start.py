@@ -35,13 +35,44 @@ SUBNET = "10.77.0.0/24"
 AGENTS_WITHIN = 120.0
 
 
-def make_computers(rehearsal: Rehearsal, progress: Progress, timeout: float) -> None:
-    """Make every computer (namespace, home, Python environment), the link emulator, each
-    computer's assembly (and, secure, its net/), and start every agent; waits until the
-    ground station sees them all.
+def left(deadline: float, step: str, budget: float) -> float:
+    """Seconds left of the rehearsal's one budget (``rehearse up --timeout``) for ``step``.
+
+    Every step takes from the same budget: given the whole of it each, the steps of a loaded
+    machine added up to several times what the user asked (a soak's ``--timeout 840`` was
+    still running after 900 s).
+
+    Args:
+        deadline: When the budget ends (``time.monotonic()``).
+        step: The command about to run, named if nothing is left for it.
+        budget: The whole budget, in the message.
 
     Raises:
-        RehearseError: Naming the computer and the step that failed.
+        OperationTimeout: If nothing is left, naming the step that was not reached (exit 5,
+            as for a step that ran out).
+    """
+    from msctl.errors import OperationTimeout
+
+    remaining = deadline - time.monotonic()
+    if remaining <= 0:
+        raise OperationTimeout(
+            f"`{step}` did not finish within {budget:g} s: --timeout is one budget for every "
+            "step, and the steps before it spent it",
+            hint="give `msctl rehearse up` a longer --timeout (a loaded machine is slower)",
+        )
+    return remaining
+
+
+def make_computers(
+    rehearsal: Rehearsal, progress: Progress, deadline: float, budget: float
+) -> None:
+    """Make every computer (namespace, home, Python environment), the link emulator, each
+    computer's assembly (and, secure, its net/), and start every agent; waits until the
+    ground station sees them all, all before ``deadline`` (``time.monotonic()``).
+
+    Raises:
+        RehearseError: Naming the computer and the step that failed, or the step the
+            deadline came before.
     """
     computers = rehearsal.computers
     progress.step(f"{len(computers)} computers: network namespaces")
@@ -54,14 +85,17 @@ def make_computers(rehearsal: Rehearsal, progress: Progress, timeout: float) -> 
     rehearsal.save()
     progress.step(f"msctl assemble {rehearsal.template} on every computer")
     uses = [a for slot, unit in rehearsal.uses.items() for a in ("--use", f"{slot}={unit}")]
-    _on_every(rehearsal, ["msctl", "assemble", rehearsal.template, *uses], timeout)
+    assemble = ["msctl", "assemble", rehearsal.template, *uses]
+    _on_every(rehearsal, assemble, left(deadline, " ".join(assemble), budget))
     if rehearsal.secure:
         ground = rehearsal.ground
         progress.step(f"{ground.name}: msctl net init; its net/ copied to every computer")
         from components.claims import default_holder
 
         # As the README says it: on the ground station, `msctl net init` makes you (user@ground1).
-        done = rehearsal.run(ground, ["msctl", "net", "init"], timeout)
+        done = rehearsal.run(
+            ground, ["msctl", "net", "init"], left(deadline, "msctl net init", budget)
+        )
         _check(done, ground, "msctl net init")
         rehearsal.operator = default_holder().split("@")[0] + "@" + ground.name
         rehearsal.save()
@@ -76,7 +110,7 @@ def make_computers(rehearsal: Rehearsal, progress: Progress, timeout: float) -> 
     for computer in computers:
         rehearsal.start_agent(computer)
     progress.step("waiting for every agent to answer from the ground station")
-    _wait_for_agents(rehearsal, min(timeout, AGENTS_WITHIN))
+    _wait_for_agents(rehearsal, min(left(deadline, "the agents answering", budget), AGENTS_WITHIN))
 
 
 def _on_every(rehearsal: Rehearsal, argv: list[str], timeout: float) -> None:
@@ -187,13 +221,14 @@ def _wait_for_agents(rehearsal: Rehearsal, timeout: float) -> None:
         time.sleep(0.5)
 
 
-def up_all(rehearsal: Rehearsal, timeout: float) -> None:
-    """``msctl up --all`` from the ground station.
+def up_all(rehearsal: Rehearsal, deadline: float, budget: float) -> None:
+    """``msctl up --all`` from the ground station, with what is left before ``deadline``.
 
     Raises:
-        RehearseError: If it fails.
+        RehearseError: If it fails, or no time is left for it.
     """
     ground = rehearsal.ground
+    timeout = left(deadline, "msctl up --all", budget)
     argv = ["msctl", "up", "--all", "--timeout", f"{timeout:g}"]
     if not rehearsal.secure:
         argv.append("--insecure")
