@@ -125,15 +125,17 @@ def _watch(assembly, json_output: bool, duration: float) -> None:
     from msctl.health.live import LiveHealth
     from msctl.plane import connected
 
-    log = AlarmLog(assembly.template, "msctl health --watch")
     modules = sum(not s.station for s in _specs(assembly))
-    err.print(
-        f"watching {assembly.template}: {modules} modules (level changes below; Ctrl-C stops; "
-        f"saved to {log.path})",
-        highlight=False,
-    )
-    deadline = None if not duration else time.monotonic() + duration
     with connected("health") as node, LiveHealth(node, assembly) as live:
+        # Recorded and said once it can watch: a session that never connected would stand,
+        # empty, as the last session `health --alarms` shows, hiding the one before.
+        log = AlarmLog(assembly.template, "msctl health --watch")
+        err.print(
+            f"watching {assembly.template}: {modules} modules (level changes below; Ctrl-C "
+            f"stops; saved to {log.path})",
+            highlight=False,
+        )
+        deadline = None if not duration else time.monotonic() + duration
         live.fetch_history()
         while deadline is None or time.monotonic() < deadline:
             live.evaluate()

@@ -179,6 +179,8 @@ def run_app(assembly: Any, duration: float | None = None) -> None:
     from msctl.health.live import LiveHealth
     from msctl.plane import connected
 
-    log = AlarmLog(assembly.template, "msctl health")
     with connected("health") as node, LiveHealth(node, assembly) as live:
+        # The session is recorded once it can watch: one that never connected would stand,
+        # empty, as the last session `health --alarms` shows, hiding the one before.
+        log = AlarmLog(assembly.template, "msctl health")
         HealthApp(live, alarm_log=log, duration=duration).run()
