@@ -381,8 +381,11 @@ def _fail_unless_healthy(replies: Any, status: dict[str, Looked], timeout: float
     started = replies.answers
     outcome = f"started: {', '.join(started)}" if started else "no host was started"
     if unreachable:
+        # Each host's own reason in the line too: a log or a script keeps only the last line
+        # (a soak's up --all said two ground stations did not answer, and nothing of why).
+        whys = "; ".join(f"{h}: {replies.silent[h].why}" for h in unreachable)
         raise NetworkError(
-            f"no agent answered for {', '.join(unreachable)}{also} ({outcome})",
+            f"no agent answered for {', '.join(unreachable)}{also} ({outcome}); {whys}",
             hint="start `msctl agent` there (or `msctl agent install`), check its network",
         )
     if refused:
