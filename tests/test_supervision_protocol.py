@@ -12,6 +12,7 @@ answering after each.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -249,3 +250,148 @@ def test_a_ps_answer_reads_the_same_typed_and_by_field_names() -> None:
     for not_one in (b"[]", b"{}", b'{"host": 5}', b'{"host": "a", "components": [7]}', b"x"):
         assert protocol.run_document(not_one) is None, not_one
     assert ps_document([]) is None and ps_document({"host": 5}) is None
+
+
+# ----------------------------------------------------------------- restart/stop/start answers
+@pytest.mark.parametrize(
+    ("made", "sent"),
+    [  # what RunRequests answers (msctl/launcher/requests.py), and the JSON it always sent
+        (
+            protocol.ProcessAnswer("limb1", "restarting", ["limb1/a", "limb1/b"], ["limb1/b"]),
+            b'{"process":"limb1","state":"restarting","components":["limb1/a","limb1/b"],'
+            b'"siblings":["limb1/b"]}',
+        ),
+        (
+            protocol.ProcessAnswer("router", "restarting", [], []),
+            b'{"process":"router","state":"restarting","components":[],"siblings":[]}',
+        ),
+        (
+            protocol.ProcessAnswer("limb1", "rebuilding", ["limb1/a"], [], only=True),
+            b'{"process":"limb1","state":"rebuilding","components":["limb1/a"],'
+            b'"siblings":[],"only":true}',
+        ),
+    ],
+)
+def test_a_process_answer_travels_as_it_always_did_and_reads_back_as_itself(
+    made: protocol.ProcessAnswer, sent: bytes
+) -> None:
+    """The wire is unchanged (``only`` only when set); both the JSON and the parsed payload
+    (what ``call_supervisor`` returns) read back as the struct."""
+    assert msgspec.json.encode(made) == sent
+    assert protocol.process_answer(sent) == made
+    assert protocol.process_answer(msgspec.json.decode(sent)) == made
+    assert bool(protocol.process_answer(sent).only) is (b'"only"' in sent)
+
+
+def test_a_process_answer_from_an_older_or_newer_supervisor_reads() -> None:
+    """Lists left out default to empty; a field added later is ignored."""
+    acted = protocol.process_answer({"process": "p", "state": "stopped", "newer": [1]}, "stop")
+    assert (acted.process, acted.state, acted.components, acted.siblings) == (
+        "p",
+        "stopped",
+        [],
+        [],
+    )
+    assert not acted.only
+
+
+@pytest.mark.parametrize(
+    "garbage",
+    [b"x", b"[]", b"{}", b'{"process": 5, "state": "x"}', [], "null", {"state": "running"}],
+)
+def test_a_garbage_process_answer_is_a_typed_error_naming_who_sent_it(garbage: Any) -> None:
+    from components.errors import LinkError
+
+    with pytest.raises(protocol.AnswerError, match="the supervisor of hl-01 answered stop") as e:
+        protocol.process_answer(garbage, "stop", "the supervisor of hl-01")
+    assert isinstance(e.value, LinkError)
+
+
+# ---------------------------------------------------------------------- doctor and logs answers
+def test_a_doctor_answer_travels_as_the_dicts_it_replaced_and_reads_back() -> None:
+    """Real findings (this computer's version check), sent as the struct: the same JSON as
+    the ``dataclasses.asdict`` payload older agents send, and read back field for field."""
+    import dataclasses
+
+    from msctl.net import doctor
+
+    found = doctor.version("hl-limb-01", None)
+    assert found and any(f.status == doctor.WARN for f in found)
+    typed = protocol.DoctorAnswer(
+        "hl-limb-01",
+        [protocol.DoctorFinding(f.host, f.check, f.status, f.detail, f.value) for f in found],
+    )
+    older = {"host": "hl-limb-01", "findings": [dataclasses.asdict(f) for f in found]}
+    assert msgspec.json.encode(typed) == msgspec.json.encode(older)
+    told = protocol.doctor_answer(msgspec.json.decode(msgspec.json.encode(older)))
+    assert [doctor.Finding(*msgspec.structs.astuple(f)) for f in told.findings] == found
+    assert protocol.doctor_answer({"host": "h", "newer": 1}).findings == []
+
+
+def test_a_logs_answer_reads_back_and_garbage_is_a_typed_error() -> None:
+    sent = {"limb1": ["12:00:01 up", "12:00:02 homing"], "router": []}
+    assert protocol.logs_answer(msgspec.json.encode(sent)) == sent
+    assert protocol.logs_answer(sent) == sent
+    for garbage in ([], {"limb1": "one line"}, {"limb1": [3]}, b"{", "null"):
+        with pytest.raises(protocol.AnswerError, match="answered logs"):
+            protocol.logs_answer(garbage, "the supervisor of hl-01")
+    for garbage in ({}, {"host": 5}, {"host": "h", "findings": [{"host": "h"}]}, b"[]"):
+        with pytest.raises(protocol.AnswerError, match="answered doctor"):
+            protocol.doctor_answer(garbage)
+
+
+# ------------------------------------------------------------------- bags and bag_read answers
+def _shelf(root: Path) -> Path:
+    """A shelf with one bag: a finished MCAP file, one being written, its metadata."""
+    from msctl.recorder.shelf import MCAP_MAGIC
+
+    bag = root / "limb1_data_archiver_2026_11_27-21_30_00"
+    bag.mkdir(parents=True)
+    (bag / "b_0.mcap").write_bytes(MCAP_MAGIC + b"chunks" + MCAP_MAGIC)
+    (bag / "b_1.mcap").write_bytes(MCAP_MAGIC + b"still writing")
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    return bag
+
+
+def test_the_shelfs_answers_travel_as_their_structs_and_read_back(tmp_path: Path) -> None:
+    """What the agent's shelf handler sends (the shelf's own listing and read, as structs):
+    the same JSON as the dicts, and read back by ``bag pull``'s reader."""
+    import base64
+
+    from msctl.recorder import shelf
+    from msctl.recorder.pull_plan import remote_files
+
+    bag = _shelf(tmp_path)
+    listing = shelf.listing(tmp_path)
+    typed = msgspec.convert(listing, protocol.BagsAnswer)
+    assert msgspec.json.encode(typed) == msgspec.json.encode(listing)
+    assert protocol.bags_answer(msgspec.json.encode(listing)) == typed
+    (told,) = typed.bags
+    assert told.recording and [f.complete for f in told.files] == [True, False, True]
+    pulled = remote_files(msgspec.json.decode(msgspec.json.encode(typed)), "hl-limb-01")
+    assert [f.name for f in pulled] == ["b_0.mcap", "b_1.mcap", "metadata.yaml"]
+
+    read = shelf.read({"path": f"{bag.name}/b_0.mcap", "offset": 2, "size": 5}, "h", tmp_path)
+    typed_read = msgspec.convert(read, protocol.BagReadAnswer)
+    assert msgspec.json.encode(typed_read) == msgspec.json.encode(read)
+    back = protocol.bag_read_answer(msgspec.json.encode(read))
+    assert base64.b64decode(back.data) == (bag / "b_0.mcap").read_bytes()[2:7]
+
+
+@pytest.mark.parametrize(
+    "garbage",
+    [[], {"bags": 3}, {"bags": [{"files": []}]}, {"bags": [{"name": "b", "files": [{}]}]}, b"x"],
+)
+def test_a_garbage_bags_answer_is_a_typed_error(garbage: Any) -> None:
+    from msctl.recorder.pull_plan import PullError, remote_files
+
+    with pytest.raises(protocol.AnswerError, match="answered bags"):
+        protocol.bags_answer(garbage, "the agent of hl-01")
+    with pytest.raises(PullError, match="hl-01's bag listing is refused"):
+        remote_files(garbage, "hl-01")
+
+
+def test_a_garbage_bag_read_answer_is_a_typed_error() -> None:
+    for garbage in ({}, {"path": "b/x", "offset": "0", "file_size": 1}, [], b"{}"):
+        with pytest.raises(protocol.AnswerError, match="answered bag_read"):
+            protocol.bag_read_answer(garbage)

@@ -20,6 +20,7 @@ from typing import Annotated, Any, Literal, NamedTuple, Union
 
 import msgspec
 
+from components.errors import LinkError
 from components.supervision.contract import RequestError, args_object, encode_args
 
 #: A component or process name, as a request may carry it.
@@ -189,7 +190,7 @@ class ErrorAnswer(msgspec.Struct, frozen=True, tag="error", tag_field="answer"):
     verb: str = "?"
 
 
-class ProcessAnswer(msgspec.Struct, frozen=True, omit_defaults=True):
+class ProcessAnswer(msgspec.Struct, frozen=True):
     """What ``restart``, ``stop`` and ``start`` answer: the process acted on.
 
     Attributes:
@@ -197,14 +198,16 @@ class ProcessAnswer(msgspec.Struct, frozen=True, omit_defaults=True):
         state: Its state now.
         components: Every component it runs (``restart --only``: the one rebuilt).
         siblings: Those the verb took along with the one named.
-        only: ``restart --only``: the component is being rebuilt alone.
+        only: ``restart --only``: the component is being rebuilt alone. Unset (falsy) is
+            left off the wire, as it always was; the lists are always sent, and default to
+            empty for a supervisor that left them out.
     """
 
     process: str
     state: str
-    components: list[str]
-    siblings: list[str]
-    only: bool = False
+    components: list[str] = []
+    siblings: list[str] = []
+    only: bool | msgspec.UnsetType = msgspec.UNSET
 
 
 class DownAnswer(msgspec.Struct, frozen=True, omit_defaults=True):
@@ -223,6 +226,81 @@ class DownAnswer(msgspec.Struct, frozen=True, omit_defaults=True):
 
 #: ``logs``: each process and its last lines.
 LogsAnswer = dict[str, list[str]]
+
+
+class DoctorFinding(msgspec.Struct, frozen=True):
+    """One line of a computer's preflight (``msctl doctor``'s ``Finding``, on the wire).
+
+    Attributes:
+        host: The computer checked.
+        check: What was checked (``clock``, ``router``, ``bus limb1``...).
+        status: ``OK``, ``WARN`` or ``ERROR``.
+        detail: What was found, and for WARN/ERROR what to do.
+        value: The measured value, when there is one (seconds, bytes, a hash).
+    """
+
+    host: str
+    check: str
+    status: str
+    detail: str = ""
+    value: Any = None
+
+
+class DoctorAnswer(msgspec.Struct, frozen=True):
+    """What ``doctor`` answers: the supervisor's computer's preflight findings."""
+
+    host: str
+    findings: list[DoctorFinding] = []
+
+
+class ShelfFile(msgspec.Struct, frozen=True):
+    """One file of a bag on an agent's shelf.
+
+    Attributes:
+        name: Its name in the bag's directory.
+        size: Bytes.
+        complete: Whether it is finished (an MCAP file ends with its magic).
+        abandoned: Unfinished and no longer written (its recorder was killed).
+        sha256: Its SHA-256 (hex) when complete or abandoned, else ``None``.
+    """
+
+    name: str
+    size: int
+    complete: bool
+    abandoned: bool = False
+    sha256: str | None = None
+
+
+class ShelfBag(msgspec.Struct, frozen=True):
+    """One bag on an agent's shelf: its directory's name, whether it is being recorded,
+    its files."""
+
+    name: str
+    recording: bool = False
+    files: list[ShelfFile] = []
+
+
+class BagsAnswer(msgspec.Struct, frozen=True):
+    """What ``bags`` answers: the shelf's directory and its bags, by name."""
+
+    root: str = ""
+    bags: list[ShelfBag] = []
+
+
+class BagReadAnswer(msgspec.Struct, frozen=True):
+    """What ``bag_read`` answers: bytes of a bag file.
+
+    Attributes:
+        path: ``<bag>/<file>``, as asked.
+        offset: Where the bytes start, as asked.
+        file_size: The file's size now.
+        data: The bytes, base64 (fewer than asked at the end of the file, none past it).
+    """
+
+    path: str
+    offset: int
+    file_size: int
+    data: str = ""
 
 
 class ProcessRow(msgspec.Struct, frozen=True):
@@ -348,6 +426,92 @@ def run_document(answer: bytes | str | Mapping[str, Any] | RunDocument) -> RunDo
         return msgspec.convert(answer, RunDocument)
     except (msgspec.DecodeError, msgspec.ValidationError):
         return None
+
+
+class AnswerError(LinkError):
+    """An answer that is not what its verb answers: a garbled payload, or a peer that is
+    not a supervisor of this protocol. A :class:`~components.errors.LinkError` (the peer
+    could not be understood), so the CLI says it in one line with its network exit code.
+
+    Attributes:
+        detail: What in the payload did not fit (msgspec's words: the field's JSON path).
+    """
+
+    detail: str = ""
+
+
+def decode_answer(answer: Any, kind: Any, verb: str, source: str = "a supervisor") -> Any:
+    """A successful answer's payload as the struct (or typed container) of its verb.
+
+    Args:
+        answer: The JSON payload (bytes or str), the payload already parsed, or the struct.
+        kind: What ``verb`` answers (:class:`ProcessAnswer`, :data:`LogsAnswer`, ...).
+        verb: The request's verb, for the message.
+        source: Who answered, for the message (``the supervisor of robot1``).
+
+    Raises:
+        AnswerError: If the payload is not one (data from the network: never a crash).
+    """
+    if isinstance(kind, type) and isinstance(answer, kind):
+        return answer
+    try:
+        if isinstance(answer, (bytes, str)):
+            return msgspec.json.decode(answer, type=kind)
+        return msgspec.convert(answer, kind)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        error = AnswerError(
+            f"{source} answered {verb} with something that is not a {verb} answer ({exc})",
+            hint="see that both computers run the same msctl (`msctl doctor --all`)",
+        )
+        error.detail = str(exc)
+        raise error from None
+
+
+def process_answer(
+    answer: Any, verb: str = "restart", source: str = "a supervisor"
+) -> ProcessAnswer:
+    """A ``restart``/``stop``/``start`` answer as a :class:`ProcessAnswer`.
+
+    Raises:
+        AnswerError: If it is not one.
+    """
+    return decode_answer(answer, ProcessAnswer, verb, source)
+
+
+def doctor_answer(answer: Any, source: str = "a supervisor") -> DoctorAnswer:
+    """A ``doctor`` answer as a :class:`DoctorAnswer`.
+
+    Raises:
+        AnswerError: If it is not one.
+    """
+    return decode_answer(answer, DoctorAnswer, "doctor", source)
+
+
+def logs_answer(answer: Any, source: str = "a supervisor") -> LogsAnswer:
+    """A ``logs`` answer: each process's last lines.
+
+    Raises:
+        AnswerError: If it is not one.
+    """
+    return decode_answer(answer, LogsAnswer, "logs", source)
+
+
+def bags_answer(answer: Any, source: str = "an agent") -> BagsAnswer:
+    """A ``bags`` answer as a :class:`BagsAnswer` (names not yet checked as plain).
+
+    Raises:
+        AnswerError: If it is not one.
+    """
+    return decode_answer(answer, BagsAnswer, "bags", source)
+
+
+def bag_read_answer(answer: Any, source: str = "an agent") -> BagReadAnswer:
+    """A ``bag_read`` answer as a :class:`BagReadAnswer` (its data not yet decoded).
+
+    Raises:
+        AnswerError: If it is not one.
+    """
+    return decode_answer(answer, BagReadAnswer, "bag_read", source)
 
 
 def error_payload(kind: str, message: str, verb: str) -> str:

@@ -89,6 +89,7 @@ def _other_hosts(session: object, domain: int, here: str, timeout: float) -> lis
     the graph and every host of the resolved assembly's plan. A host that did not answer is
     an ERROR naming it, why, and what to check."""
     from components.comm.node import Node
+    from components.supervision.protocol import AnswerError, doctor_answer
     from msctl.launcher.fleet import (
         NO_ANSWER,
         NO_SUPERVISOR,
@@ -111,9 +112,17 @@ def _other_hosts(session: object, domain: int, here: str, timeout: float) -> lis
         # This computer is checked directly (above), whether or not it runs a supervisor.
         hosts = [h for h in hosts_to_ask(node, read_plan(), supervisors_now) if h != here]
         asked = ask_hosts(node, "doctor", hosts, None, timeout + 10.0, supervisors_now)
-        for answer in asked.answers.values():
-            if answer.get("host") != here:
-                found += [doctor.Finding(**f) for f in answer.get("findings", [])]
+        for namespace, answer in asked.answers.items():
+            try:
+                told = doctor_answer(answer, f"the supervisor {namespace}")
+            except AnswerError as exc:  # a garbled or foreign answer: said, the rest goes on
+                found.append(doctor.Finding(namespace, "reachable", doctor.ERROR, str(exc)))
+                continue
+            if told.host != here:
+                found += [
+                    doctor.Finding(f.host, f.check, f.status, f.detail, f.value)
+                    for f in told.findings
+                ]
         for silence in asked.silent.values():
             detail = silence.detail
             if silence.why in checks:

@@ -70,6 +70,7 @@ def _remote_lines(component: str, lines: int, follow: bool) -> list[str]:
         NetworkError: If no other computer can be asked, or its supervisor does not answer.
     """
     from components.comm.services import ServiceTimeout
+    from components.supervision.protocol import logs_answer
     from msctl.launcher.control import RequestError, call_supervisor
     from msctl.launcher.remote import host_of
     from msctl.plane import connected
@@ -85,7 +86,8 @@ def _remote_lines(component: str, lines: int, follow: bool) -> list[str]:
             answer = call_supervisor(node, host, "logs", {"component": component, "lines": lines})
         except (ServiceTimeout, RequestError) as exc:
             raise NetworkError(f"cannot get the log of {component} from {host}: {exc}") from exc
-    return [line for process_lines in answer.values() for line in process_lines]
+    told = logs_answer(answer, f"the supervisor of {host}")
+    return [line for process_lines in told.values() for line in process_lines]
 
 
 def command(

@@ -347,21 +347,21 @@ class LiveHealth:
             ActionError: If no supervisor runs it, or the supervisor refused or did not answer.
         """
         from components.comm.services import ServiceError
+        from components.supervision.protocol import AnswerError, process_answer
         from msctl.launcher.control import RequestError, call_supervisor
 
         if not host:
             raise ActionError(f"no supervisor lists {component}: see `msctl ps`")
         try:
             answer = call_supervisor(self.node, host, verb, {"component": component})
-        except RequestError as exc:
+            acted = process_answer(answer, verb, f"the supervisor of {host}")
+        except (RequestError, AnswerError) as exc:
             raise ActionError(str(exc)) from exc
         except ServiceError as exc:
             raise ActionError(f"the supervisor of {host} did not answer: {exc}") from exc
         if self.poller is not None:
             self.poller.poke()
-        return f"{verb} {component} on {host}: process {answer.get('process')} is " + str(
-            answer.get("state")
-        )
+        return f"{verb} {component} on {host}: process {acted.process} is {acted.state}"
 
     def trigger(self, service: str) -> str:
         """Call the ``std_srvs/Trigger`` service ``service`` (``/limb1/halt``).
@@ -392,6 +392,7 @@ class LiveHealth:
             ActionError: If no supervisor runs it, or it did not answer.
         """
         from components.comm.services import ServiceError
+        from components.supervision.protocol import AnswerError, logs_answer
         from msctl.launcher.control import RequestError, call_supervisor
 
         if not host:
@@ -400,10 +401,11 @@ class LiveHealth:
             answer = call_supervisor(
                 self.node, host, "logs", {"component": component, "lines": lines}
             )
-        except (RequestError, ServiceError) as exc:
+            told = logs_answer(answer, f"the supervisor of {host}")
+        except (RequestError, ServiceError, AnswerError) as exc:
             raise ActionError(f"logs of {component}: {exc}") from exc
         out: list[str] = []
-        for process, text in answer.items():
+        for process, text in told.items():
             out.append(f"--- {process} ---")
-            out.extend(str(line) for line in list(text)[-lines:])
+            out.extend(text[-lines:])
         return out

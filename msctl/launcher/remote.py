@@ -56,6 +56,7 @@ def control_component(verb: str, component: str, only: bool = False) -> None:
     until it runs again.
     """
     from components.comm.services import ServiceTimeout
+    from components.supervision.protocol import process_answer
     from msctl.console import err
     from msctl.launcher.control import call_supervisor
     from msctl.plane import connected
@@ -71,12 +72,13 @@ def control_component(verb: str, component: str, only: bool = False) -> None:
             raise NetworkError(f"the supervisor of {host} did not answer: {exc}") from exc
         except RequestError as exc:
             raise MsctlError(str(exc)) from exc
-        if answer.get("only"):
-            _wait_rebuilt(node, host, component, answer["process"])
+        acted = process_answer(answer, verb, f"the supervisor of {host}")
+        if acted.only:
+            _wait_rebuilt(node, host, component, acted.process)
             return
-    siblings = answer.get("siblings", [])
+    siblings = acted.siblings
     taken = ""
-    if component == answer["process"] and siblings:
+    if component == acted.process and siblings:
         # A process named: every one of its components goes, and none is a sibling of it.
         taken = f", and with it every component it runs: {', '.join(siblings)}"
         if verb == "restart" and len(siblings) > 1:
@@ -86,8 +88,7 @@ def control_component(verb: str, component: str, only: bool = False) -> None:
         if verb == "restart":
             taken += f"; `msctl restart --only {component}` restarts it alone"
     err.print(
-        f"[green]{verb}[/] {component} on {host}: process {answer['process']} is "
-        f"{answer['state']}{taken}",
+        f"[green]{verb}[/] {component} on {host}: process {acted.process} is {acted.state}{taken}",
         highlight=False,
     )
 

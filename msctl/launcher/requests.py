@@ -9,6 +9,8 @@ import os
 import time
 from typing import Any
 
+import msgspec
+
 from components import kinds
 from components.supervision import protocol
 from components.supervision.contract import RequestError
@@ -18,14 +20,15 @@ from msctl.launcher.router import ROUTER_PROCESS
 from msctl.launcher.supervisor import ProcessState
 
 
-def doctor_payload(host: str, session: Any, settings: Any) -> dict[str, Any]:
+def doctor_payload(host: str, session: Any, settings: Any) -> protocol.DoctorAnswer:
     """``msctl doctor``'s findings for this computer, as a request's answer."""
-    import dataclasses
-
     from msctl.net import doctor
 
     found = doctor.this_computer(host, session, settings.connect, settings.domain)
-    return {"host": host, "findings": [dataclasses.asdict(f) for f in found]}
+    return protocol.DoctorAnswer(
+        host,
+        [protocol.DoctorFinding(f.host, f.check, f.status, f.detail, f.value) for f in found],
+    )
 
 
 class RunRequests:
@@ -237,7 +240,11 @@ class AgentRequests:
         from msctl.recorder import shelf
 
         verb, args = protocol.wire_form(request)
-        return shelf.serve(verb, json.loads(args), self.host)
+        payload, message = shelf.serve(verb, json.loads(args), self.host)
+        # Sent as its struct (the same JSON: the shelf's dicts have the structs' fields, in
+        # their order), so what leaves is what a reader decodes.
+        answer = protocol.BagsAnswer if verb == "bags" else protocol.BagReadAnswer
+        return msgspec.convert(payload, answer), message
 
     def _forward(self, request: protocol.Request) -> tuple[Any, str]:
         """A verb on what runs, carried out by the run."""

@@ -487,12 +487,18 @@ def _chunk_data(answer: Any, remote: RemoteFile, offset: int) -> bytes:
     Raises:
         Refused: If it is not an answer for that file and offset.
     """
-    if not isinstance(answer, dict) or answer.get("path") != remote.path:
+    from components.supervision.protocol import AnswerError, bag_read_answer
+
+    try:
+        read = bag_read_answer(answer)
+    except AnswerError:
+        read = None
+    if read is None or read.path != remote.path:
         raise Refused(f"the answer for {remote.path} at byte {offset:,} is not one")
-    if answer.get("offset") != offset or answer.get("file_size") != remote.size:
+    if read.offset != offset or read.file_size != remote.size:
         raise ShortRead(f"{remote.path} changed there while it was pulled")
     try:
-        return base64.b64decode(answer.get("data", ""), validate=True)
+        return base64.b64decode(read.data, validate=True)
     except (binascii.Error, TypeError, ValueError):
         raise Refused(f"the answer for {remote.path} at byte {offset:,} is not base64") from None
 

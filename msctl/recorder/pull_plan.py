@@ -59,30 +59,25 @@ def remote_files(listing: Any, host: str) -> list[RemoteFile]:
             hint=f"bring {host}'s msctl to the version of this computer's",
         )
 
-    if not isinstance(listing, dict) or not isinstance(listing.get("bags"), list):
+    from components.supervision.protocol import AnswerError, bags_answer
+
+    if not isinstance(listing, (dict, bytes, str)):
         raise bad("it is not a listing of bags")
+    try:
+        shelf = bags_answer(listing, host)
+    except AnswerError as exc:
+        raise bad(f"it is not a listing of bags ({exc.detail})") from None
     files: list[RemoteFile] = []
-    for bag in listing["bags"]:
-        name = bag.get("name") if isinstance(bag, dict) else None
-        if not isinstance(name, str) or not is_plain(name):
+    for bag in shelf.bags:
+        name = bag.name
+        if not is_plain(name):
             raise bad(f"bag name {name!r} is not a plain name")
-        entries = bag.get("files")
-        if not isinstance(entries, list):
-            raise bad(f"bag {name} has no list of files")
         found = []
-        for entry in entries:
-            try:
-                remote = RemoteFile(
-                    name,
-                    entry["name"],
-                    int(entry["size"]),
-                    entry.get("sha256"),
-                    bool(entry["complete"]),
-                    bool(entry.get("abandoned", False)),
-                )
-            except (TypeError, KeyError, ValueError):
-                raise bad(f"a file of bag {name} is not described as one") from None
-            if not isinstance(remote.name, str) or not is_plain(remote.name):
+        for entry in bag.files:
+            remote = RemoteFile(
+                name, entry.name, entry.size, entry.sha256, entry.complete, entry.abandoned
+            )
+            if not is_plain(remote.name):
                 raise bad(f"file name {remote.name!r} in bag {name} is not a plain name")
             served = remote.complete or remote.abandoned
             if remote.size < 0 or (served and not _is_sha256(remote.sha256)):
