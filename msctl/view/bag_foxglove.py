@@ -29,15 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from msctl.view.foxglove_server import (
-    MARKERS,
-    STRING,
-    TF,
-    WHEEL_TWIST,
-    asset,
-    tf_message,
-    twist_markers,
-)
+from msctl.view.foxglove_server import MARKERS, STRING, TF, WHEEL_TWIST, ServedPicture
 from msctl.view.playback import ENDED, PLAYING, Playhead
 from msctl.view.scene import Scene
 
@@ -133,7 +125,7 @@ def read_bag(bag: Path, progress: Callable[[float], None] | None = None) -> Reco
     return recorded
 
 
-class BagFoxglove:
+class BagFoxglove(ServedPicture):
     """Plays a recorded bag to Foxglove clients, as the live view serves a running assembly.
 
     Args:
@@ -179,57 +171,23 @@ class BagFoxglove:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> BagFoxglove:
         """Open the server over the bag's time range and advertise every channel."""
-        import foxglove
         from foxglove.websocket import Capability
 
-        from components.comm.types import registry
-        from components.recording.definitions import message_definition
-
-        self._context = foxglove.Context()
-        types = registry()
-        self._encode_string = types.serializer(STRING)
-        self._encode_tf = types.serializer(TF)
-        self._encode_markers = types.serializer(MARKERS)
-
-        def channel(topic: str, type_name: str, definition: str, encoding: str) -> None:
-            schema = foxglove.Schema(name=type_name, encoding=encoding, data=definition.encode())
-            self.channels[topic] = foxglove.Channel(
-                topic, schema=schema, message_encoding="cdr", context=self._context
-            )
-
+        self._open()
         for topic, type_name in COMPOSED.items():
-            channel(topic, type_name, message_definition(type_name) or "", "ros2msg")
+            self._channel(topic, type_name)
         for topic, definition in self.recorded.definitions.items():
             if topic not in COMPOSED:
-                channel(
-                    topic, definition.type, definition.definition, definition.encoding or "ros2msg"
-                )
-        self.server = foxglove.start_server(
-            name=f"msctl bag view {self.recorded.path.name}",
-            host=self.host,
-            port=self.port,
-            context=self._context,
-            server_listener=_Listener(self),
-            asset_handler=asset,
-            supported_encodings=["cdr"],
+                encoding = definition.encoding or "ros2msg"
+                self._channel(topic, definition.type, definition.definition, encoding)
+        self._serve(
+            f"msctl bag view {self.recorded.path.name}",
+            _Listener(self),
             capabilities=[Capability.Time],
             playback_time_range=(self.recorded.start, self.recorded.end),
         )
-        self.port = self.server.port
         self.step()
         return self
-
-    def close(self) -> None:
-        """Stop the server (idempotent)."""
-        if self.server is not None:
-            self.server.stop()
-            self.server = None
-
-    def __enter__(self) -> BagFoxglove:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # ------------------------------------------------------------------ requests (server thread)
     def control(self, request: Any) -> Any:
@@ -346,32 +304,6 @@ class BagFoxglove:
             latest = self.recorded.latest(topic, at)
             if latest is not None:
                 self.channels[topic].log(latest.data, log_time=latest.log_time)
-
-    def _send_description(self, at: int) -> None:
-        from components.messages import msg
-
-        urdf = Path(self.assembly.urdf_path).read_text()
-        self.channels["/robot_description"].log(
-            self._encode_string(msg(STRING, data=urdf)), log_time=at
-        )
-        poses = self.scene.everything().poses
-        self.channels["/tf_static"].log(tf_message(self._encode_tf, poses, at), log_time=at)
-
-    def _send_tf(self, poses: dict[str, Any], at: int) -> None:
-        if poses:
-            self.channels["/tf"].log(tf_message(self._encode_tf, poses, at), log_time=at)
-
-    def _send_twists(self, twists: dict[str, Any], at: int) -> None:
-        if twists:
-            markers = twist_markers(self._encode_markers, twists, at)
-            self.channels[WHEEL_TWIST].log(markers, log_time=at)
-
-    def run(self, until: Callable[[], bool]) -> None:
-        """Step every :attr:`period` seconds until ``until()`` says stop."""
-        while not until():
-            started = time.monotonic()
-            self.step()
-            time.sleep(max(0.0, self.period - (time.monotonic() - started)))
 
 
 class _Listener:

@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from msctl.view.scene import Pose, Scene
 from msctl.view.wheels import TWIST_TOLERANCE, WheelTwist
@@ -112,7 +112,115 @@ def twist_markers(
     return encode(msg(MARKERS, markers=markers))
 
 
-class FoxgloveView:
+class ServedPicture:
+    """What the live view and a bag's player share: the foxglove-sdk context, the channels
+    with ``ros2msg`` schemas, the server (assets, CDR), the composed ``/robot_description``,
+    ``/tf_static``, ``/tf`` and wheel twists, and the stepping loop. Subclasses set
+    :attr:`assembly`, :attr:`scene`, :attr:`host`, :attr:`port`, :attr:`period` and define
+    ``start`` and ``step``.
+    """
+
+    assembly: Any
+    scene: Scene
+    host: str
+    port: int
+    period: float
+    server: Any
+    channels: dict[str, Any]
+
+    def start(self) -> Self:  # pragma: no cover (each server opens its own way)
+        raise NotImplementedError
+
+    def step(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def _open(self) -> None:
+        """The context, and the encoders of what is composed here."""
+        import foxglove
+
+        from components.comm.types import registry
+
+        self._context = foxglove.Context()
+        types = registry()
+        self._encode_string = types.serializer(STRING)
+        self._encode_tf = types.serializer(TF)
+        self._encode_markers = types.serializer(MARKERS)
+
+    def _channel(
+        self,
+        topic: str,
+        type_name: str,
+        definition: str | None = None,
+        encoding: str = "ros2msg",
+    ) -> Any:
+        """Advertise ``topic`` as CDR with its schema (msctl's own definition by default)."""
+        import foxglove
+
+        from components.recording.definitions import message_definition
+
+        text = (message_definition(type_name) or "") if definition is None else definition
+        schema = foxglove.Schema(name=type_name, encoding=encoding, data=text.encode())
+        made = foxglove.Channel(topic, schema=schema, message_encoding="cdr", context=self._context)
+        self.channels[topic] = made
+        return made
+
+    def _serve(self, name: str, listener: Any, **more: Any) -> None:
+        """Start the WebSocket server on :attr:`host`/:attr:`port` (the port it took kept)."""
+        import foxglove
+
+        self.server = foxglove.start_server(
+            name=name,
+            host=self.host,
+            port=self.port,
+            context=self._context,
+            server_listener=listener,
+            asset_handler=asset,
+            supported_encodings=["cdr"],
+            **more,
+        )
+        self.port = self.server.port
+
+    def _send_description(self, at: int) -> None:
+        """``/robot_description`` and ``/tf_static``: to every subscriber, the late ones too."""
+        from components.messages import msg
+
+        urdf = Path(self.assembly.urdf_path).read_text()
+        self.channels["/robot_description"].log(
+            self._encode_string(msg(STRING, data=urdf)), log_time=at
+        )
+        poses = self.scene.everything().poses
+        self.channels["/tf_static"].log(tf_message(self._encode_tf, poses, at), log_time=at)
+
+    def _send_tf(self, poses: dict[str, Pose], at: int) -> None:
+        if poses:
+            self.channels["/tf"].log(tf_message(self._encode_tf, poses, at), log_time=at)
+
+    def _send_twists(self, twists: dict[str, WheelTwist], at: int) -> None:
+        if twists:
+            markers = twist_markers(self._encode_markers, twists, at)
+            self.channels[WHEEL_TWIST].log(markers, log_time=at)
+
+    def close(self) -> None:
+        """Stop the server (idempotent)."""
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def run(self, until: Callable[[], bool]) -> None:
+        """Step every :attr:`period` seconds until ``until()`` says stop."""
+        while not until():
+            started = time.monotonic()
+            self.step()
+            time.sleep(max(0.0, self.period - (time.monotonic() - started)))
+
+
+class FoxgloveView(ServedPicture):
     """Serves a running assembly to Foxglove clients.
 
     Args:
@@ -152,35 +260,17 @@ class FoxgloveView:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> FoxgloveView:
         """Open the server, advertise every channel, follow the modules' topics."""
-        import foxglove
-
         from components.comm.types import registry
         from components.messages import DIAGNOSTIC_ARRAY, JOINT_STATE
-        from components.recording.definitions import message_definition
 
-        self._context = foxglove.Context()
-        types = registry()
-        self._encode_string = types.serializer(STRING)
-        self._encode_tf = types.serializer(TF)
-        self._decode = types.deserializer(JOINT_STATE)
-
-        def channel(topic: str, type_name: str) -> Any:
-            schema = foxglove.Schema(
-                name=type_name,
-                encoding="ros2msg",
-                data=(message_definition(type_name) or "").encode(),
-            )
-            made = foxglove.Channel(
-                topic, schema=schema, message_encoding="cdr", context=self._context
-            )
-            self.channels[topic] = made
-            return made
+        self._open()
+        self._decode = registry().deserializer(JOINT_STATE)
+        channel = self._channel
 
         channel("/robot_description", STRING)
         channel("/tf_static", TF)
         channel("/tf", TF)
         channel(WHEEL_TWIST, MARKERS)
-        self._encode_markers = types.serializer(MARKERS)
         wheels = self.scene.wheel_commands.wheels
         for module in self.assembly.modules:
             slot = module.slot
@@ -197,18 +287,9 @@ class FoxgloveView:
             for topic, type_name in shown:
                 out = channel(topic, type_name)
                 self._forward(topic, type_name, out, slot)
-        self.server = foxglove.start_server(
-            name=f"msctl view {self.assembly.template}",
-            host=self.host,
-            port=self.port,
-            context=self._context,
-            server_listener=_Listener(self),
-            asset_handler=asset,
-            supported_encodings=["cdr"],
-        )
-        self.port = self.server.port
+        self._serve(f"msctl view {self.assembly.template}", _Listener(self))
         self.scene.changes()
-        self._send_description()
+        self._send_description(time.time_ns())
         return self
 
     def _forward(self, topic: str, type_name: str, out: Any, slot: str) -> None:
@@ -234,30 +315,7 @@ class FoxgloveView:
         for subscription in self._subscriptions:
             subscription.close()
         self._subscriptions.clear()
-        if self.server is not None:
-            self.server.stop()
-            self.server = None
-
-    def __enter__(self) -> FoxgloveView:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    # ------------------------------------------------------------------ what goes out
-    def _send_description(self) -> None:
-        """``/robot_description`` and ``/tf_static``: to every subscriber, the late ones too."""
-        from components.messages import msg
-
-        urdf = Path(self.assembly.urdf_path).read_text()
-        self.channels["/robot_description"].log(
-            self._encode_string(msg(STRING, data=urdf)), log_time=time.time_ns()
-        )
-        poses = self.scene.everything().poses
-        self.channels["/tf_static"].log(self._tf(poses), log_time=time.time_ns())
-
-    def _tf(self, poses: dict[str, Pose]) -> bytes:
-        return tf_message(self._encode_tf, poses, time.time_ns())
+        super().close()
 
     def step(self) -> None:
         """Apply the latest joint states; send the links that moved on ``/tf``."""
@@ -276,19 +334,9 @@ class FoxgloveView:
                 self.scene.set_wheel_command(slot, {s.name: s.velocity for s in samples}, now)
         self.scene.expire_wheel_commands(now)
         changes = self.scene.changes()
-        if changes.poses:
-            self.channels["/tf"].log(self._tf(changes.poses), log_time=time.time_ns())
-        if changes.twists:
-            stamp = time.time_ns()
-            markers = twist_markers(self._encode_markers, changes.twists, stamp)
-            self.channels[WHEEL_TWIST].log(markers, log_time=stamp)
-
-    def run(self, until: Callable[[], bool]) -> None:
-        """Step every :attr:`period` seconds until ``until()`` says stop."""
-        while not until():
-            started = time.monotonic()
-            self.step()
-            time.sleep(max(0.0, self.period - (time.monotonic() - started)))
+        stamp = time.time_ns()
+        self._send_tf(changes.poses, stamp)
+        self._send_twists(changes.twists, stamp)
 
 
 class _Listener:
@@ -299,4 +347,4 @@ class _Listener:
 
     def on_subscribe(self, _client: Any, channel: Any) -> None:
         if channel.topic in ("/robot_description", "/tf_static"):
-            self.view._send_description()
+            self.view._send_description(time.time_ns())
