@@ -11,7 +11,10 @@ opens later.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -232,39 +235,19 @@ def view_bag(
         raise InputError("--no-serve shows nothing: give --save FILE.rrd too")
     require_rerun()
 
-    from rich.progress import BarColumn, Progress, TextColumn
-
-    from components.assembly import AssemblyError, load_assembly
     from msctl.console import err
     from msctl.view.bag import draw_bag
     from msctl.view.rerun_sink import RerunSink
-    from msctl.view.scene import SceneError, scene_of
     from msctl.view.window import Showing
 
-    try:
-        assembly = load_assembly()
-        scene = scene_of(assembly)
-    except (AssemblyError, SceneError) as exc:
-        raise NotFoundError(
-            f"{exc}", hint="a bag is drawn with this computer's resolved assembly"
-        ) from exc
+    assembly, scene = _bag_assembly()
     scene.changes()
     grpc = (grpc_port or free_port()) if serve else None
     sink = RerunSink(save=save, serve=grpc, recording_name=bag.name, eye=scene.eye())
     shown = Showing(sink, window, port, bag.name)
     try:
-        with Progress(
-            TextColumn("reading {task.description}"),
-            BarColumn(),
-            TextColumn("{task.percentage:>3.0f}%"),
-            console=err,
-            transient=True,
-            disable=not err.is_terminal,
-        ) as progress:
-            task = progress.add_task(bag.name, total=1.0)
-            report = draw_bag(
-                bag, assembly, scene, sink, lambda done: progress.update(task, completed=done)
-            )
+        with _reading(bag) as advance:
+            report = draw_bag(bag, assembly, scene, sink, advance)
         for module in report.unknown_modules:
             err.print(
                 f"[yellow]{bag}: /{module} was recorded but {assembly.template} has no such "
@@ -301,30 +284,12 @@ def view_bag_foxglove(bag: Path, port: int, duration: float) -> None:
         raise InputError(f"--port must be a TCP port (0-65535), not {port}")
     require_foxglove()
 
-    from rich.progress import BarColumn, Progress, TextColumn
-
-    from components.assembly import AssemblyError, load_assembly
     from msctl.console import err, out
     from msctl.view.bag_foxglove import BagFoxglove, read_bag
-    from msctl.view.scene import SceneError, scene_of
 
-    try:
-        assembly = load_assembly()
-        scene = scene_of(assembly)
-    except (AssemblyError, SceneError) as exc:
-        raise NotFoundError(
-            f"{exc}", hint="a bag is drawn with this computer's resolved assembly"
-        ) from exc
-    with Progress(
-        TextColumn("reading {task.description}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>3.0f}%"),
-        console=err,
-        transient=True,
-        disable=not err.is_terminal,
-    ) as progress:
-        task = progress.add_task(bag.name, total=1.0)
-        recorded = read_bag(bag, lambda done: progress.update(task, completed=done))
+    assembly, scene = _bag_assembly()
+    with _reading(bag) as advance:
+        recorded = read_bag(bag, advance)
     for topic in recorded.fixed:
         err.print(
             f"[yellow]{bag}: {topic}'s schema names its dependencies pkg/msg/Type: "
@@ -347,3 +312,40 @@ def view_bag_foxglove(bag: Path, port: int, duration: float) -> None:
             "plays, pauses, seeks (Ctrl-C to stop)"
         )
         player.run(_until(stop, duration))
+
+
+def _bag_assembly() -> tuple[Any, Any]:
+    """This computer's resolved assembly and its scene, with which a bag is drawn.
+
+    Raises:
+        NotFoundError: If there is none, or it cannot be drawn.
+    """
+    from components.assembly import AssemblyError, load_assembly
+    from msctl.view.scene import SceneError, scene_of
+
+    try:
+        assembly = load_assembly()
+        return assembly, scene_of(assembly)
+    except (AssemblyError, SceneError) as exc:
+        raise NotFoundError(
+            f"{exc}", hint="a bag is drawn with this computer's resolved assembly"
+        ) from exc
+
+
+@contextlib.contextmanager
+def _reading(bag: Path) -> Iterator[Callable[[float], None]]:
+    """A progress bar while ``bag`` is read; yields what to call with the share done."""
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from msctl.console import err
+
+    with Progress(
+        TextColumn("reading {task.description}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        console=err,
+        transient=True,
+        disable=not err.is_terminal,
+    ) as progress:
+        task = progress.add_task(bag.name, total=1.0)
+        yield lambda done: progress.update(task, completed=done)
