@@ -134,6 +134,20 @@ def test_health_takes_any_bound_without_an_internal_error(
         assert snapshot(home) == before, args
 
 
+@pytest.mark.parametrize(
+    ("flag", "value"),
+    [("--timeout", "nan"), ("--timeout", "inf"), ("--for", "nan"), ("--for", "inf")],
+)
+def test_health_refuses_bounds_that_are_no_number_of_seconds(
+    home: Path, flag: str, value: str
+) -> None:
+    """Found by the property above: `health --once --timeout nan` was an internal error
+    (exit 70, 'cannot convert float NaN to integer'); nan passed the `<= 0` check."""
+    code, _, stderr = msctl("health", "--once", flag, value)
+    assert code == 2, stderr
+    assert stderr.startswith(f"error: {flag} must be") and f"not {value}" in stderr, stderr
+
+
 def test_a_watch_that_never_connected_leaves_the_last_session_alone(home: Path) -> None:
     """Found by the property above: `health --watch` with no router recorded an empty
     session (and said "watching") before it connected, and `health --alarms` then showed

@@ -47,10 +47,13 @@ def command(
     chosen = [name for name, on in modes if on]
     if len(chosen) > 1:
         raise InputError(f"{' and '.join(chosen)} cannot be combined: pick one")
-    if timeout <= 0:
-        raise InputError(f"--timeout must be positive, not {timeout}")
-    if duration < 0:
-        raise InputError(f"--for must be 0 or more seconds, not {duration}")
+    # Written so that nan fails too (every comparison with it is false).
+    if not timeout > 0 or timeout == float("inf"):
+        raise InputError(f"--timeout must be positive (finite seconds), not {timeout}")
+    if not duration >= 0 or duration == float("inf"):
+        raise InputError(
+            f"--for must be 0 or more (finite seconds; 0: until stopped), not {duration}"
+        )
     if json_output and not (once or watch or alarms):
         raise InputError("--json goes with --once, --watch or --alarms (the screen is not JSON)")
     if alarms:
