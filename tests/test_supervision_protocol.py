@@ -310,9 +310,8 @@ def test_a_garbage_process_answer_is_a_typed_error_naming_who_sent_it(garbage: A
 # ---------------------------------------------------------------------- doctor and logs answers
 def test_a_doctor_answer_travels_as_the_dicts_it_replaced_and_reads_back() -> None:
     """Real findings (this computer's version check), sent as the struct: the same JSON as
-    the ``dataclasses.asdict`` payload older agents send, and read back field for field."""
-    import dataclasses
-
+    the ``dataclasses.asdict`` payload older agents send (a dict per finding, its fields in
+    order), and read back field for field."""
     from msctl.net import doctor
 
     found = doctor.version("hl-limb-01", None)
@@ -321,7 +320,11 @@ def test_a_doctor_answer_travels_as_the_dicts_it_replaced_and_reads_back() -> No
         "hl-limb-01",
         [protocol.DoctorFinding(f.host, f.check, f.status, f.detail, f.value) for f in found],
     )
-    older = {"host": "hl-limb-01", "findings": [dataclasses.asdict(f) for f in found]}
+    fields = ("host", "check", "status", "detail", "value")
+    older = {
+        "host": "hl-limb-01",
+        "findings": [{name: getattr(f, name) for name in fields} for f in found],
+    }
     assert msgspec.json.encode(typed) == msgspec.json.encode(older)
     told = protocol.doctor_answer(msgspec.json.decode(msgspec.json.encode(older)))
     assert [doctor.Finding(*msgspec.structs.astuple(f)) for f in told.findings] == found

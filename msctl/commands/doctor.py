@@ -23,10 +23,10 @@ def command(
     ),
 ) -> None:
     """Check this computer (or every one) is ready; exit status 1 on any ERROR."""
-    import dataclasses
     import os
     import socket
 
+    import msgspec
     from rich.markup import escape
     from rich.table import Table
 
@@ -70,7 +70,7 @@ def command(
                 findings += doctor.agreement(findings, check)
     status = doctor.worst(findings)
     if json_output:
-        print_json({"status": status, "findings": [dataclasses.asdict(f) for f in findings]})
+        print_json({"status": status, "findings": [msgspec.structs.asdict(f) for f in findings]})
     else:
         colours = {doctor.OK: "green", doctor.WARN: "yellow", doctor.ERROR: "red"}
         table = Table("host", "check", "status", "detail")

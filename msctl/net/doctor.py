@@ -12,12 +12,12 @@ import os
 import shutil
 import threading
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 from components.motors.emulation import EMULATE_ENV
+from components.supervision.protocol import DoctorFinding
 
 OK, WARN, ERROR = "OK", "WARN", "ERROR"
 #: Clock offsets beyond these break watchdogs and bag timestamps.
@@ -37,23 +37,9 @@ RUNTIME_MODULES = ("zenoh", "msgspec", "rosbags", "numpy", "rich", "typer")
 SIMULATION_MODULES = ("mujoco",)
 
 
-@dataclass(frozen=True)
-class Finding:
-    """One line of the preflight.
-
-    Attributes:
-        host: The computer checked.
-        check: What was checked (``clock``, ``router``, ``bus limb1``...).
-        status: ``OK``, ``WARN`` or ``ERROR``.
-        detail: What was found, and for WARN/ERROR what to do.
-        value: The measured value, when there is one (seconds, bytes, a hash).
-    """
-
-    host: str
-    check: str
-    status: str
-    detail: str
-    value: Any = None
+#: One line of the preflight: the same struct an agent's doctor answer carries on the wire
+#: (host, check, status, detail, value), so a finding is written once.
+Finding = DoctorFinding
 
 
 def version(host: str, lock_file: Path | None) -> list[Finding]:
