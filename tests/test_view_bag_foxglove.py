@@ -133,26 +133,34 @@ class Client:
         self.thread.join(timeout=10)
 
 
-@pytest.fixture
-def played(tmp_path: Path) -> Iterator[tuple[Client, Any, int]]:
-    """The bag played by a BagFoxglove on a free port, a client connected to it."""
+@contextlib.contextmanager
+def playing(bag: Path, assembly: Any, client_type: Any = None) -> Iterator[tuple[Any, Any]]:
+    """``bag`` played by a BagFoxglove on a free port, stepping on a thread, and a client
+    (``client_type``, this module's :class:`Client` by default) connected to it."""
     from msctl.view.bag_foxglove import BagFoxglove, read_bag
     from msctl.view.scene import scene_of
 
-    dragon = resolved_assembly(tmp_path, "dragon")
-    bag, start = write_bag(tmp_path / "dragon_bag")
-    player = BagFoxglove(read_bag(bag), dragon, scene_of(dragon), port=0)
+    player = BagFoxglove(read_bag(bag), assembly, scene_of(assembly), port=0)
     stop = threading.Event()
     with player:
         runner = threading.Thread(target=player.run, args=(stop.is_set,), daemon=True)
         runner.start()
-        client = Client(player.port)
+        client = (client_type or Client)(player.port)
         try:
-            yield client, player, start
+            yield client, player
         finally:
             client.close()
             stop.set()
             runner.join(timeout=10)
+
+
+@pytest.fixture
+def played(tmp_path: Path) -> Iterator[tuple[Client, Any, int]]:
+    """The bag played by a BagFoxglove on a free port, a client connected to it."""
+    dragon = resolved_assembly(tmp_path, "dragon")
+    bag, start = write_bag(tmp_path / "dragon_bag")
+    with playing(bag, dragon) as (client, player):
+        yield client, player, start
 
 
 def palm_height(tf: Any) -> float:

@@ -258,38 +258,29 @@ def test_a_bags_wheel_commands_on_rerun_s_timeline(home: Path, tmp_path: Path) -
 
 
 def test_a_bags_wheel_commands_played_to_foxglove(tmp_path: Path, dragon: Any) -> None:
-    from msctl.view.bag_foxglove import BagFoxglove, read_bag
+    from test_view_bag_foxglove import playing
+
     from msctl.view.foxglove_server import WHEEL_TWIST
 
     bag, start = write_wheel_bag(tmp_path / "wheels_bag")
-    player = BagFoxglove(read_bag(bag), dragon, scene_of(dragon), port=0)
-    stop = threading.Event()
-    with player:
-        runner = threading.Thread(target=player.run, args=(stop.is_set,), daemon=True)
-        runner.start()
-        client = Client(player.port)
-        try:
-            wait_until(lambda: WHEEL_TWIST in client.channels, 30, "advertise")
-            client.subscribe(WHEEL_TWIST, 1)
-            for n, (seek, wheel1) in enumerate(
-                [(0.5, (0, 0.32)), (1.5, (0, -0.16)), (2.9, (2, 0.0)), (0.2, (0, 0.32))]
-            ):
-                at = start + int(seek * SECOND)
-                seen = len(client.received(1))
-                client.socket.send(_seek(at, f"seek-{n}"))
+    with playing(bag, dragon, Client) as (client, _player):
+        wait_until(lambda: WHEEL_TWIST in client.channels, 30, "advertise")
+        client.subscribe(WHEEL_TWIST, 1)
+        for n, (seek, wheel1) in enumerate(
+            [(0.5, (0, 0.32)), (1.5, (0, -0.16)), (2.9, (2, 0.0)), (0.2, (0, 0.32))]
+        ):
+            at = start + int(seek * SECOND)
+            seen = len(client.received(1))
+            client.socket.send(_seek(at, f"seek-{n}"))
 
-                def shown(at: int = at, seen: int = seen) -> dict[str, Any] | None:
-                    later = client.received(1)[seen:]
-                    return arrows(later[-1]) if later else None
+            def shown(at: int = at, seen: int = seen) -> dict[str, Any] | None:
+                later = client.received(1)[seen:]
+                return arrows(later[-1]) if later else None
 
-                got = wait_until(shown, 30, f"the wheels' arrows at {seek} s")
-                action, vector = got["wheel_twist/wheel1"]
-                assert (action, vector[0]) == pytest.approx(wheel1), f"wheel1 at {seek} s"
-                assert got["wheel_twist/wheel2"][1][0] == pytest.approx(-0.32)
-        finally:
-            client.close()
-            stop.set()
-            runner.join(timeout=10)
+            got = wait_until(shown, 30, f"the wheels' arrows at {seek} s")
+            action, vector = got["wheel_twist/wheel1"]
+            assert (action, vector[0]) == pytest.approx(wheel1), f"wheel1 at {seek} s"
+            assert got["wheel_twist/wheel2"][1][0] == pytest.approx(-0.32)
 
 
 def _seek(at: int, request: str) -> bytes:
