@@ -30,21 +30,39 @@ def _accepts(port: int) -> bool:
         return sock.connect_ex(("127.0.0.1", port)) == 0
 
 
+def _start_router(home: Path) -> tuple[subprocess.Popen[bytes], str]:
+    """A `msctl router` listening on a free port: its own listener, not a port another
+    test's router took between our pick and its bind (a free port is only free a moment;
+    that race once let the session open to a live router: CI at 175dbf3)."""
+    from msctl.net.endpoints import _listening_pid
+
+    for _attempt in range(5):
+        port = free_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        router = subprocess.Popen(
+            [sys.executable, "-m", "msctl", "router", "--listen", endpoint, "--for", "280"],
+            env={**os.environ, "MSCTL_HOME": str(home)},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        wait_until(
+            lambda r=router, p=port: (
+                r.poll() is not None or (_accepts(p) and _listening_pid(p) == r.pid)
+            ),
+            60,
+            "the router listens",
+        )
+        if router.poll() is None:
+            return router, endpoint
+        # Its port was taken by another process meanwhile: pick another.
+    pytest.fail("no free port held by the router in 5 attempts")
+
+
 @pytest.fixture(scope="module")
 def frozen_router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A router that listened, then was stopped (SIGSTOP); continued and ended at teardown."""
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    home = tmp_path_factory.mktemp("router-home")
-    router = subprocess.Popen(
-        [sys.executable, "-m", "msctl", "router", "--listen", endpoint, "--for", "280"],
-        env={**os.environ, "MSCTL_HOME": str(home)},
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    router, endpoint = _start_router(tmp_path_factory.mktemp("router-home"))
     try:
-        wait_until(lambda: router.poll() is not None or _accepts(port), 60, "the router listens")
-        assert router.poll() is None
         router.send_signal(signal.SIGSTOP)
         yield endpoint
     finally:
