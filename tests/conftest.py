@@ -100,35 +100,70 @@ def scope_of(nodeid: str) -> str:
     return DRAGON_REHEARSAL[0] if module in DRAGON_REHEARSAL else module
 
 
+def is_rehearsal(scope: str) -> bool:
+    """Whether a unit of work stands up a rehearsal (namespaces, five computers' agents and
+    routers, a simulator each): one of them takes both cores of a CI machine for minutes."""
+    return scope.startswith("tests/test_rehearse_") and scope.endswith("_e2e.py")
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
-    """``loadscope`` with :func:`scope_of` for its units (the module, as before, except the
-    modules of the shared rehearsal, which go to one worker together)."""
+    """``loadscope`` with :func:`scope_of` for its units, one rehearsal at a time.
+
+    Two or three rehearsals at once on two cores (load 60) starved each other's agents and
+    failed CI in its tail (commands over 120 s, a health probe over 60 s); one at a time,
+    each gets the machine it was written for while the other workers run the light units.
+    A worker left with only rehearsals to take while one runs elsewhere waits for it.
+    """
     if config.getvalue("dist") != "loadscope":
         return None
     from xdist.scheduler import LoadScopeScheduling
 
-    class RehearsalScopes(LoadScopeScheduling):
+    class OneRehearsalAtATime(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             return scope_of(nodeid)
 
-    return RehearsalScopes(config, log)
+        def _rehearsing_elsewhere(self, node: Any) -> bool:
+            return any(
+                is_rehearsal(scope) and not all(unit.values())
+                for other, work in self.assigned_work.items()
+                if other is not node
+                for scope, unit in work.items()
+            )
+
+        def _assign_work_unit(self, node: Any) -> None:
+            busy = self._rehearsing_elsewhere(node)
+            eligible = [scope for scope in self.workqueue if not (busy and is_rehearsal(scope))]
+            if not eligible:
+                return  # only rehearsals left, one running elsewhere: wait for it to end
+            self.workqueue.move_to_end(eligible[0], last=False)
+            super()._assign_work_unit(node)
+
+        def mark_test_complete(self, node: Any, item_index: int, duration: float = 0) -> None:
+            super().mark_test_complete(node, item_index, duration)
+            # A worker left waiting (above) is given work when a rehearsal may have ended.
+            for other, work in list(self.assigned_work.items()):
+                if other is not node and not self._pending_of(work):
+                    self._reschedule(other)
+
+    return OneRehearsalAtATime(config, log)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Run the longest units of work first, each unit's tests in order.
 
     xdist's ``loadscope`` hands whole units (:func:`scope_of`) to the workers in collection
-    order: a long unit collected last ran alone at the end while the other workers sat idle
-    (the suite's tail). Longest-first is the classic fix. A unit's length is estimated: a
-    rehearsal (namespaces, five computers' agents) outweighs any count of ``e2e`` tests,
-    which stands in for the length of the rest.
+    order (``--no-loadscope-reorder`` in addopts: by default xdist reorders by the count of
+    tests, which put the few-test rehearsals last, together): a long unit collected last ran
+    alone at the end while the other workers sat idle (the suite's tail). Longest-first is
+    the classic fix. A unit's length is estimated: a rehearsal (namespaces, five computers'
+    agents) outweighs any count of ``e2e`` tests, which stands in for the length of the
+    rest. The scheduler runs the rehearsals one at a time, on whichever worker is free.
     """
     del config
     weight: dict[str, int] = {}
     for item in items:
         scope = scope_of(item.nodeid)
-        rehearsal = scope.startswith("tests/test_rehearse_") and scope.endswith("_e2e.py")
-        weight.setdefault(scope, 1000 if rehearsal else 0)
+        weight.setdefault(scope, 1000 if is_rehearsal(scope) else 0)
         weight[scope] += item.get_closest_marker("e2e") is not None
     order = {module: i for i, module in enumerate(DRAGON_REHEARSAL)}
     items.sort(
