@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 from conftest import wait_until
 
@@ -146,7 +147,8 @@ def agent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Agent]:
 def test_without_a_desired_state_the_agent_stays_idle(agent: Agent):
     agent.rejoin_part()
     assert agent.rejoin is None and agent.launch is None
-    assert "rejoin" not in agent.document()
+    assert agent.document().rejoin is msgspec.UNSET
+    assert b'"rejoin"' not in msgspec.json.encode(agent.document())  # left off the wire
 
 
 def test_a_desired_state_cut_short_is_reported_and_not_acted_on(agent: Agent):
@@ -155,10 +157,10 @@ def test_a_desired_state_cut_short_is_reported_and_not_acted_on(agent: Agent):
     path.write_text('{"format": "msctl-desired-state", "ver')
     agent.rejoin_part()
     assert agent.launch is None
-    report = agent.document()["rejoin"]
-    assert report["outcome"] == "refused" and str(path) in report["message"], report
-    assert report["agent_started"] <= report["at"]
-    assert agent.document()["state"] == "idle"
+    report = agent.document().rejoin
+    assert report.outcome == "refused" and str(path) in report.message, report
+    assert report.agent_started <= report.at
+    assert agent.document().state == "idle"
     assert any(str(path) in line for line in agent.lines)  # type: ignore[attr-defined]
     assert path.exists()  # left for the operator
 
@@ -173,11 +175,11 @@ def test_an_assembly_this_computer_no_longer_resolves_alike_is_refused(
     desired.write(desired_state_path(), wanted(changed))
     agent.rejoin_part()
     assert agent.launch is None
-    report = agent.document()["rejoin"]
-    assert report["outcome"] == "refused"
-    assert "did not bring back dragon" in report["message"]
-    assert "differs from hl-wheel-02's own resolution" in report["message"], report
-    assert "hosts" in report["message"]
+    report = agent.document().rejoin
+    assert report.outcome == "refused"
+    assert "did not bring back dragon" in report.message
+    assert "differs from hl-wheel-02's own resolution" in report.message, report
+    assert "hosts" in report.message
 
 
 @pytest.fixture
@@ -209,7 +211,7 @@ def test_processes_of_the_previous_run_still_alive_are_not_started_twice(
     desired.write(desired_state_path(), wanted(dragon_document))
     agent.rejoin_part()
     assert agent.launch is None
-    message = agent.document()["rejoin"]["message"]
+    message = agent.document().rejoin.message
     assert "still run with no supervisor (wheel2)" in message, message
     assert f"`msctl down` on {HOST}" in message
 

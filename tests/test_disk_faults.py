@@ -54,7 +54,7 @@ def test_the_supervisor_warns_once_per_fault_and_says_when_it_is_over(tmp_path: 
     assert "No space left on device" in events[0] and "still supervising" in events[0]
     assert supervisor.poll() == []  # once, not at every poll
     assert supervisor.faults() == [f"log of limb1: {os.strerror(28)}; 3 lines lost"]
-    assert {p["name"]: p for p in supervisor.snapshot()}["limb1"]["log_lines_lost"] == 3
+    assert {p.name: p for p in supervisor.snapshot()}["limb1"].log_lines_lost == 3
 
     # Room again: the next line goes through, preceded by how many were lost.
     process.log._fd = os.open(good, os.O_WRONLY | os.O_APPEND)  # the disk was freed

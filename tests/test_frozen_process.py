@@ -193,7 +193,7 @@ def test_a_stopped_process_is_unresponsive_then_killed_and_restarted(
         supervisor, lambda: process.state is ProcessState.UNRESPONSIVE, "unresponsive"
     )
     assert any("limb1: unresponsive (no heartbeat for" in e for e in events), events
-    assert supervisor.snapshot()[0]["state"] == "unresponsive"
+    assert supervisor.snapshot()[0].state == "unresponsive"
     os.killpg(first, signal.SIGCONT)
     events = poll_until(supervisor, lambda: process.state is ProcessState.RUNNING, "running")
     assert "limb1: responsive again" in events and process.pid == first

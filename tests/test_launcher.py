@@ -137,9 +137,9 @@ def test_crash_loop_backs_off_doubling_then_fails_with_the_last_error(supervisor
     assert "exited with code 3" in process.last_error
     assert "error: boom 42" in process.last_error  # the line that says why, not the last one
     assert "gave up after 3 restarts" in process.last_error
-    snapshot = {p["name"]: p for p in supervisor.snapshot()}["crasher"]
-    assert snapshot["state"] == "failed" and snapshot["last_error"] == process.last_error
-    log = Path(snapshot["log"]).read_text()
+    snapshot = {p.name: p for p in supervisor.snapshot()}["crasher"]
+    assert snapshot.state == "failed" and snapshot.last_error == process.last_error
+    log = Path(snapshot.log).read_text()
     unstamped = [line[24:] for line in log.splitlines()]  # each line has its time in front
     assert unstamped.count("error: boom 42") == 4 and "exited with code 3" in log
     # A FAILED process stays down.

@@ -11,8 +11,10 @@ answering after each.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import msgspec
@@ -250,6 +252,151 @@ def test_a_ps_answer_reads_the_same_typed_and_by_field_names() -> None:
     for not_one in (b"[]", b"{}", b'{"host": 5}', b'{"host": "a", "components": [7]}', b"x"):
         assert protocol.run_document(not_one) is None, not_one
     assert ps_document([]) is None and ps_document({"host": 5}) is None
+
+
+# ------------------------------------------------------- the run documents supervisors write
+#: A process standing in for a component worker: the run's supervisor starts and stops it like
+#: one (its own process group), it only opens no session. Its last word marks it as msctl's
+#: (what the state file's readers look for on a command line, as they find it on a worker's).
+SLEEPER = [sys.executable, "-c", "import time; time.sleep(300)", "msctl-stand-in"]
+
+
+@pytest.fixture(scope="module")
+def minimal_plan() -> tuple[Any, Any]:
+    """The minimal assembly, resolved from msctl's data, and this host's plan of it, with a
+    component whose kind no code builds (as ``plan_host`` lists one)."""
+    from dataclasses import replace
+
+    from components.assembly import from_document
+    from msctl.assembler import resolve
+    from msctl.launcher.plan import plan_host
+
+    assembly = from_document(resolve("minimal").document)
+    plan = plan_host(assembly, HOST)
+    return assembly, replace(plan, not_built=[("limb1/camera", "camera")])
+
+
+@pytest.fixture
+def run(
+    minimal_plan: tuple[Any, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[Any]:
+    """A real :class:`~msctl.launcher.run.Launch` of the minimal plan as an agent runs it
+    (no control service of its own: asked through its dispatcher directly, and its document
+    says ``agent``), each of its processes a real child, running."""
+    from components.comm.session import SessionSettings
+    from msctl.launcher.run import Launch
+
+    monkeypatch.setenv("MSCTL_HOME", str(tmp_path / "home"))
+    assembly, plan = minimal_plan
+    launch = Launch(
+        assembly,
+        plan,
+        settings=SessionSettings(mode="peer", connect=(), listen=(), multicast=False),
+        serve_control=False,
+    )
+    try:
+        for process in plan.processes:
+            launch.supervisor.add(
+                process.name, SLEEPER, components=[c.name for c in process.components]
+            )
+            launch.supervisor.start(process.name)
+        wait_until(
+            lambda: all(p.pid for p in launch.supervisor.processes.values()),
+            30.0,
+            "every process started",
+        )
+        yield launch
+    finally:
+        launch.shutdown()
+
+
+def _asked_ps(answer: Any) -> str:
+    """The payload a supervisor's dispatcher sends for ``ps`` (what travels)."""
+    replies: list[Any] = []
+    pending = SimpleNamespace(request=SimpleNamespace(verb="ps", args=""), reply=replies.append)
+    answer(pending)
+    assert len(replies) == 1 and replies[0].success, replies
+    return replies[0].payload
+
+
+def test_a_runs_ps_answer_is_its_run_document_and_its_state_file_reads_alike(run: Any) -> None:
+    """What a run answers to ``ps`` decodes into the values it holds, nothing lost; its
+    state file holds the same JSON for the readers that take it as a dict."""
+    from components.supervision.contract import ps_document
+    from msctl.launcher import state
+
+    made = run.document()
+    assert isinstance(made, protocol.RunDocument)
+    payload = _asked_ps(run._answer)
+    typed = protocol.run_document(payload)
+    assert typed is not None
+    assert msgspec.to_builtins(typed) == msgspec.json.decode(payload)  # nothing left out
+    assert b'"rejoin"' not in payload.encode()  # a run has none: never on the wire
+    moving = {"uptime": 0.0, "heartbeat_age": None}  # seconds that pass between two reads
+
+    def still(document: protocol.RunDocument) -> protocol.RunDocument:
+        return msgspec.structs.replace(
+            document,
+            processes=[msgspec.structs.replace(p, **moving) for p in document.processes],
+            components=[msgspec.structs.replace(c, uptime=0.0) for c in document.components],
+        )
+
+    assert still(typed) == still(made)
+    assert (typed.host, typed.template, typed.agent) == (HOST, "minimal", True)
+    assert typed.state == "running" and typed.simulated and typed.off_robot
+    pids = {p.name: p.pid for p in typed.processes}
+    assert pids == {n: p.pid for n, p in run.supervisor.processes.items()}
+    planned = [(c.name, c.process) for c in run.components()]
+    assert [(c.name, c.process) for c in typed.components] == planned
+    assert all(c.pid == pids[c.process] and c.host == HOST for c in typed.components)
+    assert typed.not_built == [protocol.NotBuilt("limb1/camera", "camera")]
+
+    run.write_state()
+    written = state.read_state()
+    assert still(protocol.run_document(written)) == still(typed)
+    assert "rejoin" not in written
+    # Read by its fields, as `msctl ps`, `down` and the agent at its start read it.
+    read = ps_document(written)
+    assert (read["host"], read["template"], read["state"]) == (HOST, "minimal", "running")
+    assert [(c["name"], c["pid"]) for c in read["components"]] == [
+        (c.name, c.pid) for c in typed.components
+    ]
+    assert sorted(state.groups_left(written)) == sorted(pids)
+
+
+def test_an_agents_ps_answer_carries_its_rejoin_only_while_it_has_one(
+    run: Any, tmp_path: Path
+) -> None:
+    """An idle agent answers its idle document, without ``rejoin``; one that reports what it
+    did at its start carries the report (over its run's document) until the next ``down``."""
+    from msctl.launcher.agent import Agent
+
+    agent = Agent(HOST, log=lambda _line: None)
+    try:
+        idle = _asked_ps(agent._answer)
+        assert b'"rejoin"' not in idle.encode()
+        typed = protocol.run_document(idle)
+        assert typed is not None and msgspec.to_builtins(typed) == msgspec.json.decode(idle)
+        assert (typed.host, typed.state, typed.agent, typed.template) == (HOST, "idle", True, None)
+        assert typed.rejoin is msgspec.UNSET and typed.components == []
+
+        agent.launch = run  # the part it brought back by itself at its start
+        agent._report_rejoin("rejoined", f"{HOST} rebooted and rejoined")
+        rejoined = protocol.run_document(_asked_ps(agent._answer))
+        assert rejoined is not None and rejoined.agent and rejoined.template == "minimal"
+        assert [c.name for c in rejoined.components] == [c.name for c in run.components()]
+        assert rejoined.rejoin == agent.rejoin
+        assert rejoined.rejoin.outcome == "rejoined"
+        assert rejoined.rejoin.agent_started <= rejoined.rejoin.at
+
+        payload, _ = agent.handle("down", {})  # what was asked now supersedes the rejoin
+        assert sorted(payload.stopped) == sorted(p.name for p in run.plan.processes)
+        after = _asked_ps(agent._answer)
+        assert b'"rejoin"' not in after.encode()
+        assert protocol.run_document(after).state == "idle"
+    finally:
+        agent._stop_run()
+        agent.router.shutdown()
 
 
 # ----------------------------------------------------------------- restart/stop/start answers

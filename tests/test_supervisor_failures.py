@@ -105,9 +105,9 @@ def test_a_worker_exit_that_says_restarting_cannot_help_fails_at_once(
     assert "built limb1/health_monitor" not in process.last_error
     assert [e for e in events if "FAILED" in e] == [f"limb1: FAILED ({process.last_error})"]
     assert not any("restart" in e for e in events if "FAILED" not in e), events
-    snapshot = {p["name"]: p for p in supervisor.snapshot()}["limb1"]
-    assert snapshot["state"] == "failed" and snapshot["restarts"] == 0
-    assert snapshot["last_error"] == process.last_error
+    snapshot = {p.name: p for p in supervisor.snapshot()}["limb1"]
+    assert snapshot.state == "failed" and snapshot.restarts == 0
+    assert snapshot.last_error == process.last_error
     log = process.log.path.read_text()
     # Printed once (its command line, logged at the start, holds it too: count whole lines).
     assert [line[24:] for line in log.splitlines()].count(f"{CAUSE}, not 'soon'") == 1

@@ -31,6 +31,7 @@ from typing import Any
 import pytest
 from conftest import free_port, wait_until
 
+from components.supervision.protocol import ProcessRow
 from msctl.commands.up import _failure_error
 from msctl.launcher import boot, state
 
@@ -306,15 +307,15 @@ def test_a_cause_every_process_shares_is_printed_once(foreground: Foreground) ->
     assert not foreground.leftovers()
 
 
-def _failed(name: str, components: list[str], cause: str) -> dict[str, Any]:
+def _failed(name: str, components: list[str], cause: str) -> ProcessRow:
     """A FAILED process as a run document holds it."""
-    return {
-        "name": name,
-        "state": "failed",
-        "components": components,
-        "last_error": cause,
-        "log": f"/home/run/logs/{name}.log",
-    }
+    return ProcessRow(
+        name=name,
+        state="failed",
+        components=components,
+        last_error=cause,
+        log=f"/home/run/logs/{name}.log",
+    )
 
 
 def test_processes_failing_alike_are_named_together_before_their_one_cause() -> None:

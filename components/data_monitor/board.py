@@ -42,6 +42,8 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from msgspec import UnsetType
+
 from components.data_monitor.alarms import Alarm, AlarmRecorder
 from components.data_monitor.judgement import (
     SUPERVISOR_FRESH,
@@ -282,15 +284,15 @@ class HealthBoard:
             self._all_dirty()
         self.version += 1
 
-    def _on_rejoin(self, host: str, report: Rejoin | None) -> None:
-        """An agent's ``rejoin`` report (``rejoined`` or ``refused``), or its absence
-        (cleared by the next ``up`` or ``down``).
+    def _on_rejoin(self, host: str, report: Rejoin | UnsetType) -> None:
+        """An agent's ``rejoin`` report (``rejoined`` or ``refused``), or its absence (unset:
+        cleared by the next ``up`` or ``down``).
 
         A new report is an alarm of every row on ``host`` at once, stamped with the agent's
         time (each board that sees it records the same alarm, which merges as one).
         """
         known = self._rejoins.get(host)
-        at = finite(report.at) if report is not None else None
+        at = finite(report.at) if isinstance(report, Rejoin) else None
         if at is None:  # none, or malformed: nothing to show
             if known is not None:
                 del self._rejoins[host]

@@ -365,10 +365,19 @@ class NotBuilt(msgspec.Struct, frozen=True):
 
 class Rejoin(msgspec.Struct, frozen=True):
     """What an agent did at its start with the run it was asked for before (``rejoined`` or
-    ``refused``), at ``at`` (Unix seconds), and why."""
+    ``refused``), at ``at`` (Unix seconds), and why.
+
+    Attributes:
+        outcome: ``rejoined`` or ``refused``.
+        at: When it did (Unix seconds, the agent's clock).
+        agent_started: When the agent's process started (Unix seconds): what ``at`` is
+            timed from.
+        message: What it did, for a person.
+    """
 
     outcome: str = ""
     at: float | None = None
+    agent_started: float | None = None
     message: str = ""
 
 
@@ -394,7 +403,8 @@ class RunDocument(msgspec.Struct, frozen=True):
         processes, components, not_built: Its processes, its components, the planned
             components no code builds here.
         faults: What is wrong with the supervisor's own files (a full disk).
-        rejoin: An agent's rejoin report, until the next ``up`` or ``down``.
+        rejoin: An agent's rejoin report, until the next ``up`` or ``down``; unset (and
+            left off the wire) when there is none.
     """
 
     host: str
@@ -412,7 +422,7 @@ class RunDocument(msgspec.Struct, frozen=True):
     components: list[ComponentRow] = []
     not_built: list[NotBuilt] = []
     faults: list[str] = []
-    rejoin: Rejoin | None = None
+    rejoin: Rejoin | msgspec.UnsetType = msgspec.UNSET
 
 
 def run_document(answer: bytes | str | Mapping[str, Any] | RunDocument) -> RunDocument | None:

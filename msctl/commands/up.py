@@ -8,11 +8,14 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from msctl.errors import InputError, MsctlError, NotFoundError, OperationTimeout
+
+if TYPE_CHECKING:
+    from components.supervision.protocol import ProcessRow
 
 #: Where the router `msctl up` or `msctl agent` starts listens and links: their `--help`'s
 #: epilog.
@@ -349,7 +352,7 @@ def _report_failure(launch: Any, what: str) -> None:
     on the last line); otherwise every component not healthy yet, with its process's log."""
     from msctl.console import err
 
-    failed = [p for p in launch.supervisor.snapshot() if p["state"] == "failed"]
+    failed = [p for p in launch.supervisor.snapshot() if p.state == "failed"]
     if failed:
         shown: set[str] = set()  # processes crashing alike show their traceback once
         for process in launch.failed():
@@ -395,7 +398,7 @@ def _names(text: str, component: str) -> bool:
     return re.search(rf"(?<![\w/]){re.escape(component)}(?![\w/])", text) is not None
 
 
-def _failure_error(failed: list[dict[str, Any]]) -> MsctlError:
+def _failure_error(failed: list[ProcessRow]) -> MsctlError:
     """The one error naming each FAILED process (rows of a run document's ``processes``), the
     component its cause names, and the cause; the others of its process are listed first.
 
@@ -405,31 +408,31 @@ def _failure_error(failed: list[dict[str, Any]]) -> MsctlError:
     """
     from msctl.console import err
 
-    alike: dict[str, list[dict[str, Any]]] = {}
+    alike: dict[str, list[ProcessRow]] = {}
     for process in failed:
-        alike.setdefault(process["last_error"] or "no error printed", []).append(process)
+        alike.setdefault(process.last_error or "no error printed", []).append(process)
     causes = []
     for cause, processes in alike.items():
         if len(processes) > 1:
-            count = sum(len(p.get("components") or []) for p in processes)
-            names = ", ".join(p["name"] for p in processes)
+            count = sum(len(p.components) for p in processes)
+            names = ", ".join(p.name for p in processes)
             causes.append(f"processes {names} ({count} components) failed, each: {cause}")
             continue
         process = processes[0]
-        components = list(process.get("components") or [])
-        named = [c for c in components if _names(process["last_error"], c)] or components
+        components = list(process.components)
+        named = [c for c in components if _names(process.last_error or "", c)] or components
         others = [c for c in components if c not in named]
         if others:
             err.print(
-                f"[dim]not started with it (process {process['name']}): {', '.join(others)}[/]",
+                f"[dim]not started with it (process {process.name}): {', '.join(others)}[/]",
                 highlight=False,
             )
-        who = f"{', '.join(named)} (process {process['name']})" if named else process["name"]
+        who = f"{', '.join(named)} (process {process.name})" if named else process.name
         causes.append(f"{who} failed: {cause}")
     if len(failed) == 1:
-        where = f"log {failed[0]['log']}; see `msctl logs {failed[0]['name']}`"
+        where = f"log {failed[0].log}; see `msctl logs {failed[0].name}`"
     else:
-        where = f"logs in {Path(failed[0]['log']).parent}; see `msctl logs <component>`"
+        where = f"logs in {Path(failed[0].log).parent}; see `msctl logs <component>`"
     return MsctlError("; ".join(causes), hint=where, exit_code=3)
 
 
@@ -441,9 +444,8 @@ def _print_summary(launch: Any, elapsed: float) -> None:
     table = Table(title=f"{launch.assembly.template} up in {elapsed:.2f} s", title_justify="left")
     for column in ("component", "kind", "process", "pid", "state"):
         table.add_column(column)
-    document = launch.document()
-    for c in document["components"]:
-        table.add_row(c["name"], c["kind"], c["process"], str(c["pid"]), c["state"])
+    for c in launch.document().components:
+        table.add_row(c.name, c.kind, c.process, str(c.pid), c.state)
     err.print(table)
     err.print(
         "[dim]Ctrl-C stops everything; `msctl ps`, `msctl logs`, `msctl down` from another shell[/]"
@@ -460,6 +462,7 @@ def _detach(
     kill_unresponsive: float,
     lock: Any,
 ) -> None:
+    from components.supervision.protocol import run_document
     from msctl.console import err
     from msctl.launcher import state
 
@@ -502,11 +505,12 @@ def _detach(
     while time.monotonic() < deadline:
         document = state.read_state()
         if daemon.poll() is not None:
-            document = state.read_state() or {}  # its last word, written as it stopped
+            # Its last word, written as it stopped.
+            last = run_document(state.read_state() or {})
             failed = [
                 p
-                for p in document.get("processes", [])
-                if p["state"] == "failed" and document.get("supervisor_pid") == daemon.pid
+                for p in (last.processes if last is not None else [])
+                if p.state == "failed" and last.supervisor_pid == daemon.pid
             ]
             if failed:
                 raise _failure_error(failed)

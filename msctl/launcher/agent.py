@@ -48,6 +48,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from components import kinds
 from components.assembly import (
     LOCK_NAME,
@@ -131,10 +133,9 @@ class Agent(AgentRequests):
         self.node: Any = None
         #: When this agent's process started (Unix seconds): a rejoin is timed from it.
         self.started_at = _process_start()
-        #: What the agent did at its start with a desired state it found (``outcome``
-        #: ``rejoined`` or ``refused``, ``at``, ``message``); shown in ``ps`` until the next
-        #: ``up`` or ``down``. ``None``: it found none.
-        self.rejoin: dict[str, Any] | None = None
+        #: What the agent did at its start with a desired state it found; shown in ``ps``
+        #: until the next ``up`` or ``down``. ``None``: it found none.
+        self.rejoin: protocol.Rejoin | None = None
 
     def log(self, line: str) -> None:
         """One line about what the agent does, prefixed with its host."""
@@ -270,24 +271,21 @@ class Agent(AgentRequests):
         self.router.shutdown()
         self.log("stopped")
 
-    def document(self) -> dict[str, Any]:
+    def document(self) -> protocol.RunDocument:
         """What ``ps`` returns: the run's document, or an idle host with no components; with
-        ``rejoin`` when the agent found a desired state at its start (see :meth:`rejoin_part`)."""
-        extra = {"rejoin": self.rejoin} if self.rejoin is not None else {}
+        ``rejoin`` when the agent found a desired state at its start (see :meth:`rejoin_part`),
+        left out otherwise."""
         if self.launch is not None:
-            return {**self.launch.document(), "agent": True, **extra}
-        return {
-            **extra,
-            "host": self.host,
-            "agent": True,
-            "template": None,
-            "state": "idle",
-            "supervisor_pid": os.getpid(),
-            "router": self.endpoint,
-            "processes": [],
-            "components": [],
-            "not_built": [],
-        }
+            run = self.launch.document()
+        else:
+            run = protocol.RunDocument(
+                host=self.host,
+                state="idle",
+                supervisor_pid=os.getpid(),
+                router=self.endpoint,
+            )
+        rejoin = self.rejoin if self.rejoin is not None else msgspec.UNSET
+        return msgspec.structs.replace(run, agent=True, rejoin=rejoin)
 
     def _up(self, request: protocol.Up) -> tuple[Any, str]:
         args = json.loads(protocol.wire_form(request)[1])
@@ -500,12 +498,9 @@ class Agent(AgentRequests):
         )
 
     def _report_rejoin(self, outcome: str, message: str) -> None:
-        self.rejoin = {
-            "outcome": outcome,
-            "at": time.time(),
-            "agent_started": self.started_at,
-            "message": message,
-        }
+        self.rejoin = protocol.Rejoin(
+            outcome=outcome, at=time.time(), agent_started=self.started_at, message=message
+        )
         self.log(message)
 
     def _down(self) -> tuple[Any, str]:
@@ -513,12 +508,12 @@ class Agent(AgentRequests):
         if self.launch is None:
             message = f"nothing was running on {self.host}"
             message += f" ({forgot})" if forgot else ""
-            return {"host": self.host, "stopped": []}, message
+            return protocol.DownAnswer(self.host, stopped=[]), message
         template = self.launch.assembly.template
         stopped = self._stop_run()
         self.log(f"down {template}: stopped {', '.join(stopped) or 'nothing'}; idle")
         answer = f"stopped ({forgot})" if forgot else "stopped"
-        return {"host": self.host, "template": template, "stopped": stopped}, answer
+        return protocol.DownAnswer(self.host, template, stopped), answer
 
     def _stop_run(self) -> list[str]:
         """Stop the run and wait until its processes are gone; returns their names."""

@@ -21,6 +21,7 @@ from components.comm.session import SessionConfigError, SessionSettings, open_se
 from components.ros import rclpy_available
 from components.supervision.contract import AGENT_SRV, host_namespace
 from components.supervision.dispatch import OffLoop
+from components.supervision.protocol import ComponentRow, NotBuilt, RunDocument
 from msctl.launcher import boot, forkserver, state
 from msctl.launcher.plan import HostPlan, ProcessPlan
 from msctl.launcher.requests import RunRequests
@@ -387,44 +388,44 @@ class Launch(RunRequests):
                 )
         return views
 
-    def document(self) -> dict[str, Any]:
-        """What ``ps`` and the state file hold."""
+    def document(self) -> RunDocument:
+        """What ``ps`` answers and the state file holds."""
         processes = self.supervisor.snapshot()
-        by_process = {p["name"]: p for p in processes}
-        return {
-            "host": self.plan.host,
-            "template": self.assembly.template,
-            "simulated": self.plan.simulated,
-            "off_robot": self.plan.off_robot,
+        by_process = {p.name: p for p in processes}
+        return RunDocument(
+            host=self.plan.host,
+            template=self.assembly.template,
+            simulated=self.plan.simulated,
+            off_robot=self.plan.off_robot,
             # Whether its router runs the generated config (what crosses the radio is then
             # filtered: a recorder here reads it, msctl.recorder.recorder.radio_thinned).
-            "secure": os.environ.get("MSCTL_SECURE") == "1",
-            "supervisor_pid": os.getpid(),
+            secure=os.environ.get("MSCTL_SECURE") == "1",
+            supervisor_pid=os.getpid(),
             # An agent's run is stopped by asking the agent, never by signalling it.
-            "agent": not self.serve_control,
-            "router": self.endpoint,
-            "started_router": self.started_router,
-            "started": self._started,
-            "state": "stopped" if self._stop else "running",
-            "processes": processes,
-            "components": [
-                {
-                    "name": c.name,
-                    "kind": c.kind,
-                    "host": self.plan.host,
-                    "process": c.process,
-                    "state": c.state,
-                    "pid": by_process[c.process]["pid"],
-                    "uptime": by_process[c.process]["uptime"],
-                    "restarts": by_process[c.process]["restarts"],
-                    "last_error": by_process[c.process]["last_error"],
-                }
+            agent=not self.serve_control,
+            router=self.endpoint,
+            started_router=self.started_router,
+            started=self._started,
+            state="stopped" if self._stop else "running",
+            processes=processes,
+            components=[
+                ComponentRow(
+                    name=c.name,
+                    kind=c.kind,
+                    host=self.plan.host,
+                    process=c.process,
+                    state=c.state,
+                    pid=by_process[c.process].pid,
+                    uptime=by_process[c.process].uptime,
+                    restarts=by_process[c.process].restarts,
+                    last_error=by_process[c.process].last_error,
+                )
                 for c in self.components()
             ],
-            "not_built": [{"name": n, "kind": k} for n, k in self.plan.not_built],
+            not_built=[NotBuilt(n, k) for n, k in self.plan.not_built],
             # What is wrong with the supervisor's own files (a full disk): `ps` warns of it.
-            "faults": self.supervisor.faults() + ([self._state_fault] if self._state_fault else []),
-        }
+            faults=self.supervisor.faults() + ([self._state_fault] if self._state_fault else []),
+        )
 
     def write_state(self) -> None:
         """Rewrite the state file; a failure (full disk) is reported once, never fatal: the

@@ -213,8 +213,18 @@ def describe_holder(holder: dict[str, Any]) -> str:
     )
 
 
-def write_state(document: dict[str, Any]) -> None:
-    """Replace the state file atomically (a reader never sees half a file)."""
+def write_state(document: Any) -> None:
+    """Replace the state file atomically (a reader never sees half a file).
+
+    Args:
+        document: The run's :class:`~components.supervision.protocol.RunDocument` (written
+            as msgspec encodes it, the same JSON as its ``ps`` answer), or those fields as a
+            dict (``down`` marking a dead supervisor's run stopped).
+    """
+    if not isinstance(document, dict):
+        import msgspec  # only a supervisor writes a struct: `msctl ps` only reads the file
+
+        document = msgspec.to_builtins(document)
     path = state_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     import tempfile  # 3 ms: only the supervisor writes state; `msctl ps` only reads it

@@ -32,11 +32,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
 
 from components.executor.heartbeat import FD_ENV as HEARTBEAT_FD_ENV
 from components.executor.orders import FD_ENV as ORDERS_FD_ENV
 from components.executor.orders import REBUILD, encode
+from components.supervision.protocol import ProcessRow
 from msctl.launcher.forkserver import ForkedProcess, ForkServer, ForkServerError
 from msctl.launcher.process_log import RotatingLog
 
@@ -512,28 +512,28 @@ class Supervisor:
             process.state_before_silence = None
 
     # ------------------------------------------------------------------ reporting
-    def snapshot(self, now: float | None = None) -> list[dict[str, Any]]:
-        """Every process's state, for ``ps`` and the state file."""
+    def snapshot(self, now: float | None = None) -> list[ProcessRow]:
+        """Every process's state, as the rows of a run document (``ps``, the state file)."""
         now = time.monotonic() if now is None else now
         return [
-            {
-                "name": p.name,
-                "state": p.state.value,
-                "pid": p.pid,
-                "pgid": p.pid,
-                "uptime": round(p.uptime(now), 1),
-                "restarts": p.restarts,
-                "last_error": p.last_error,
+            ProcessRow(
+                name=p.name,
+                state=p.state.value,
+                pid=p.pid,
+                pgid=p.pid,
+                uptime=round(p.uptime(now), 1),
+                restarts=p.restarts,
+                last_error=p.last_error,
                 # Seconds since its last heartbeat (None: it has none, or none yet).
-                "heartbeat_age": (
+                heartbeat_age=(
                     round(now - p.last_beat, 1)
                     if p.last_beat is not None and p.pid is not None
                     else None
                 ),
-                "log": str(p.log.path),
-                "log_lines_lost": p.log.dropped,
-                "components": list(p.components),
-            }
+                log=str(p.log.path),
+                log_lines_lost=p.log.dropped,
+                components=list(p.components),
+            )
             for p in self.processes.values()
         ]
 
