@@ -15,12 +15,13 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
+from dynamixel_sdk import COMM_SUCCESS, PacketHandler
 from motor_rigs import DYNAMIXEL_OPTIONS, TICK, XM430
 
 from components.motors.base import MotorCommand, MotorError, MotorSpec, backend_class
 from components.motors.dynamixel.backend import DynamixelBackend
 from components.motors.dynamixel.control_table import BUS_WATCHDOG_EXPIRED
+from components.motors.dynamixel.port import LatencyAwarePort
 from components.motors.dynamixel.units import MODELS, JointUnits
 from components.motors.emulation.dynamixel import (
     EmulatedDynamixelChain,
@@ -116,7 +117,9 @@ def test_stuffing_round_trip_and_parser() -> None:
 def test_sdk_unstuffs_what_the_emulator_stuffs(chain: EmulatedDynamixelChain) -> None:
     # Goal Position bytes FF FF FD 00 force the emulator to stuff its status packet.
     chain.set_register(1, "goal_position", 0x00FDFFFF)
-    port = PortHandler(chain.port)
+    # The SDK's own read path; only its reply timeout is widened (16 ms latency hard-coded:
+    # the emulator's thread answered later than that on a loaded machine, COMM_RX_TIMEOUT).
+    port = LatencyAwarePort(chain.port, latency_timer_ms=1000.0)
     assert port.openPort()
     try:
         value, result, error = PacketHandler(2.0).read4ByteTxRx(port, 1, 116)

@@ -98,11 +98,20 @@ def test_cut_from_the_ground_every_module_holds_itself_then_is_ok_again(stage: S
     try:
 
         def held_on_its_computer(module: str) -> tuple[float, list[dict[str, Any]]]:
-            # Read on the robot computer itself: the ground cannot hear it now.
+            last: dict[str, Any] = {"modules": []}
+
+            def held() -> list[dict[str, Any]]:
+                # Read on the robot computer itself: the ground cannot hear it now.
+                last.update(health(stage, ROBOTS[module]))
+                return all_motors_held(last, module)
+
             items = wait_until(
-                lambda: all_motors_held(health(stage, ROBOTS[module]), module),
+                held,
                 timeout=3.0 + BOUND,
-                what=f"{module}'s presence hold in its own health on {ROBOTS[module]}",
+                what=lambda: (
+                    f"{module}'s presence hold in its own health on "
+                    f"{ROBOTS[module]}; its last row there: {row(last, module)}"
+                ),
             )
             return time.monotonic() - cut, items
 
