@@ -216,3 +216,26 @@ def test_every_step_of_rehearse_up_takes_from_one_budget() -> None:
     said = str(spent.value)
     assert "`msctl up --all` did not finish within 60 s" in said and "one budget" in said
     assert spent.value.exit_code == 5
+
+
+def test_a_step_killed_by_a_signal_is_named_a_crash_with_its_last_output(
+    dragon: object, tmp_path: Path
+) -> None:
+    import subprocess
+
+    from msctl.rehearse.privileges import RehearseError
+    from msctl.rehearse.start import _check
+
+    ground = rh.plan_computers(dragon, tmp_path, "wifi", {})[-1]
+    traceback = "Fatal Python error: Segmentation fault\n\nThread 0x1 (most recent call first):\n"
+    crashed = subprocess.CompletedProcess(["msctl"], -11, "", "asking...\n" + traceback)
+    with pytest.raises(RehearseError) as caught:
+        _check(crashed, ground, "msctl up --all")
+    said = str(caught.value)
+    assert "`msctl up --all` crashed on ground1 (SIGSEGV)" in said
+    assert "Fatal Python error: Segmentation fault" in said and "most recent call first" in said
+    said_last = "one\nno agent answered for hl-limb-01\n"
+    failed = subprocess.CompletedProcess(["msctl"], 3, "", said_last)
+    with pytest.raises(RehearseError) as caught:
+        _check(failed, ground, "msctl up --all")
+    assert str(caught.value).endswith("failed on ground1 (3): no agent answered for hl-limb-01")

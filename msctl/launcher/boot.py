@@ -23,6 +23,7 @@ something to close (``components.executor.worker``'s ``main``, ``msctl router``'
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import runpy
 import signal
 import sys
@@ -67,6 +68,8 @@ def run(module: str, args: list[str]) -> None:
     """Run ``module`` as ``__main__`` with ``args``, SIGINT ending it at once until it sets its
     own handling (also what a worker forked by :mod:`msctl.launcher.forkserver_process` does)."""
     _default_sigint()
+    # A crash in native code leaves where each thread was in the process's log.
+    faulthandler.enable()
     # As `python -m MODULE ARG ...` would see it (runpy sets argv[0] to the module's file).
     sys.argv = [sys.argv[0], *args]
     runpy.run_module(module, run_name="__main__", alter_sys=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -33,6 +34,8 @@ if TYPE_CHECKING:
 SUBNET = "10.77.0.0/24"
 #: Seconds a computer's agent has to answer on the fleet after it starts.
 AGENTS_WITHIN = 120.0
+#: Lines of a crashed step's output shown (a fault handler's traceback is about this long).
+CRASH_LINES = 40
 
 
 def left(deadline: float, step: str, budget: float) -> float:
@@ -125,6 +128,13 @@ def _on_every(rehearsal: Rehearsal, argv: list[str], timeout: float) -> None:
 def _check(done: subprocess.CompletedProcess[str], computer: Computer, what: str) -> None:
     if done.returncode != 0:
         lines = (done.stderr or done.stdout).strip().splitlines()
+        if done.returncode < 0:
+            # Killed by a signal (a crash): its last words, a fault handler's traceback too.
+            said = "\n".join(lines[-CRASH_LINES:]) if lines else "no output"
+            raise RehearseError(
+                f"`{what}` crashed on {computer.name} "
+                f"({signal.Signals(-done.returncode).name}); its last output:\n{said}"
+            )
         raise RehearseError(
             f"`{what}` failed on {computer.name} ({done.returncode}): "
             f"{lines[-1] if lines else 'no output'}"
