@@ -259,20 +259,23 @@ def test_a_ps_answer_reads_the_same_typed_and_by_field_names() -> None:
 #: one (its own process group), it only opens no session. Its last word marks it as msctl's
 #: (what the state file's readers look for on a command line, as they find it on a worker's).
 SLEEPER = [sys.executable, "-c", "import time; time.sleep(300)", "msctl-stand-in"]
+#: The minimal assembly's one computer.
+ROBOT = "hl-limb-01"
 
 
 @pytest.fixture(scope="module")
 def minimal_plan() -> tuple[Any, Any]:
-    """The minimal assembly, resolved from msctl's data, and this host's plan of it, with a
-    component whose kind no code builds (as ``plan_host`` lists one)."""
+    """The minimal assembly, resolved from msctl's data, and its computer's part of it as its
+    agent runs it simulated, with a component whose kind no code builds (as ``plan_host``
+    lists one)."""
     from dataclasses import replace
 
     from components.assembly import from_document
     from msctl.assembler import resolve
-    from msctl.launcher.plan import plan_host
+    from msctl.launcher.part import plan_part
 
     assembly = from_document(resolve("minimal").document)
-    plan = plan_host(assembly, HOST)
+    plan = plan_part(assembly, ROBOT, sim=True)
     return assembly, replace(plan, not_built=[("limb1/camera", "camera")])
 
 
@@ -342,13 +345,13 @@ def test_a_runs_ps_answer_is_its_run_document_and_its_state_file_reads_alike(run
         )
 
     assert still(typed) == still(made)
-    assert (typed.host, typed.template, typed.agent) == (HOST, "minimal", True)
-    assert typed.state == "running" and typed.simulated and typed.off_robot
+    assert (typed.host, typed.template, typed.agent) == (ROBOT, "minimal", True)
+    assert typed.state == "running" and typed.simulated and not typed.off_robot
     pids = {p.name: p.pid for p in typed.processes}
     assert pids == {n: p.pid for n, p in run.supervisor.processes.items()}
     planned = [(c.name, c.process) for c in run.components()]
     assert [(c.name, c.process) for c in typed.components] == planned
-    assert all(c.pid == pids[c.process] and c.host == HOST for c in typed.components)
+    assert all(c.pid == pids[c.process] and c.host == ROBOT for c in typed.components)
     assert typed.not_built == [protocol.NotBuilt("limb1/camera", "camera")]
 
     run.write_state()
@@ -357,7 +360,7 @@ def test_a_runs_ps_answer_is_its_run_document_and_its_state_file_reads_alike(run
     assert "rejoin" not in written
     # Read by its fields, as `msctl ps`, `down` and the agent at its start read it.
     read = ps_document(written)
-    assert (read["host"], read["template"], read["state"]) == (HOST, "minimal", "running")
+    assert (read["host"], read["template"], read["state"]) == (ROBOT, "minimal", "running")
     assert [(c["name"], c["pid"]) for c in read["components"]] == [
         (c.name, c.pid) for c in typed.components
     ]
@@ -371,23 +374,34 @@ def test_an_agents_ps_answer_carries_its_rejoin_only_while_it_has_one(
     did at its start carries the report (over its run's document) until the next ``down``."""
     from msctl.launcher.agent import Agent
 
-    agent = Agent(HOST, log=lambda _line: None)
+    agent = Agent(ROBOT, log=lambda _line: None)
     try:
         idle = _asked_ps(agent._answer)
         assert b'"rejoin"' not in idle.encode()
         typed = protocol.run_document(idle)
         assert typed is not None and msgspec.to_builtins(typed) == msgspec.json.decode(idle)
-        assert (typed.host, typed.state, typed.agent, typed.template) == (HOST, "idle", True, None)
+        assert (typed.host, typed.state, typed.agent, typed.template) == (ROBOT, "idle", True, None)
         assert typed.rejoin is msgspec.UNSET and typed.components == []
 
         agent.launch = run  # the part it brought back by itself at its start
-        agent._report_rejoin("rejoined", f"{HOST} rebooted and rejoined")
+        agent._report_rejoin("rejoined", f"{ROBOT} rebooted and rejoined")
         rejoined = protocol.run_document(_asked_ps(agent._answer))
         assert rejoined is not None and rejoined.agent and rejoined.template == "minimal"
         assert [c.name for c in rejoined.components] == [c.name for c in run.components()]
         assert rejoined.rejoin == agent.rejoin
         assert rejoined.rejoin.outcome == "rejoined"
         assert rejoined.rejoin.agent_started <= rejoined.rejoin.at
+
+        # The same up again (its answer lost on a radio link): what runs, as an UpAnswer.
+        asked = {"assembly": run.assembly.document, "sim": True}
+        up, said = agent.handle("up", asked)
+        assert said == "already running"
+        part = protocol.up_answer(msgspec.json.encode(up))
+        assert part == up
+        assert (part.host, part.template, part.simulated) == (ROBOT, "minimal", True)
+        assert part.processes == [p.name for p in run.plan.processes]
+        assert part.components == [c.name for c in run.plan.components]
+        assert part.not_built == [protocol.NotBuilt("limb1/camera", "camera")]
 
         payload, _ = agent.handle("down", {})  # what was asked now supersedes the rejoin
         assert sorted(payload.stopped) == sorted(p.name for p in run.plan.processes)
@@ -452,6 +466,27 @@ def test_a_garbage_process_answer_is_a_typed_error_naming_who_sent_it(garbage: A
     with pytest.raises(protocol.AnswerError, match="the supervisor of hl-01 answered stop") as e:
         protocol.process_answer(garbage, "stop", "the supervisor of hl-01")
     assert isinstance(e.value, LinkError)
+
+
+# ------------------------------------------------------------------------------ up answers
+def test_an_up_answer_travels_as_the_dict_it_replaced_and_garbage_is_a_typed_error() -> None:
+    """The agent's ``up`` answer as older agents sent it (a dict, its fields in this order)
+    is the struct's JSON; one from an older or newer agent reads, garbage names its sender."""
+    older = {
+        "host": "hl-wheel-02",
+        "template": "dragon",
+        "simulated": True,
+        "processes": ["wheel2"],
+        "components": ["wheel2/joint_manager", "wheel2/health_monitor"],
+        "not_built": [{"name": "wheel2/camera", "kind": "camera"}],
+    }
+    typed = protocol.up_answer(msgspec.json.encode(older))
+    assert msgspec.json.encode(typed) == msgspec.json.encode(older)
+    assert typed.not_built == [protocol.NotBuilt("wheel2/camera", "camera")]
+    assert protocol.up_answer({"host": "h", "newer": 1}).components == []
+    for garbage in (b"x", b"[]", b"{}", {"host": "h", "components": "wheel2"}):
+        with pytest.raises(protocol.AnswerError, match="the agent of h answered up"):
+            protocol.up_answer(garbage, "the agent of h")
 
 
 # ---------------------------------------------------------------------- doctor and logs answers

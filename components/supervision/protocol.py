@@ -425,6 +425,26 @@ class RunDocument(msgspec.Struct, frozen=True):
     rejoin: Rejoin | msgspec.UnsetType = msgspec.UNSET
 
 
+class UpAnswer(msgspec.Struct, frozen=True):
+    """What an agent answers to ``up``: the part of the assembly it starts (or already runs).
+
+    Attributes:
+        host: The agent's host.
+        template: The assembly's template.
+        simulated: Whether its motors are simulated.
+        processes: The processes it starts.
+        components: The components they run (``up --all`` waits for each to be healthy).
+        not_built: Its planned components no code builds here.
+    """
+
+    host: str
+    template: str = ""
+    simulated: bool = False
+    processes: list[str] = []
+    components: list[str] = []
+    not_built: list[NotBuilt] = []
+
+
 def run_document(answer: bytes | str | Mapping[str, Any] | RunDocument) -> RunDocument | None:
     """A ``ps`` answer as a :class:`RunDocument`: its JSON payload, the payload already
     parsed, or the struct itself; ``None`` if it is not one (data from the network)."""
@@ -486,6 +506,15 @@ def process_answer(
         AnswerError: If it is not one.
     """
     return decode_answer(answer, ProcessAnswer, verb, source)
+
+
+def up_answer(answer: Any, source: str = "an agent") -> UpAnswer:
+    """An ``up`` answer as an :class:`UpAnswer`.
+
+    Raises:
+        AnswerError: If it is not one.
+    """
+    return decode_answer(answer, UpAnswer, "up", source)
 
 
 def doctor_answer(answer: Any, source: str = "a supervisor") -> DoctorAnswer:

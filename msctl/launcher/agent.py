@@ -307,12 +307,12 @@ class Agent(AgentRequests):
         speed = float(args.get("speed", 1.0))
         payload, message = self._start_part(args["assembly"], sim, speed)
         self.rejoin = None  # what was asked now supersedes what the agent did at its start
-        kept = self._keep_desired(args["assembly"], sim, speed, payload["template"])
+        kept = self._keep_desired(args["assembly"], sim, speed, payload.template)
         return payload, message if kept else f"{message} ({kept.reason})"
 
     def _start_part(
         self, document: Mapping[str, Any], sim: bool | None, speed: float
-    ) -> tuple[dict[str, Any], str]:
+    ) -> tuple[protocol.UpAnswer, str]:
         """Check, resolve and start this computer's part of ``document``.
 
         Raises:
@@ -363,15 +363,15 @@ class Agent(AgentRequests):
             return False
         return plan_part(sent, self.host, args.get("sim")).simulated == self.launch.plan.simulated
 
-    def _up_payload(self, assembly: ResolvedAssembly, plan: HostPlan) -> dict[str, Any]:
-        return {
-            "host": self.host,
-            "template": assembly.template,
-            "simulated": plan.simulated,
-            "processes": [p.name for p in plan.processes],
-            "components": [c.name for c in plan.components],
-            "not_built": [{"name": n, "kind": k} for n, k in plan.not_built],
-        }
+    def _up_payload(self, assembly: ResolvedAssembly, plan: HostPlan) -> protocol.UpAnswer:
+        return protocol.UpAnswer(
+            host=self.host,
+            template=assembly.template,
+            simulated=plan.simulated,
+            processes=[p.name for p in plan.processes],
+            components=[c.name for c in plan.components],
+            not_built=[protocol.NotBuilt(n, k) for n, k in plan.not_built],
+        )
 
     def _prepare(self, document: Mapping[str, Any], sim: bool | None) -> tuple[Any, HostPlan]:
         """Check the document, resolve it from this computer's data, write it, plan it."""

@@ -8,7 +8,7 @@ from msctl.errors import InputError, MsctlError, NetworkError, NotFoundError
 from msctl.launcher.control import RequestError
 
 if TYPE_CHECKING:
-    from components.supervision.protocol import ComponentRow, RunDocument
+    from components.supervision.protocol import ComponentRow, RunDocument, UpAnswer
 
 
 def host_of(component: str, node: Any) -> str:
@@ -236,10 +236,12 @@ def _start_each(
     "unreachable" must not be starting.
 
     Returns:
-        :class:`~msctl.launcher.fanout.Replies`: each started host's answer, and an
-        :class:`Unstarted` for each other.
+        :class:`~msctl.launcher.fanout.Replies`: each started host's
+        :class:`~components.supervision.protocol.UpAnswer`, and an :class:`Unstarted` for
+        each other (one that answered something else is ``refused``, with what it was).
     """
     from components.comm.services import ServiceError
+    from components.supervision.protocol import AnswerError, up_answer
     from msctl.console import err
     from msctl.launcher.control import call_supervisor, host_namespace
     from msctl.launcher.fanout import ask_each
@@ -267,12 +269,16 @@ def _start_each(
             # is a radio link reopening, not an agent gone, so it is asked again for as
             # long as the answer may take (on a 256 kbit/s link losing a fifth of its
             # packets, a robot's route was gone longer than UP_GRACE).
-            return call_supervisor(
+            answered = call_supervisor(
                 node, host, "up", request, answer_bound, grace=answer_bound, attempt=UP_ATTEMPT
             )
         except ServiceError as exc:  # a timeout says how long it waited, and for what
             return Unstarted("unreachable", str(exc))
         except RequestError as exc:
+            return Unstarted("refused", str(exc))
+        try:
+            return up_answer(answered, f"the agent of {host}")
+        except AnswerError as exc:  # not an agent of this msctl: its part is not waited for
             return Unstarted("refused", str(exc))
 
     for host in hosts:
@@ -302,9 +308,7 @@ def _not_running(status: dict[str, Looked]) -> list[str]:
     ]
 
 
-def _wait_healthy(
-    node: Any, started: dict[str, dict[str, Any]], deadline: float
-) -> dict[str, Looked]:
+def _wait_healthy(node: Any, started: dict[str, UpAnswer], deadline: float) -> dict[str, Looked]:
     """Ask every started host what runs (all at once, :func:`fanout.rounds`) until every
     component is healthy or the deadline passes; each host's last ``ps`` (or its error)."""
     from components.comm.services import ServiceError
@@ -313,7 +317,7 @@ def _wait_healthy(
     from msctl.launcher.fanout import progress, rounds
 
     status: dict[str, Looked] = {}
-    total = sum(len(answer.get("components", [])) for answer in started.values())
+    total = sum(len(answer.components) for answer in started.values())
 
     def look(host: str) -> Looked:
         # Each given a round trip to the Moon and back.
@@ -353,7 +357,7 @@ def _show_hosts(template: str, replies: Any, status: dict[str, Looked]) -> None:
         components = _components(looked)
         note = looked if isinstance(looked, str) else ""
         if not components and not note:
-            kinds = sorted({n["kind"] for n in answer.get("not_built", [])})
+            kinds = sorted({n.kind for n in answer.not_built})
             note = "nothing to run" + (
                 f" (not implemented yet: {', '.join(kinds)})" if kinds else ""
             )
