@@ -6,7 +6,6 @@ being imported ends with one line and exit 130, not a traceback.
 
 from __future__ import annotations
 
-import faulthandler
 import os
 import sys
 
@@ -21,8 +20,10 @@ def main() -> None:
     :class:`~components.errors.ComponentError`; its exit code is its category's
     (:func:`msctl.errors.exit_code_of`), here and nowhere else.
     """
+    from msctl.launcher.boot import enable_faulthandler
+
     # A crash in native code (Zenoh, MuJoCo) prints where each thread was, not just "-11".
-    faulthandler.enable()
+    enable_faulthandler()
     try:
         from components.errors import ComponentError
         from msctl.errors import exit_code_of

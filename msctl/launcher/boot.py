@@ -69,7 +69,7 @@ def run(module: str, args: list[str]) -> None:
     own handling (also what a worker forked by :mod:`msctl.launcher.forkserver_process` does)."""
     _default_sigint()
     # A crash in native code leaves where each thread was in the process's log.
-    faulthandler.enable()
+    enable_faulthandler()
     # As `python -m MODULE ARG ...` would see it (runpy sets argv[0] to the module's file).
     sys.argv = [sys.argv[0], *args]
     runpy.run_module(module, run_name="__main__", alter_sys=True)
@@ -84,3 +84,12 @@ def _default_sigint() -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def enable_faulthandler() -> None:
+    """Dump every thread's traceback on a fatal signal, where stderr is a real file (a
+    caller that replaced ``sys.stderr``, e.g. a test capturing it, has none to write to)."""
+    try:
+        faulthandler.enable()
+    except (OSError, ValueError, AttributeError):  # io.UnsupportedOperation: no fileno()
+        pass
