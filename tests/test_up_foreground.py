@@ -277,6 +277,21 @@ def test_boot_runs_the_module_as_main_with_its_arguments(tmp_path: Path) -> None
     assert result.stdout.strip() == "__main__ ['--lock', 'x', '-v'] True"
 
 
+def test_a_booted_process_that_crashes_in_native_code_leaves_its_traceback(tmp_path: Path) -> None:
+    # A segfault (Zenoh's, MuJoCo's) showed only as exit -11; the log now says where it was.
+    (tmp_path / "crashes.py").write_text(
+        "import ctypes\n\ndef where_it_crashed():\n    ctypes.string_at(0)\n\nwhere_it_crashed()\n"
+    )
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
+    env.pop("PYTHONFAULTHANDLER", None)
+    result = subprocess.run(
+        boot.argv("crashes"), env=env, capture_output=True, text=True, timeout=60.0, check=False
+    )
+    assert result.returncode == -signal.SIGSEGV, result.stderr
+    assert "Fatal Python error: Segmentation fault" in result.stderr
+    assert "where_it_crashed" in result.stderr
+
+
 # ------------------------------------------------------------------------------ point 15
 @pytest.mark.e2e
 @pytest.mark.skipif(

@@ -82,10 +82,6 @@ def _default_sigint() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-if __name__ == "__main__":
-    main()
-
-
 def enable_faulthandler() -> None:
     """Dump every thread's traceback on a fatal signal, where stderr is a real file (a
     caller that replaced ``sys.stderr``, e.g. a test capturing it, has none to write to)."""
@@ -93,3 +89,7 @@ def enable_faulthandler() -> None:
         faulthandler.enable()
     except (OSError, ValueError, AttributeError):  # io.UnsupportedOperation: no fileno()
         pass
+
+
+if __name__ == "__main__":
+    main()
