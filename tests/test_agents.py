@@ -409,6 +409,13 @@ def test_unreachable_agent_is_named_and_the_others_start(
     limb_groups = {r["pid"] for r in rows["gl-pi-01"].values()}
     assert agents.stop("gl-pi-01") == 0, agents.logs()
     assert [p for p in limb_groups if process_group_alive(p)] == []
+    # A component planned on a computer that does not answer is that computer's silence,
+    # named, not "nothing ran on this computer" (exit 4: a loaded agent once read so).
+    log = msctl(ground_home, net_env, "logs", "limb2/joint_manager", "-n", "5")
+    assert log.returncode == 3, log.stderr
+    assert "cannot get the log of limb2/joint_manager from gl-pi-01" in " ".join(
+        log.stderr.split()
+    ), log.stderr
 
     # `down --all` stops what it reaches, and names every host of the plan it could not ask
     # (their agents are gone: nothing says their processes are), exit status 1.

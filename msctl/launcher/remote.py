@@ -12,15 +12,28 @@ if TYPE_CHECKING:
 
 
 def host_of(component: str, node: Any) -> str:
+    """The host whose supervisor runs ``component`` (a component or a process).
+
+    Asked of every supervisor on the graph at once. Where none that answered runs it, this
+    computer's own supervisor (alive, its answer lost) or the host this computer's plan puts
+    it on is named, so that the request then goes there and a silence is said as one; a
+    name nobody runs and nobody plans is not found.
+
+    Raises:
+        NotFoundError: If no supervisor that answered runs it and no plan names its host.
+        NetworkError: If the same, but some supervisors did not answer (it may run there).
+    """
     from components.supervision.protocol import run_document
     from msctl.launcher import state
-    from msctl.launcher.fleet import ask_all
+    from msctl.launcher.fleet import ask_all, read_plan
 
     answered: set[str] = set()
     known: list[str] = []
-    for answer in ask_all(node, "ps").values():
+    silent: list[str] = []
+    for namespace, answer in ask_all(node, "ps").items():
         document = run_document(answer)  # None: the host's error, or no ps answer
         if document is None:
+            silent.append(namespace)
             continue
         for c in document.components:
             if component in (c.name, c.process):
@@ -34,8 +47,19 @@ def host_of(component: str, node: Any) -> str:
     # This computer's supervisor, when its answer did not arrive: let it say for itself.
     if local and state.supervisor_alive(local) and local.get("host") not in answered:
         return local["host"]
+    plan = read_plan()
+    planned = [h for h, names in (plan.hosts if plan else {}).items() if component in names]
+    if planned and planned[0] not in answered:
+        # Planned there and that host did not answer with its run: ask it, and say so.
+        return planned[0]
     from msctl.errors import did_you_mean
 
+    if silent:
+        raise NetworkError(
+            f"no supervisor that answered runs {component!r}, and "
+            f"{', '.join(silent)} did not answer: it may run there",
+            hint="check those computers' links and agents (`msctl ps --all`), then try again",
+        )
     near = did_you_mean(component, known)
     raise NotFoundError(
         f"no running supervisor knows {component!r}"
