@@ -102,6 +102,8 @@ class RosPeer:
         self.executor = MultiThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
+        #: What ended the spinning thread early, if anything (a test's failure says it).
+        self.spin_error: BaseException | None = None
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
@@ -109,10 +111,17 @@ class RosPeer:
         while not self._stop.is_set():
             try:
                 self.executor.spin_once(timeout_sec=0.05)
-            except Exception:
+            except Exception as exc:
                 if self._stop.is_set():
                     return
+                self.spin_error = exc
                 raise
+
+    def spinning(self) -> str:
+        """Whether callbacks are still called: ``spinning``, or what stopped it."""
+        if self._thread.is_alive():
+            return "spinning"
+        return f"not spinning: {self.spin_error!r}"
 
     def collect(self, msg_type: Any, topic: str, qos: Any = 10) -> list[Any]:
         """Subscribe to ``topic``; returns the list the messages are appended to."""
