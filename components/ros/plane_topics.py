@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +19,13 @@ from components.comm.qos import QoS
 from components.comm.stats import drops
 from components.comm.topics import INTRUDER
 from components.comm.types import normalize_type_name, registry
+
+#: What rclpy names a publisher whose participant's node names have not arrived yet (DDS
+#: discovers an endpoint before the ``ros_discovery_info`` that names its node).
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+#: Seconds a guarded subscription trusts the publishers it read, their count unchanged: a
+#: publisher replaced by another (the count the same) is read again within this.
+PUBLISHERS_FRESH_S = 1.0
 
 if TYPE_CHECKING:
     from components.ros.plane import RclpyNode
@@ -146,6 +154,7 @@ class RclpySubscription:
         self._reason = INTRUDER
         self._lock = threading.Lock()
         self._seen_publishers = -1  # publisher count when the intruders were last read
+        self._read_at = 0.0  # when (monotonic) they were read
         self._intruders: list[str] = []
         self._warned: set[str] = set()
         self.received = 0
@@ -189,14 +198,18 @@ class RclpySubscription:
             return []
         ros = self._node.ros
         count = ros.count_publishers(self.topic)
+        now = time.monotonic()
         with self._lock:
-            if count != self._seen_publishers:
-                nodes = {
-                    f"{info.node_namespace.rstrip('/')}/{info.node_name}"
-                    for info in ros.get_publishers_info_by_topic(self.topic)
-                }
+            if count != self._seen_publishers or now - self._read_at > PUBLISHERS_FRESH_S:
+                infos = ros.get_publishers_info_by_topic(self.topic)
+                nodes = {f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos}
                 self._intruders = sorted(n for n in nodes if n not in senders)
-                self._seen_publishers = count
+                # A publisher whose node is not named yet is refused for now and read again
+                # at the next sample: kept, it refused the module's own motor interface for
+                # good once its name came (the count unchanged).
+                named = not any(i.node_name == UNKNOWN_NODE for i in infos)
+                self._seen_publishers = count if named else -1
+                self._read_at = now
             return self._intruders
 
     def _on_sample(self, payload: bytes) -> None:
